@@ -1,0 +1,74 @@
+"""The one ``egosurg`` command.
+
+Each subcommand lives in its own module with a ``main(argv) -> int``. This dispatcher names those
+modules only as strings and imports one only when its subcommand runs, so ``egosurg agent`` on a
+small edge node never loads torch or open3d, and protocol/ keeps importing none of the other
+packages at import time.
+
+Example::
+
+    egosurg sim frames --out frames/ --t-start 0 --t-end 1
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+from protocol.errors import UserError
+
+# name -> (module, one-line summary). Order is the order shown in --help.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("sim.demo", "run the whole chain on the simulated rig and write pictures"),
+    "sim": ("sim.cli", "the simulated operating room: frames, factory files, virtual views"),
+}
+
+
+def _usage() -> str:
+    width = max(len(n) for n in COMMANDS)
+    rows = "\n".join(f"  {n.ljust(width)}  {summary}" for n, (_, summary) in COMMANDS.items())
+    return (
+        "usage: egosurg [-v] <command> [options]\n\n"
+        "Turn an operating room's wall-mounted stereo cameras into a navigable 3D record.\n\n"
+        f"commands:\n{rows}\n\n"
+        "Run 'egosurg <command> --help' for a command's options and an example."
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = list(sys.argv[1:] if argv is None else argv)
+    level = logging.INFO
+    while args and args[0] in ("-v", "--verbose", "-q", "--quiet"):
+        level = logging.DEBUG if args.pop(0) in ("-v", "--verbose") else logging.WARNING
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if not args or args[0] in ("-h", "--help", "help"):
+        print(_usage())
+        return 0
+    name, rest = args[0], args[1:]
+    if name not in COMMANDS:
+        print(f"egosurg: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
+        return 2
+    module_name = COMMANDS[name][0]
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        print(
+            f"egosurg {name}: cannot load {module_name}: {exc}. Install the full product with "
+            "'pip install egosurg' (the edge-only 'egosurg[agent]' lacks this command).",
+            file=sys.stderr,
+        )
+        return 2
+    try:
+        return int(module.main(rest) or 0)
+    except UserError as exc:
+        print(f"egosurg {name}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"egosurg {name}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

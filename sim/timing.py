@@ -1,0 +1,114 @@
+"""Free-running camera clocks with known truth.
+
+Real ZED X units on two Jetsons are not triggered together: each runs at its own phase, its crystal
+is a few ppm off, its timestamps jitter, and now and then a frame is lost. A ``FrameClock`` produces
+exactly that, deterministically, so the capture side can be tested against known truth:
+
+- exposure time of frame ``i``: ``phase + i * period * (1 + ppm * 1e-6)`` seconds of sim time;
+- stamp (what the ZED SDK reports, the host clock when the frame is complete):
+  ``epoch + exposure + readout latency + jitter``, in Unix ns;
+- dropped: frame ``i`` never leaves the camera.
+
+Every random draw is keyed by (seed, serial, frame index), so any time range can be asked for in any
+order and gives the same frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from protocol.errors import UserError
+
+SIM_EPOCH_UNIX_NS = 1_767_225_600_000_000_000  # 2026-01-01T00:00:00Z: sim time 0
+
+
+class SimTimeError(UserError, ValueError):
+    """A time that the simulation cannot show."""
+
+
+def require_time(t_s: float) -> float:
+    t = float(t_s)
+    if not np.isfinite(t) or t < 0:
+        raise SimTimeError(f"time {t_s} s is invalid: sim time starts at 0 s and must be finite")
+    return t
+
+
+@dataclass(frozen=True, kw_only=True)
+class ClockSpec:
+    """How a camera free-runs. Zero jitter and drops give an ideal, locked camera."""
+
+    fps: float = 30.0
+    free_running: bool = True
+    jitter_ns_std: float = 150_000.0
+    drop_probability: float = 0.002
+    readout_latency_ns: float = 8_000_000.0
+    max_abs_ppm: float = 20.0
+
+    def __post_init__(self) -> None:
+        if not 0 < self.fps <= 120:
+            raise ValueError(f"ClockSpec.fps={self.fps}: the ZED X runs at 15 to 120 fps")
+        if not 0 <= self.drop_probability < 0.5:
+            raise ValueError(
+                f"ClockSpec.drop_probability={self.drop_probability} must be in [0, 0.5)"
+            )
+        if self.jitter_ns_std < 0:
+            raise ValueError(f"ClockSpec.jitter_ns_std={self.jitter_ns_std} must be >= 0")
+
+
+@dataclass(frozen=True)
+class FrameTruth:
+    """Arrays over the frames of one camera in a time range."""
+
+    frame_index: np.ndarray  # int64
+    exposure_t_s: np.ndarray  # float64, sim time at mid-exposure (what the renderer shows)
+    capture_unix_ns: np.ndarray  # int64, what the camera stamps
+    dropped: np.ndarray  # bool
+
+
+@dataclass(frozen=True)
+class FrameClock:
+    spec: ClockSpec
+    seed: int
+    serial: int
+
+    @property
+    def _phase_s(self) -> float:
+        if not self.spec.free_running:
+            return 0.0
+        rng = np.random.default_rng([self.seed, self.serial, 0xC10C])
+        return float(rng.uniform(0, 1.0 / self.spec.fps))
+
+    @property
+    def period_s(self) -> float:
+        ppm = 0.0
+        if self.spec.free_running:
+            rng = np.random.default_rng([self.seed, self.serial, 0x99])
+            ppm = float(rng.uniform(-self.spec.max_abs_ppm, self.spec.max_abs_ppm))
+        return (1.0 / self.spec.fps) * (1.0 + ppm * 1e-6)
+
+    def exposure_time(self, frame_index: int) -> float:
+        return self._phase_s + frame_index * self.period_s
+
+    def frames(self, t_start_s: float, t_end_s: float) -> FrameTruth:
+        """All frames whose exposure falls in ``[t_start_s, t_end_s)``."""
+        t0, t1 = require_time(t_start_s), require_time(t_end_s)
+        if t1 < t0:
+            raise SimTimeError(f"time range {t0}..{t1} s ends before it starts")
+        first = max(0, int(np.ceil((t0 - self._phase_s) / self.period_s)))
+        last = int(np.ceil((t1 - self._phase_s) / self.period_s))
+        idx = np.arange(first, max(first, last), dtype=np.int64)
+        exposure = self._phase_s + idx * self.period_s
+        keep = (exposure >= t0) & (exposure < t1)
+        idx, exposure = idx[keep], exposure[keep]
+        jitter = np.empty(len(idx))
+        dropped = np.zeros(len(idx), bool)
+        for k, i in enumerate(idx):
+            u = np.random.default_rng([self.seed, self.serial, int(i)])
+            jitter[k] = u.normal(0.0, self.spec.jitter_ns_std) if self.spec.jitter_ns_std else 0.0
+            dropped[k] = u.random() < self.spec.drop_probability
+        stamp = SIM_EPOCH_UNIX_NS + np.round(
+            exposure * 1e9 + self.spec.readout_latency_ns + jitter
+        ).astype(np.int64)
+        return FrameTruth(idx, exposure, stamp, dropped)
