@@ -175,7 +175,7 @@ class Pose:
 
     @classmethod
     def look_at(cls, eye_m: np.ndarray, target_m: np.ndarray, up: np.ndarray | None = None) -> Pose:
-        """A camera at ``eye_m`` looking at ``target_m`` with image-up towards ``up`` (default +z)."""
+        """A camera at ``eye_m`` looking at ``target_m``, image-up towards ``up`` (default +z)."""
         eye = np.asarray(eye_m, dtype=np.float64)
         fwd = np.asarray(target_m, dtype=np.float64) - eye
         norm = np.linalg.norm(fwd)

@@ -77,7 +77,9 @@ class WandSpec:
         try:
             data = tomllib.loads(p.read_text())
         except FileNotFoundError:
-            raise WandSpecError(f"{p}: no such wand file; 'egosurg sim wand-file' writes one")
+            raise WandSpecError(
+                f"{p}: no such wand file; 'egosurg sim wand-file' writes one"
+            ) from None
         except tomllib.TOMLDecodeError as exc:
             raise WandSpecError(f"{p}: not valid TOML: {exc}") from None
         version = data.get("format_version", WAND_FORMAT_VERSION)

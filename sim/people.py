@@ -187,8 +187,10 @@ def person_objects(
         hip = np.array([0.0, 0.1 * sgn, 0.9])
         a = swing * sgn
         foot = hip + 0.86 * np.array([np.sin(a), 0.0, -np.cos(a)])
-        scrubs.append(cylinder(world(hip), world(foot + [0, 0, 0.06]), 0.075 * s, 14))
-        dark.append(box(world(foot + [0.05, 0.0, 0.0]), np.array([0.26, 0.1, 0.08]) * s, R))
+        scrubs.append(cylinder(world(hip), world(foot + np.array([0.0, 0.0, 0.06])), 0.075 * s, 14))
+        dark.append(
+            box(world(foot + np.array([0.05, 0.0, 0.0])), np.array([0.26, 0.1, 0.08]) * s, R)
+        )
         shoulder = np.array([0.0, 0.21 * sgn, 1.43])
         if state.working:
             wobble = 0.03 * np.sin(2.1 * state.t_s + sgn)

@@ -77,7 +77,7 @@ def phase_script(name: str, seed: int) -> PhaseScript:
     if name == "wand":
         return PhaseScript(name, (), with_patient=False, with_wand=True)
     if name == "setup":
-        people = (
+        people: tuple[Person, ...] = (
             person(
                 "nurse_scrub",
                 "scrub nurse",

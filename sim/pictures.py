@@ -90,7 +90,7 @@ def topdown_map(world: World, t_s: float, path: Path | str, trail_s: float = 6.0
         ax.plot(*c[:2], marker="s", color=col, ms=9)
         ax.annotate(
             f"SN{unit.serial}\n{unit.node_id}",
-            c[:2],
+            (float(c[0]), float(c[1])),
             textcoords="offset points",
             xytext=(0, -22 if c[1] > 0 else 10),
             ha="center",
@@ -101,7 +101,7 @@ def topdown_map(world: World, t_s: float, path: Path | str, trail_s: float = 6.0
     for k, person in enumerate(world.people(t_s)):
         trail = np.array(
             [
-                [p.position_xy_m for p in world.people(float(tt)) if p.name == person.name][0]
+                next(p.position_xy_m for p in world.people(float(tt)) if p.name == person.name)
                 for tt in times
             ]
         )
@@ -113,9 +113,11 @@ def topdown_map(world: World, t_s: float, path: Path | str, trail_s: float = 6.0
         ax.arrow(px, py, 0.45 * np.cos(h), 0.45 * np.sin(h), head_width=0.09, color="k", lw=1)
         ax.text(px, py + 0.3, person.name.replace("_", " "), ha="center", fontsize=7)
     if world.show_wand:
-        path_pts = np.array([world.wand_centres(float(tt))[1] for tt in np.linspace(0, t_s, 200)])
+        motion = world.wand_motion
+        times_wand = np.linspace(0, t_s, 200)
+        path_pts = np.array([motion.sphere_centres(float(tt))[1] for tt in times_wand])
         ax.plot(path_pts[:, 0], path_pts[:, 1], "-", color="tab:orange", lw=0.8, label="wand")
-        now = world.wand_centres(t_s)
+        now = motion.sphere_centres(t_s)
         ax.plot(now[:, 0], now[:, 1], "o-", color="tab:orange", ms=4)
         ax.legend(loc="upper right")
     ax.set_xlim(x0 - 0.3, x1 + 0.3)
@@ -155,7 +157,8 @@ def ground_truth_video(
             frame = _video_frame(world, float(t), person)
             if writer is None:
                 h, w = frame.shape[:2]
-                writer = cv2.VideoWriter(str(out), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+                fourcc = cv2.VideoWriter_fourcc(*"mp4v")  # type: ignore[attr-defined]
+                writer = cv2.VideoWriter(str(out), fourcc, fps, (w, h))
                 if not writer.isOpened():
                     raise OSError(f"cannot write video {out}: OpenCV has no MP4 encoder here")
             writer.write(np.ascontiguousarray(frame[..., ::-1]))

@@ -52,13 +52,13 @@ class FrameScene:
         self.textures = textures
         self.spheres = spheres
         self._raycaster = o3d.t.geometry.RaycastingScene()
-        lut = []
+        lut: list[int] = []
         for k, obj in enumerate(objects):
             if len(obj.mesh.triangles) == 0:
                 continue
             gid = self._raycaster.add_triangles(
-                o3d.core.Tensor(np.ascontiguousarray(obj.mesh.vertices, np.float32)),
-                o3d.core.Tensor(np.ascontiguousarray(obj.mesh.triangles, np.uint32)),
+                _tensor(obj.mesh.vertices, np.float32),
+                _tensor(obj.mesh.triangles, np.uint32),
             )
             while len(lut) <= gid:
                 lut.append(NO_OBJECT)
@@ -81,7 +81,7 @@ class FrameScene:
 
     def cast_rays(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(N, 6) float32 rays -> t (N,), object index (N,, -1 for none), normal (N, 3)."""
-        out = self._raycaster.cast_rays(o3d.core.Tensor(rays))
+        out = self._raycaster.cast_rays(_tensor(rays, np.float32))
         t = out["t_hit"].numpy()
         gid = out["geometry_ids"].numpy()
         lut = self._gid_to_object
@@ -105,6 +105,10 @@ def texture_stack(textures: dict[str, Texture]) -> np.ndarray:
 
 
 _STACKS: dict[int, tuple[dict[str, Texture], np.ndarray]] = {}
+
+
+def _tensor(array: np.ndarray, dtype: type) -> o3d.core.Tensor:
+    return o3d.core.Tensor(np.ascontiguousarray(array, dtype))  # type: ignore[call-overload]
 
 
 @functools.lru_cache(maxsize=24)

@@ -53,7 +53,8 @@ class ZedUnit:
 
 
 def _factory(serial: int, rng: np.random.Generator) -> ZedFactoryCalibration:
-    left, right = {}, {}
+    left: dict[Resolution, Intrinsics] = {}
+    right: dict[Resolution, Intrinsics] = {}
     for table in (left, right):
         fx = ZEDX_FX_HD1200_PX + rng.uniform(-6, 6)
         base = Intrinsics(

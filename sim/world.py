@@ -55,8 +55,11 @@ class WorldConfig:
 
 @dataclass(frozen=True)
 class Render:
-    """One rendered view. ``image_rgb`` is (H, W, 3) uint8 RGB; ``depth_m`` is (H, W) float32, the
-    z distance in the camera frame (inf where nothing was hit); ``object_index`` labels each pixel."""
+    """One rendered view.
+
+    ``image_rgb`` is (H, W, 3) uint8 RGB; ``depth_m`` is (H, W) float32, the z distance in the
+    camera frame (inf where nothing was hit); ``object_index`` labels each pixel's object.
+    """
 
     image_rgb: np.ndarray
     depth_m: np.ndarray
@@ -224,8 +227,8 @@ class World:
             x_m=float(pos[0]),
             y_m=float(pos[1]),
             dwell_s=1.0,
-            focus_xyz_m=tuple(float(v) for v in first),
-        )  # type: ignore[arg-type]
+            focus_xyz_m=(float(first[0]), float(first[1]), float(first[2])),
+        )
         person = Person(
             name="wand_operator",
             role="calibration operator",

@@ -1,0 +1,100 @@
+"""Simulator speed: one stereo pair at each ZED X mode, and the compiled kernels against their
+numpy twins on the same inputs, in the same run.
+
+    .venv/bin/python bench/bench_sim.py [--repeats 5]
+
+Prints a Markdown table; BENCHMARKS.md records a run of it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+
+
+def _best(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times), statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args()
+
+    from sim import World
+    from sim.render import ray_directions, render_view, shade_reference
+    from sim.sensor import SensorSpec, expose, expose_reference
+
+    world = World.from_seed(0, phase="intraoperative")
+    rows = []
+    for res in ("HD1200", "HD1080", "SVGA"):
+        world.render_stereo(0, 1.0, res)  # warm: ray tables, JIT
+        k = iter(range(1000))
+        best, med = _best(lambda: world.render_stereo(0, 1.0 + 0.01 * next(k), res), args.repeats)
+        rows.append((f"stereo pair {res} (scene build + 2 x cast + shade + sensor)", best, med, ""))
+
+    cam = world.sensor(0, "left", "HD1200")
+    scene = world.scene_at(2.0)
+    img = render_view(scene, cam)
+    best, med = _best(lambda: world._build_scene(2.0 + 1e-6 * time.perf_counter()), args.repeats)
+    rows.append(("scene build at one instant (meshes + BVH)", best, med, ""))
+    from sim import kernels
+
+    rays = kernels.make_rays(
+        ray_directions(cam.intrinsics).reshape(-1, 3),
+        cam.pose.R.astype(np.float32),
+        cam.pose.centre_m.astype(np.float32),
+    )
+    best_cast, med_cast = _best(lambda: scene.cast_rays(rays), args.repeats)
+    rows.append(("open3d cast_rays, 1920x1200", best_cast, med_cast, ""))
+
+    t, obj, normals = scene.cast_rays(rays)
+    fast = _best(
+        lambda: kernels.shade_pixels(
+            rays,
+            t,
+            obj,
+            normals,
+            scene.obj_R,
+            scene.obj_t,
+            scene.obj_tex,
+            scene.obj_tint,
+            scene.obj_emission,
+            scene.texture_stack,
+            scene.texel_m,
+            scene.light_pos,
+            scene.light_power,
+            0.14,
+        ),
+        args.repeats,
+    )
+    valid = obj >= 0
+    pts = rays[valid, :3] + rays[valid, 3:] * t[valid, None]
+    nrm = normals[valid].copy()
+    nrm[np.einsum("ij,ij->i", nrm, rays[valid, 3:]) > 0] *= -1
+    slow = _best(lambda: shade_reference(scene, pts, nrm, obj[valid]), max(2, args.repeats // 2))
+    rows.append(("shade 1920x1200: numba kernel", *fast, f"{slow[0] / fast[0]:.1f}x faster"))
+    rows.append(("shade 1920x1200: numpy twin", *slow, "reference"))
+
+    spec = SensorSpec()
+    fast = _best(lambda: expose(img.radiance, cam.intrinsics, spec, 7), args.repeats)
+    slow = _best(lambda: expose_reference(img.radiance, cam.intrinsics, spec, 7), 2)
+    rows.append(("sensor 1920x1200: numba kernel", *fast, f"{slow[0] / fast[0]:.1f}x faster"))
+    rows.append(("sensor 1920x1200: numpy twin", *slow, "reference"))
+
+    print("| stage | best (s) | median (s) | vs twin |")
+    print("|---|---:|---:|---|")
+    for name, best, med, note in rows:
+        print(f"| {name} | {best:.3f} | {med:.3f} | {note} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""Extrinsic calibration of the four-camera rig with a three-sphere wand."""

@@ -1,0 +1,1 @@
+"""Offline per-timestamp reconstruction of a recorded case into 3D Gaussian splats."""
