@@ -9,3 +9,7 @@ its traceback.
 
 class UserError(Exception):
     """Raised for bad input or a bad environment; the message tells the user what to do."""
+
+
+class ConfigError(UserError, ValueError):
+    """A configuration file or option that cannot be used; the message names the file and field."""

@@ -69,9 +69,13 @@ class FrameTruth:
 
 @dataclass(frozen=True)
 class FrameClock:
+    """``epoch_unix_ns`` is the Unix time of sim time 0; agents of one rig share it, so their
+    stamps live on one timeline (as PTP-disciplined clocks do)."""
+
     spec: ClockSpec
     seed: int
     serial: int
+    epoch_unix_ns: int = SIM_EPOCH_UNIX_NS
 
     @property
     def _phase_s(self) -> float:
@@ -108,7 +112,7 @@ class FrameClock:
             u = np.random.default_rng([self.seed, self.serial, int(i)])
             jitter[k] = u.normal(0.0, self.spec.jitter_ns_std) if self.spec.jitter_ns_std else 0.0
             dropped[k] = u.random() < self.spec.drop_probability
-        stamp = SIM_EPOCH_UNIX_NS + np.round(
+        stamp = self.epoch_unix_ns + np.round(
             exposure * 1e9 + self.spec.readout_latency_ns + jitter
         ).astype(np.int64)
         return FrameTruth(idx, exposure, stamp, dropped)

@@ -29,7 +29,7 @@ from sim.rig import ZedUnit, build_rig
 from sim.room import Footprint, RoomSpec, SceneObject, build_room, footprints
 from sim.sensor import SensorSpec, encode_ideal, expose
 from sim.textures import build_textures
-from sim.timing import ClockSpec, FrameClock, require_time
+from sim.timing import SIM_EPOCH_UNIX_NS, ClockSpec, FrameClock, require_time
 from sim.wand import ROD_RADIUS_M, WandMotion
 
 log = logging.getLogger(__name__)
@@ -113,9 +113,17 @@ class World:
     def footprints(self) -> list[Footprint]:
         return footprints(self.script.with_patient)
 
-    def clock(self, unit: int | ZedUnit) -> FrameClock:
+    def clock(
+        self, unit: int | ZedUnit, spec: ClockSpec | None = None, epoch_unix_ns: int | None = None
+    ) -> FrameClock:
+        """The camera's free-running frame clock (``spec`` overrides the world's ClockSpec)."""
         u = self.unit(unit)
-        return FrameClock(self.config.clock, self.config.seed, u.serial)
+        return FrameClock(
+            spec or self.config.clock,
+            self.config.seed,
+            u.serial,
+            SIM_EPOCH_UNIX_NS if epoch_unix_ns is None else int(epoch_unix_ns),
+        )
 
     # ---- cameras ---------------------------------------------------------------------------
     def unit(self, unit: int | ZedUnit) -> ZedUnit:
