@@ -19,10 +19,16 @@ from collections.abc import Sequence
 
 from protocol.errors import UserError
 
-# name -> (module, one-line summary). Order is the order shown in --help.
+# name -> ("module:function", one-line summary). Order is the order shown in --help.
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("sim.demo", "run the whole chain on the simulated rig and write pictures"),
-    "sim": ("sim.cli", "the simulated operating room: frames, factory files, virtual views"),
+    "demo": ("sim.demo:main", "run the whole chain on the simulated rig and write pictures"),
+    "agent": ("capture_agent.agent:main", "the capture daemon of one Jetson node"),
+    "recorder": ("capture_agent.recorder:main", "the recorder: sync all agents, write sessions"),
+    "record": ("capture_agent.control:main_record", "start or stop recording a case"),
+    "status": ("capture_agent.control:main_status", "the rig's health: fps, drops, PTP, disk"),
+    "shell": ("capture_agent.console:main", "an operator console with a connected 'rig'"),
+    "session": ("capture_agent.session_cli:main", "inspect, verify and export a session file"),
+    "sim": ("sim.cli:main", "the simulated operating room: frames, factory files, views"),
 }
 
 
@@ -50,7 +56,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if name not in COMMANDS:
         print(f"egosurg: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2
-    module_name = COMMANDS[name][0]
+    module_name, _, func_name = COMMANDS[name][0].partition(":")
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:
@@ -61,7 +67,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         return 2
     try:
-        return int(module.main(rest) or 0)
+        return int(getattr(module, func_name)(rest) or 0)
     except UserError as exc:
         print(f"egosurg {name}: error: {exc}", file=sys.stderr)
         return 2

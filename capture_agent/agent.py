@@ -1,0 +1,470 @@
+"""``egosurg agent``: the capture daemon on one Jetson node.
+
+Example::
+
+    egosurg agent --config /etc/egosurg/node.toml
+
+Per camera, a worker thread grabs frames (stamped by the source with the PTP-disciplined capture
+time), encodes them (unless the source already did) and queues them. One publisher thread owns the
+PUB socket: it gives each message the node's next ``seq`` and sends header + images without
+copies, and once per ``status_interval_s`` it publishes an ``AgentStatus`` (fps, drops, queue
+depth, PTP state). A control thread answers ``status`` and ``heartbeat`` on a REP socket.
+
+A watchdog reopens a camera that stopped delivering (no frame for ``watchdog_timeout_s``) or
+vanished, without touching the other cameras; a worker stuck inside a hung SDK call is abandoned
+and replaced by a fresh one. If ``[ptp] require_lock`` is set, cameras are opened only once PTP is
+locked: the ZED SDK slews rather than steps after a clock jump, so a camera opened before lock
+would stamp wrong times for minutes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import logging
+import queue
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+
+import zmq
+
+from capture_agent.config import CameraEntry, NodeConfig
+from capture_agent.encode import EncodedPair, encode_pair
+from capture_agent.ptp import PtpConfig, PtpMonitor, PtpStatus
+from capture_agent.sources import make_source
+from capture_agent.sources.base import CameraSource, CameraUnavailableError, GrabbedFrame
+from protocol import __version__
+from protocol.messages import (
+    AgentStatus,
+    CameraStatus,
+    ControlReply,
+    ControlRequest,
+    Encoding,
+    FrameMessage,
+    MalformedMessageError,
+    PtpState,
+)
+
+log = logging.getLogger(__name__)
+
+GRAB_TIMEOUT_S = 0.25
+
+
+def latest_ptp(monitor: PtpMonitor) -> PtpStatus:
+    st = monitor.latest
+    if st is None:  # only before the monitor's first read
+        return PtpStatus(state="unlocked", checked_unix_ns=time.time_ns(), detail="not read yet")
+    return st
+
+
+@dataclass
+class _Counters:
+    state: str = "closed"
+    frames_captured: int = 0
+    frames_dropped: int = 0  # frame-index gaps seen at the source plus queue overflows
+    frames_published: int = 0
+    reopen_count: int = 0
+    last_capture_unix_ns: int | None = None
+    last_frame_index: int | None = None
+    error: str | None = None
+    recent_capture_ns: collections.deque = field(
+        default_factory=lambda: collections.deque(maxlen=64)
+    )
+
+
+@dataclass(frozen=True)
+class _Outgoing:
+    serial: int
+    frame: GrabbedFrame
+    pair: EncodedPair
+
+
+class CameraWorker:
+    """Grabs one camera in its own thread; the watchdog may replace the thread."""
+
+    def __init__(self, entry: CameraEntry, node: NodeConfig, out: queue.Queue, ptp: PtpMonitor):
+        self.entry = entry
+        self.node = node
+        self.out = out
+        self.ptp = ptp
+        self.lock = threading.Lock()
+        self.counters = _Counters()
+        self.source: CameraSource = make_source(entry.source, entry.table, entry.where)
+        self.serial = self.source.serial
+        self.last_progress = time.monotonic()
+        self.grab_started: float | None = None  # set while inside source.grab()
+        self._stop = threading.Event()
+        self._generation = 0
+        self._thread: threading.Thread | None = None
+
+    # -- lifecycle ------------------------------------------------------------------------------
+    def start(self) -> None:
+        self._generation += 1
+        gen = self._generation
+        self._thread = threading.Thread(
+            target=self._run, args=(gen,), name=f"camera-{self.serial}-{gen}", daemon=True
+        )
+        self.last_progress = time.monotonic()
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        try:
+            self.source.close()
+        except Exception:  # closing a broken camera must not stop shutdown
+            log.exception("closing camera %s", self.serial)
+
+    def replace_hung_thread(self) -> None:
+        """Abandon a thread stuck in the SDK and start a new one on a fresh source object."""
+        log.warning(
+            "camera %s: no progress for %.1f s; replacing its worker",
+            self.serial,
+            time.monotonic() - self.last_progress,
+        )
+        with self.lock:
+            self.counters.state = "stalled"
+            self.counters.reopen_count += 1
+        self.source = make_source(self.entry.source, self.entry.table, self.entry.where)
+        self.start()
+
+    def factory_conf_text(self) -> str:
+        try:
+            return self.source.factory_conf_text()
+        except Exception:  # informational only
+            return ""
+
+    # -- the loop -------------------------------------------------------------------------------
+    def _set_state(self, state: str, error: str | None = None) -> None:
+        with self.lock:
+            self.counters.state = state
+            self.counters.error = error
+
+    def _run(self, generation: int) -> None:
+        source = self.source  # this thread's own camera object; a replacement gets a new one
+        last_frame_at = time.monotonic()
+        while not self._stop.is_set() and generation == self._generation:
+            self.last_progress = time.monotonic()
+            try:
+                if not source.is_open:
+                    if not self._open(source):
+                        self._stop.wait(self.node.reopen_interval_s)
+                        continue
+                    last_frame_at = time.monotonic()
+                self.grab_started = time.monotonic()
+                try:
+                    frame = source.grab(GRAB_TIMEOUT_S)
+                finally:
+                    self.grab_started = None
+                if generation != self._generation:
+                    break  # the watchdog gave up on this thread while it was stuck
+                now = time.monotonic()
+                self.last_progress = now
+                if frame is None:
+                    if now - last_frame_at > self.node.watchdog_timeout_s:
+                        log.warning(
+                            "camera %s: no frame for %.1f s; reopening",
+                            self.serial,
+                            now - last_frame_at,
+                        )
+                        self._close_for_reopen(source, f"no frame for {now - last_frame_at:.1f} s")
+                    continue
+                last_frame_at = now
+                self._deliver(frame)
+            except CameraUnavailableError as exc:
+                log.warning("camera %s vanished: %s; will reopen", self.serial, exc)
+                self._close_for_reopen(source, f"camera vanished: {exc}")
+            except Exception as exc:  # a camera thread must never die silently
+                log.exception("camera %s: unexpected error; reopening", self.serial)
+                self._close_for_reopen(source, f"error: {exc}")
+                self._stop.wait(self.node.reopen_interval_s)
+        if generation != self._generation:
+            try:
+                source.close()
+            except Exception:  # the abandoned camera object is being thrown away anyway
+                log.debug("closing an abandoned camera object failed", exc_info=True)
+
+    def _open(self, source: CameraSource) -> bool:
+        status = latest_ptp(self.ptp)
+        if self.ptp.config.require_lock and status.state not in ("locked", "disabled"):
+            self._set_state("closed", f"waiting for PTP lock before opening ({status.state})")
+            return False
+        try:
+            source.open()
+        except CameraUnavailableError as exc:
+            self._set_state("reopening", f"cannot open: {exc}")
+            return False
+        with self.lock:
+            self.counters.state = "streaming"
+            self.counters.error = None
+        log.info(
+            "camera %s open (%s, %s at %g fps)",
+            self.serial,
+            self.entry.source,
+            self.source.resolution.value,
+            self.source.fps,
+        )
+        return True
+
+    def _close_for_reopen(self, source: CameraSource, reason: str) -> None:
+        try:
+            source.close()
+        except Exception:  # a broken camera must not stop the loop
+            log.exception("camera %s: close failed", self.serial)
+        with self.lock:
+            self.counters.state = "reopening"
+            self.counters.error = reason
+            self.counters.reopen_count += 1
+
+    def _deliver(self, frame: GrabbedFrame) -> None:
+        enc = self.node.encoding
+        if frame.encoded is not None and frame.encoded.encoding == enc:
+            pair = frame.encoded
+        else:
+            assert frame.left_bgr is not None and frame.right_bgr is not None
+            pair = encode_pair(frame.left_bgr, frame.right_bgr, enc, self.node.jpeg_quality)
+        with self.lock:
+            c = self.counters
+            if c.last_frame_index is not None and frame.frame_index > c.last_frame_index + 1:
+                c.frames_dropped += frame.frame_index - c.last_frame_index - 1
+            c.last_frame_index = frame.frame_index
+            c.frames_captured += 1
+            c.last_capture_unix_ns = frame.capture_unix_ns
+            c.recent_capture_ns.append(frame.capture_unix_ns)
+            c.state = "streaming"
+            c.error = None
+        try:
+            self.out.put_nowait(_Outgoing(self.serial, frame, pair))
+        except queue.Full:
+            with self.lock:
+                self.counters.frames_dropped += 1
+            log.warning(
+                "camera %s: send queue full, frame %d dropped", self.serial, frame.frame_index
+            )
+
+    def status(self, queue_depth: int) -> CameraStatus:
+        with self.lock:
+            c = self.counters
+            stamps = list(c.recent_capture_ns)
+            fps = 0.0
+            if len(stamps) >= 2 and stamps[-1] > stamps[0]:
+                fps = (len(stamps) - 1) / ((stamps[-1] - stamps[0]) / 1e9)
+            stale = c.last_capture_unix_ns is None or (
+                time.time_ns() - c.last_capture_unix_ns > 2e9
+            )
+            return CameraStatus(
+                camera_serial=self.serial,
+                state=c.state,
+                fps_measured=0.0 if stale else round(fps, 2),
+                frames_captured=c.frames_captured,
+                frames_dropped=c.frames_dropped,
+                frames_published=c.frames_published,
+                queue_depth=queue_depth,
+                reopen_count=c.reopen_count,
+                last_capture_unix_ns=c.last_capture_unix_ns,
+                error=c.error,
+            )
+
+
+class Agent:
+    def __init__(self, config: NodeConfig) -> None:
+        self.config = config
+        self.ptp = PtpMonitor(PtpConfig.from_table(config.ptp, f"{config.source_path} [ptp]"))
+        self.out: queue.Queue[_Outgoing] = queue.Queue(maxsize=config.queue_frames)
+        self.workers = [CameraWorker(e, config, self.out, self.ptp) for e in config.cameras]
+        serials = [w.serial for w in self.workers]
+        if len(set(serials)) != len(serials):
+            from protocol.errors import ConfigError
+
+            raise ConfigError(f"{config.source_path}: two [[cameras]] have the same serial")
+        self.stopped = threading.Event()
+        self._ctx: zmq.Context = zmq.Context.instance()
+        self._seq = 0
+        self._status_seq = 0
+        self._threads: list[threading.Thread] = []
+
+    def ptp_state(self) -> PtpState:
+        s = latest_ptp(self.ptp)
+        return PtpState(state=s.state, master_offset_ns=s.master_offset_ns, gm_present=s.gm_present)
+
+    def status(self) -> AgentStatus:
+        depth = self.out.qsize()
+        self._status_seq += 1
+        return AgentStatus(
+            node_id=self.config.node_id,
+            sent_unix_ns=time.time_ns(),
+            status_seq=self._status_seq,
+            ptp=self.ptp_state(),
+            cameras=tuple(w.status(depth) for w in self.workers),
+            software_version=__version__,
+        )
+
+    def camera_info(self) -> list[dict]:
+        """What the recorder stores per camera at the start of a session."""
+        out = []
+        for w in self.workers:
+            res = w.source.resolution
+            out.append(
+                {
+                    "camera_serial": w.serial,
+                    "resolution": res.value,
+                    "width": res.width,
+                    "height": res.height,
+                    "fps": w.source.fps,
+                    "encoding": self.config.encoding,
+                    "factory_conf": w.factory_conf_text(),
+                }
+            )
+        return out
+
+    # -- threads --------------------------------------------------------------------------------
+    def start(self) -> None:
+        self.ptp.start()
+        pub = self._ctx.socket(zmq.PUB)
+        pub.setsockopt(zmq.LINGER, 0)
+        pub.setsockopt(zmq.SNDHWM, max(100, 4 * self.config.queue_frames))
+        pub.bind(self.config.frames_bind)
+        rep = self._ctx.socket(zmq.REP)
+        rep.setsockopt(zmq.LINGER, 0)
+        rep.bind(self.config.control_bind)
+        for w in self.workers:
+            w.start()
+        self._threads = [
+            threading.Thread(target=self._publish, args=(pub,), name="publisher", daemon=True),
+            threading.Thread(target=self._control, args=(rep,), name="control", daemon=True),
+            threading.Thread(target=self._watchdog, name="watchdog", daemon=True),
+        ]
+        for t in self._threads:
+            t.start()
+        log.info(
+            "agent %s: %d camera(s), frames on %s, control on %s",
+            self.config.node_id,
+            len(self.workers),
+            self.config.frames_bind,
+            self.config.control_bind,
+        )
+
+    def stop(self) -> None:
+        self.stopped.set()
+        for w in self.workers:
+            w.stop()
+        for t in self._threads:
+            t.join(timeout=2.0)
+        self.ptp.stop()
+
+    def _publish(self, pub: zmq.Socket) -> None:
+        next_status = time.monotonic()
+        by_serial = {w.serial: w for w in self.workers}
+        try:
+            while not self.stopped.is_set():
+                now = time.monotonic()
+                if now >= next_status:
+                    pub.send_multipart(self.status().to_parts())
+                    next_status = now + self.config.status_interval_s
+                try:
+                    item = self.out.get(timeout=min(0.05, max(0.0, next_status - now)))
+                except queue.Empty:
+                    continue
+                ptp = latest_ptp(self.ptp)
+                f, pair = item.frame, item.pair
+                msg = FrameMessage(
+                    node_id=self.config.node_id,
+                    camera_serial=item.serial,
+                    frame_index=f.frame_index,
+                    seq=self._seq,
+                    capture_unix_ns=f.capture_unix_ns,
+                    host_receive_unix_ns=f.host_receive_unix_ns,
+                    ptp_offset_ns=ptp.master_offset_ns or 0,
+                    ptp_locked=ptp.state == "locked",
+                    encoding=Encoding(pair.encoding),
+                    width=pair.width,
+                    height=pair.height,
+                    left=pair.left,
+                    right=pair.right,
+                )
+                self._seq += 1
+                pub.send_multipart(msg.to_parts(), copy=False)  # type: ignore[arg-type]
+                w = by_serial[item.serial]
+                with w.lock:
+                    w.counters.frames_published += 1
+        finally:
+            pub.close(linger=0)
+
+    def _control(self, rep: zmq.Socket) -> None:
+        poller = zmq.Poller()
+        poller.register(rep, zmq.POLLIN)
+        try:
+            while not self.stopped.is_set():
+                if not poller.poll(100):
+                    continue
+                raw = rep.recv()
+                try:
+                    req = ControlRequest.from_bytes(raw)
+                except MalformedMessageError as exc:
+                    rep.send(ControlReply(ok=False, error=str(exc), request_id="").to_bytes())
+                    continue
+                rep.send(self._answer(req).to_bytes())
+        finally:
+            rep.close(linger=0)
+
+    def _answer(self, req: ControlRequest) -> ControlReply:
+        if req.verb == "heartbeat":
+            return ControlReply(
+                ok=True, result={"node_id": self.config.node_id}, request_id=req.request_id
+            )
+        if req.verb == "status":
+            st = self.status()
+            return ControlReply(
+                ok=True,
+                result={"status": st.to_json(), "cameras_info": self.camera_info()},
+                request_id=req.request_id,
+            )
+        return ControlReply(
+            ok=False,
+            error=f"an agent does not {req.verb} recordings; send '{req.verb}' to the recorder "
+            "(egosurg record ...)",
+            request_id=req.request_id,
+        )
+
+    def _watchdog(self) -> None:
+        """Replace a worker stuck inside grab(): its SDK call hung. Opening may take long (the ZED
+        SDK takes seconds), so only grab() is timed."""
+        limit = self.config.watchdog_timeout_s + GRAB_TIMEOUT_S + 1.0
+        while not self.stopped.wait(0.2):
+            for w in self.workers:
+                started = w.grab_started
+                if started is not None and time.monotonic() - started > limit:
+                    w.replace_hung_thread()
+
+
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="egosurg agent",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--config", required=True, help="node.toml")
+    args = parser.parse_args(argv)
+    config = NodeConfig.from_toml(args.config)
+    agent = Agent(config)
+    stop = threading.Event()
+
+    def _signal(signum: int, _frame: object) -> None:
+        log.info("signal %d: stopping", signum)
+        stop.set()
+
+    signal.signal(signal.SIGTERM, _signal)
+    signal.signal(signal.SIGINT, _signal)
+    agent.start()
+    print(
+        f"egosurg agent {config.node_id}: streaming {len(agent.workers)} camera(s) on "
+        f"{config.frames_bind}; control on {config.control_bind}",
+        flush=True,
+    )
+    while not stop.wait(0.5):
+        pass
+    agent.stop()
+    return 0

@@ -1,0 +1,135 @@
+"""``egosurg record`` and ``egosurg status``: start, stop and watch a recording.
+
+Examples::
+
+    egosurg record start --case case-0042 --meta surgeon="A. Smith" --meta procedure=lobectomy
+    egosurg status
+    egosurg record stop
+
+The recorder's address comes from ``--recorder``, else ``--config rig.toml``, else the
+``EGOSURG_RECORDER`` environment variable, else ``tcp://127.0.0.1:5560``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from typing import Any
+
+from capture_agent.rig_client import RigClient
+from protocol.errors import UserError
+
+
+class ArgumentProblem(UserError, ValueError):
+    pass
+
+
+def _address_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--recorder", help="recorder control address, e.g. tcp://10.10.0.5:5560")
+    p.add_argument("--config", help="rig.toml, to take the recorder's address from it")
+    p.add_argument("--json", action="store_true", help="print the raw reply as JSON")
+
+
+def _meta(items: list[str]) -> dict[str, str]:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ArgumentProblem(f"--meta {item!r} must look like key=value")
+        out[key.strip()] = value
+    return out
+
+
+def format_summary(s: dict[str, Any]) -> str:
+    lines = [
+        f"case {s['case']}: {s['duration_s']:.1f} s, {s['sets']} synchronised sets, "
+        f"{s['frames']} frames, {s['bytes'] / 1e6:.1f} MB",
+        f"file: {s['file']}",
+        f"stopped: {s['reason']}",
+        "camera       frames  dropped  lost-in-transport  time-gaps  reconnects  missing-in-sets",
+    ]
+    for serial, c in s["cameras"].items():
+        lines.append(
+            f"SN{serial:<10} {c['frames']:>6} {c['dropped']:>8} {c['transport_lost']:>18} "
+            f"{c['time_gaps']:>10} {c['reconnects']:>11} {c['missing_in_sets']:>16}"
+        )
+    if s.get("malformed_messages") or s.get("unknown_version_messages"):
+        lines.append(
+            f"rejected messages: {s['malformed_messages']} malformed, "
+            f"{s['unknown_version_messages']} of an unknown version"
+        )
+    return "\n".join(lines)
+
+
+def format_status(st: dict[str, Any]) -> str:
+    head = f"rig {st['rig_name']}: "
+    if st["recording"]:
+        head += (
+            f"RECORDING case {st['case']} for {st['duration_s']:.0f} s, {st['sets']} sets, "
+            f"{st['bytes'] / 1e6:.0f} MB -> {st['file']}"
+        )
+    else:
+        head += "idle"
+    lines = [head, f"disk: {st['disk_free_bytes'] / 1e9:.1f} GB free in {st['output_dir']}"]
+    lines.append("camera       node      state      fps   dropped  ptp_offset_ns  ptp")
+    for c in st["cameras"]:
+        dropped = c["dropped_in_recording"] if st["recording"] else c["dropped_at_agent"]
+        lines.append(
+            f"SN{c['serial']:<10} {c['node_id'] or '-':<9} "
+            f"{'streaming' if c['streaming'] else 'NO FRAMES':<10} {c['fps']:>5.1f} "
+            f"{dropped if dropped is not None else '-':>9} "
+            f"{c['ptp_offset_ns'] if c['ptp_offset_ns'] is not None else '-':>14}  "
+            f"{'locked' if c['ptp_locked'] else 'UNLOCKED'}"
+        )
+    for a in st["agents"]:
+        if not a["alive"]:
+            lines.append(f"agent {a['node_id']} ({a['control']}): NO STATUS - is it running?")
+    if st["malformed_messages"] or st["unknown_version_messages"]:
+        lines.append(
+            f"rejected messages: {st['malformed_messages']} malformed, "
+            f"{st['unknown_version_messages']} of an unknown version"
+        )
+    return "\n".join(lines)
+
+
+def main_record(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="egosurg record",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = parser.add_subparsers(dest="action", required=True)
+    p = sub.add_parser("start", help="start recording a case")
+    p.add_argument("--case", required=True, help="case name (letters, digits, - _ .)")
+    p.add_argument("--meta", action="append", default=[], help="case metadata key=value")
+    p.add_argument("--planned-min", type=float, help="planned duration in minutes (disk check)")
+    _address_args(p)
+    p = sub.add_parser("stop", help="stop the recording and print its summary")
+    _address_args(p)
+    args = parser.parse_args(argv)
+    rig = RigClient.connect(args.recorder, args.config)
+    if args.action == "start":
+        result = rig.start(args.case, args.planned_min, **_meta(args.meta))
+        print(
+            json.dumps(result, indent=2)
+            if args.json
+            else f"recording case {result['case']} from {len(result['cameras'])} cameras to "
+            f"{result['file']}"
+        )
+    else:
+        summary = rig.stop()
+        print(json.dumps(summary, indent=2) if args.json else format_summary(summary))
+    return 0
+
+
+def main_status(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="egosurg status",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    _address_args(parser)
+    args = parser.parse_args(argv)
+    st = RigClient.connect(args.recorder, args.config).status()
+    print(json.dumps(st, indent=2) if args.json else format_status(st))
+    return 0

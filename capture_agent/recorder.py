@@ -1,0 +1,591 @@
+"""``egosurg recorder``: subscribes to every agent of the rig, groups frames into synchronised sets
+and writes one HDF5 session per recording.
+
+Example::
+
+    egosurg recorder --config /etc/egosurg/rig.toml
+
+One I/O thread owns every socket and the session file, so control commands (start, stop) are
+served in order between frames and two simultaneous starts cannot race. It:
+
+- receives frame messages and agent status on one SUB socket connected to every agent; malformed
+  messages and unknown versions are counted, logged and skipped;
+- while recording: stores every frame as received (no re-encoding), accounts for drops and gaps
+  from frame indices, per-node sequence numbers and timestamps, feeds the synchroniser and stores
+  each completed set; flushes the file every ``flush_interval_s`` (a crash loses at most that
+  much) and stops cleanly before the disk's free space falls under ``disk_reserve_gb``;
+- answers ``start``, ``stop``, ``status`` and ``heartbeat`` on its REP control socket.
+
+A start is refused, with the reason and what to do, when a camera the rig expects is not
+streaming, when an agent's PTP is not locked (``require_ptp_lock``), or when the disk cannot hold
+``planned_duration_min`` at the rig's measured data rate.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import logging
+import re
+import shutil
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import zmq
+
+from capture_agent.accounting import StreamAccounting
+from capture_agent.config import RigConfig
+from capture_agent.sync import SyncConfig, SyncedSet, Synchroniser
+from protocol import __version__
+from protocol.messages import (
+    AgentStatus,
+    ControlReply,
+    ControlRequest,
+    FrameMessage,
+    MalformedMessageError,
+    UnknownVersionError,
+    decode_published,
+)
+from protocol.session import CameraInfo, SessionWriter
+
+log = logging.getLogger(__name__)
+
+CASE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+LIVE_WINDOW_S = 2.0
+
+
+class StartRefused(Exception):
+    """A start that cannot go ahead; the message says why and what to do."""
+
+
+@dataclass
+class CameraLive:
+    """What the recorder knows about a camera from its stream, recording or not."""
+
+    serial: int
+    node_id: str
+    stamps: collections.deque = field(default_factory=lambda: collections.deque(maxlen=90))
+    rx_monotonic: collections.deque = field(default_factory=lambda: collections.deque(maxlen=90))
+    bytes_rx: collections.deque = field(default_factory=lambda: collections.deque(maxlen=90))
+    last_rx_monotonic: float = 0.0
+    ptp_offset_ns: int = 0
+    ptp_locked: bool = False
+    frames_rx: int = 0
+
+    def fps(self) -> float:
+        s = list(self.stamps)
+        if len(s) < 2 or time.monotonic() - self.last_rx_monotonic > LIVE_WINDOW_S:
+            return 0.0
+        return (len(s) - 1) / max((s[-1] - s[0]) / 1e9, 1e-9)
+
+    def byte_rate(self) -> float:
+        t = list(self.rx_monotonic)
+        if len(t) < 2 or t[-1] <= t[0]:
+            return 0.0
+        return sum(list(self.bytes_rx)[1:]) / (t[-1] - t[0])
+
+    def streaming(self) -> bool:
+        return self.frames_rx > 0 and time.monotonic() - self.last_rx_monotonic < LIVE_WINDOW_S
+
+
+@dataclass
+class Recording:
+    writer: SessionWriter
+    sync: Synchroniser
+    accounting: StreamAccounting
+    case: str
+    started_unix_ns: int
+    started_monotonic: float
+    serials: tuple[int, ...]
+    sets_written: int = 0
+    frames_written: int = 0
+    ignored_frames: int = 0
+    last_flush: float = 0.0
+
+
+class Recorder:
+    def __init__(self, config: RigConfig) -> None:
+        self.config = config
+        self.ctx: zmq.Context = zmq.Context.instance()
+        self.cameras: dict[int, CameraLive] = {}
+        self.agent_status: dict[str, tuple[AgentStatus, float]] = {}
+        self.recording: Recording | None = None
+        self.malformed = 0
+        self.unknown_version = 0
+        self.stopped = threading.Event()
+        self.last_stop_summary: dict[str, Any] | None = None
+        self._thread: threading.Thread | None = None
+        self._last_disk_check = 0.0
+        self._disk_free = self._free_bytes()
+
+    # -- lifecycle ------------------------------------------------------------------------------
+    def start(self) -> None:
+        Path(self.config.output_dir).mkdir(parents=True, exist_ok=True)
+        self.sub = self.ctx.socket(zmq.SUB)
+        self.sub.setsockopt(zmq.LINGER, 0)
+        self.sub.setsockopt(zmq.RCVHWM, 10_000)
+        self.sub.setsockopt(zmq.SUBSCRIBE, b"")
+        for a in self.config.agents:
+            self.sub.connect(a.frames)
+        self.rep = self.ctx.socket(zmq.REP)
+        self.rep.setsockopt(zmq.LINGER, 0)
+        self.rep.bind(self.config.control_bind)
+        self._thread = threading.Thread(target=self._loop, name="recorder-io", daemon=True)
+        self._thread.start()
+        log.info(
+            "recorder %s: %d agent(s), control on %s, sessions in %s",
+            self.config.rig_name,
+            len(self.config.agents),
+            self.config.control_bind,
+            self.config.output_dir,
+        )
+
+    def stop(self) -> None:
+        self.stopped.set()
+        if self._thread is not None:
+            self._thread.join(timeout=10.0)
+
+    # -- the I/O loop ---------------------------------------------------------------------------
+    def _loop(self) -> None:
+        poller = zmq.Poller()
+        poller.register(self.sub, zmq.POLLIN)
+        poller.register(self.rep, zmq.POLLIN)
+        try:
+            while not self.stopped.is_set():
+                events = dict(poller.poll(20))
+                if self.sub in events:
+                    # drain what is queued, but come back to control and flushing regularly
+                    for _ in range(256):
+                        try:
+                            parts = self.sub.recv_multipart(zmq.NOBLOCK, copy=False)
+                        except zmq.Again:
+                            break
+                        self._on_published(parts)
+                if self.rep in events:
+                    self._on_control(self.rep.recv())
+                self._periodic()
+        finally:
+            if self.recording is not None:
+                self._stop_recording("the recorder was shut down")
+            self.sub.close(linger=0)
+            self.rep.close(linger=0)
+
+    def _on_published(self, parts: list) -> None:
+        rx_ns = time.time_ns()
+        try:
+            msg = decode_published(parts)
+        except UnknownVersionError as exc:
+            self.unknown_version += 1
+            if self.unknown_version <= 5 or self.unknown_version % 1000 == 0:
+                log.warning("rejected message #%d: %s", self.unknown_version, exc)
+            return
+        except MalformedMessageError as exc:
+            self.malformed += 1
+            if self.malformed <= 5 or self.malformed % 1000 == 0:
+                log.warning("rejected malformed message #%d: %s", self.malformed, exc)
+            return
+        if isinstance(msg, AgentStatus):
+            self.agent_status[msg.node_id] = (msg, time.monotonic())
+            return
+        self._on_frame(msg, rx_ns)
+
+    def _on_frame(self, msg: FrameMessage, rx_ns: int) -> None:
+        cam = self.cameras.get(msg.camera_serial)
+        if cam is None:
+            cam = self.cameras[msg.camera_serial] = CameraLive(msg.camera_serial, msg.node_id)
+            log.info("camera %d streaming from %s", msg.camera_serial, msg.node_id)
+        now = time.monotonic()
+        cam.node_id = msg.node_id
+        cam.stamps.append(msg.capture_unix_ns)
+        cam.rx_monotonic.append(now)
+        cam.bytes_rx.append(msg.left_bytes + msg.right_bytes)
+        cam.last_rx_monotonic = now
+        cam.ptp_offset_ns = msg.ptp_offset_ns
+        cam.ptp_locked = msg.ptp_locked
+        cam.frames_rx += 1
+        cam.last_message = msg  # type: ignore[attr-defined]  # preview for the console
+        rec = self.recording
+        if rec is None:
+            return
+        if msg.camera_serial not in rec.serials:
+            rec.ignored_frames += 1
+            return
+        for gap in rec.accounting.observe(
+            msg.camera_serial, msg.frame_index, msg.seq, msg.capture_unix_ns, msg.node_id
+        ):
+            rec.writer.append_gap(
+                gap.camera_serial,
+                kind=int(gap.kind),
+                first_missing_frame_index=gap.first_missing_frame_index,
+                missing_count=gap.missing_count,
+                start_unix_ns=gap.start_unix_ns,
+                end_unix_ns=gap.end_unix_ns,
+            )
+        row = rec.writer.append_frame(
+            msg.camera_serial,
+            left=msg.left,
+            right=msg.right,
+            capture_unix_ns=msg.capture_unix_ns,
+            host_receive_unix_ns=msg.host_receive_unix_ns,
+            recorder_receive_unix_ns=rx_ns,
+            frame_index=msg.frame_index,
+            seq=msg.seq,
+            ptp_offset_ns=msg.ptp_offset_ns,
+            ptp_locked=msg.ptp_locked,
+        )
+        rec.frames_written += 1
+        self._write_sets(rec, rec.sync.add(msg.camera_serial, msg.capture_unix_ns, row, rx_ns))
+
+    def _write_sets(self, rec: Recording, sets: list[SyncedSet]) -> None:
+        for s in sets:
+            rec.writer.append_set(s.set_unix_ns, s.member_rows(), s.spread_ns)
+            rec.sets_written += 1
+
+    def _periodic(self) -> None:
+        now = time.monotonic()
+        rec = self.recording
+        if rec is not None:
+            self._write_sets(rec, rec.sync.poll(time.time_ns()))
+            if now - rec.last_flush >= self.config.flush_interval_s:
+                rec.writer.flush()
+                rec.last_flush = now
+        if now - self._last_disk_check >= 1.0:
+            self._last_disk_check = now
+            self._disk_free = self._free_bytes()
+            if rec is not None and self._disk_free < self._reserve_bytes():
+                log.error("disk space under the reserve: stopping the recording cleanly")
+                self._stop_recording(
+                    f"the disk holding {self.config.output_dir} reached the reserve of "
+                    f"{self.config.disk_reserve_gb:g} GB; stopped before it filled"
+                )
+
+    # -- control --------------------------------------------------------------------------------
+    def _on_control(self, raw: bytes) -> None:
+        try:
+            req = ControlRequest.from_bytes(raw)
+        except MalformedMessageError as exc:
+            self.rep.send(ControlReply(ok=False, error=str(exc), request_id="").to_bytes())
+            return
+        try:
+            result = self._handle(req)
+            reply = ControlReply(ok=True, result=result, request_id=req.request_id)
+        except StartRefused as exc:
+            reply = ControlReply(ok=False, error=str(exc), request_id=req.request_id)
+        except Exception as exc:  # a bug must not take the recorder down mid-case
+            log.exception("control %s failed", req.verb)
+            reply = ControlReply(
+                ok=False, error=f"internal error: {exc}", request_id=req.request_id
+            )
+        self.rep.send(reply.to_bytes())
+
+    def _handle(self, req: ControlRequest) -> dict[str, Any]:
+        if req.verb == "heartbeat":
+            return {"rig_name": self.config.rig_name, "unix_ns": time.time_ns()}
+        if req.verb == "status":
+            return self.status()
+        if req.verb == "start":
+            return self._start_recording(req.args)
+        if req.verb == "stop":
+            if self.recording is None:
+                raise StartRefused("not recording; nothing to stop")
+            return self._stop_recording("stopped by request")
+        raise StartRefused(f"unknown verb {req.verb!r}")
+
+    def _free_bytes(self) -> int:
+        target = Path(self.config.output_dir)
+        probe = target if target.exists() else target.parent
+        while not probe.exists() and probe != probe.parent:
+            probe = probe.parent
+        return shutil.disk_usage(probe).free
+
+    def _reserve_bytes(self) -> float:
+        return self.config.disk_reserve_gb * 1e9
+
+    def _start_recording(self, args: dict[str, Any]) -> dict[str, Any]:
+        if self.recording is not None:
+            raise StartRefused(
+                f"already recording case '{self.recording.case}' to "
+                f"{self.recording.writer.path}; stop it first (egosurg record stop)"
+            )
+        case = str(args.get("case", ""))
+        if not CASE_NAME.match(case):
+            raise StartRefused(
+                f"case name {case!r} is not usable as a file name; use letters, digits, - _ . "
+                "(up to 64 characters)"
+            )
+        meta = args.get("meta", {})
+        if not isinstance(meta, dict) or not all(isinstance(v, str) for v in meta.values()):
+            raise StartRefused("case metadata must be key=value text pairs")
+        planned_min = float(args.get("planned_duration_min", self.config.planned_duration_min))
+        expected = self.config.expected_cameras or tuple(sorted(self.cameras))
+        if not expected:
+            raise StartRefused(
+                "no camera is streaming yet; check that the agents run "
+                "(systemctl status egosurg-agent) and that rig.toml points at them"
+            )
+        missing = [s for s in expected if s not in self.cameras or not self.cameras[s].streaming()]
+        if missing:
+            details = []
+            for s in missing:
+                cam = self.cameras.get(s)
+                node = next(
+                    (a.node_id for a in self.config.agents if s in a.cameras),
+                    cam.node_id if cam else "?",
+                )
+                ago = (
+                    "never seen"
+                    if cam is None
+                    else f"last frame {time.monotonic() - cam.last_rx_monotonic:.1f} s ago"
+                )
+                details.append(f"SN{s} on {node} ({ago})")
+            raise StartRefused(
+                "camera(s) not streaming: "
+                + "; ".join(details)
+                + ". Check the agent and its cameras (egosurg status), then start again"
+            )
+        if self.config.require_ptp_lock:
+            for a in self.config.agents:
+                st = self.agent_status.get(a.node_id)
+                if st is None or time.monotonic() - st[1] > self.config.agent_timeout_s:
+                    raise StartRefused(
+                        f"no status from agent {a.node_id} for {self.config.agent_timeout_s:g} s;"
+                        " is it running?"
+                    )
+                if st[0].ptp.state != "locked":
+                    raise StartRefused(
+                        f"PTP on {a.node_id} is '{st[0].ptp.state}', not locked: frames would "
+                        "not share one clock. Check ptp4l/phc2sys on that node (pmc -u -b 0 "
+                        "'GET TIME_STATUS_NP'), or set require_ptp_lock = false in rig.toml"
+                    )
+        rate = sum(self.cameras[s].byte_rate() for s in expected)
+        need = self._reserve_bytes() + rate * planned_min * 60.0
+        free = self._free_bytes()
+        if free < need:
+            raise StartRefused(
+                f"not enough disk: {free / 1e9:.1f} GB free in {self.config.output_dir}, but a "
+                f"{planned_min:g} min recording at {rate / 1e6:.1f} MB/s needs "
+                f"{(need - self._reserve_bytes()) / 1e9:.1f} GB plus the "
+                f"{self.config.disk_reserve_gb:g} GB reserve. Free space or plan a shorter case"
+            )
+        infos = self._camera_infos(expected)
+        started_ns = time.time_ns()
+        stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime(started_ns / 1e9))
+        path = Path(self.config.output_dir) / f"{case}_{stamp}.h5"
+        n = 1
+        while path.exists():
+            n += 1
+            path = path.with_name(f"{case}_{stamp}_{n}.h5")
+        writer = SessionWriter(
+            path,
+            session_name=case,
+            case_metadata={str(k): v for k, v in meta.items()},
+            cameras=infos,
+            tolerance_ns=int(0.5e9 / self.config.fps),
+            rig_config_text=self.config.toml_text,
+            software_version=__version__,
+            started_unix_ns=started_ns,
+        )
+        self.recording = Recording(
+            writer=writer,
+            sync=Synchroniser(
+                SyncConfig(
+                    camera_serials=tuple(expected),
+                    fps=self.config.fps,
+                    max_wait_ns=int(self.config.max_wait_ms * 1e6),
+                )
+            ),
+            accounting=StreamAccounting(),
+            case=case,
+            started_unix_ns=started_ns,
+            started_monotonic=time.monotonic(),
+            serials=tuple(expected),
+            last_flush=time.monotonic(),
+        )
+        log.info("recording case %s to %s (%d cameras)", case, path, len(expected))
+        return {
+            "case": case,
+            "file": str(path),
+            "cameras": list(expected),
+            "started_unix_ns": started_ns,
+        }
+
+    def _camera_infos(self, serials: tuple[int, ...]) -> list[CameraInfo]:
+        """Ask each agent for its cameras' modes and factory files (stored in the session)."""
+        infos: dict[int, CameraInfo] = {}
+        for a in self.config.agents:
+            reply = self.request_agent(a.control, "status")
+            if reply is None:
+                if any(
+                    self.cameras.get(s) and self.cameras[s].node_id == a.node_id for s in serials
+                ):
+                    raise StartRefused(
+                        f"agent {a.node_id} does not answer on {a.control}; is it running?"
+                    )
+                continue
+            for ci in reply.get("cameras_info", []):
+                s = int(ci["camera_serial"])
+                infos[s] = CameraInfo(
+                    camera_serial=s,
+                    node_id=a.node_id,
+                    resolution=str(ci["resolution"]),
+                    width=int(ci["width"]),
+                    height=int(ci["height"]),
+                    fps_nominal=float(ci["fps"]),
+                    encoding=str(ci["encoding"]),
+                    factory_conf_text=str(ci.get("factory_conf", "")),
+                )
+        missing = [s for s in serials if s not in infos]
+        if missing:
+            raise StartRefused(
+                f"no agent reports camera(s) {missing}; check the serials in rig.toml"
+            )
+        return [infos[s] for s in serials]
+
+    def request_agent(self, endpoint: str, verb: str, timeout_ms: int = 1500) -> dict | None:
+        sock = self.ctx.socket(zmq.REQ)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.RCVTIMEO, timeout_ms)
+        sock.setsockopt(zmq.SNDTIMEO, timeout_ms)
+        try:
+            sock.connect(endpoint)
+            sock.send(ControlRequest(verb=verb).to_bytes())
+            reply = ControlReply.from_bytes(sock.recv())
+            return reply.result if reply.ok else None
+        except (zmq.Again, MalformedMessageError):
+            return None
+        finally:
+            sock.close(linger=0)
+
+    def _stop_recording(self, reason: str) -> dict[str, Any]:
+        rec = self.recording
+        assert rec is not None
+        self._write_sets(rec, rec.sync.flush())
+        stopped_ns = time.time_ns()
+        totals = rec.accounting.totals()
+        per_camera = {}
+        for s in rec.serials:
+            t = totals.get(s)
+            per_camera[str(s)] = {
+                "frames": rec.writer.frames_written(s),
+                "dropped": t.frames_dropped_camera if t else 0,
+                "transport_lost": t.transport_lost if t else 0,
+                "time_gaps": t.time_gaps if t else 0,
+                "reconnects": t.reconnects if t else 0,
+                "missing_in_sets": int(rec.sync.missing_markers.get(s, 0)),
+                "unassigned": int(rec.sync.unassigned_frames.get(s, 0)),
+            }
+        summary = {
+            "case": rec.case,
+            "file": str(rec.writer.path),
+            "reason": reason,
+            "duration_s": round((stopped_ns - rec.started_unix_ns) / 1e9, 3),
+            "sets": rec.sets_written,
+            "frames": rec.frames_written,
+            "bytes": rec.writer.bytes_written,
+            "cameras": per_camera,
+            "malformed_messages": self.malformed,
+            "unknown_version_messages": self.unknown_version,
+        }
+        rec.writer.close(stopped_ns, summary)
+        self.recording = None
+        self.last_stop_summary = summary
+        log.info("stopped case %s: %s", rec.case, reason)
+        return summary
+
+    def status(self) -> dict[str, Any]:
+        rec = self.recording
+        cams = []
+        serials = sorted(set(self.cameras) | set(self.config.expected_cameras))
+        totals = rec.accounting.totals() if rec else {}
+        for s in serials:
+            cam = self.cameras.get(s)
+            agent_drops = None
+            if cam is not None and cam.node_id in self.agent_status:
+                for cs in self.agent_status[cam.node_id][0].cameras:
+                    if cs.camera_serial == s:
+                        agent_drops = cs.frames_dropped
+            cams.append(
+                {
+                    "serial": s,
+                    "node_id": cam.node_id if cam else None,
+                    "streaming": bool(cam and cam.streaming()),
+                    "fps": round(cam.fps(), 2) if cam else 0.0,
+                    "ptp_offset_ns": cam.ptp_offset_ns if cam else None,
+                    "ptp_locked": cam.ptp_locked if cam else False,
+                    "dropped_in_recording": totals[s].frames_dropped_camera if s in totals else 0,
+                    "dropped_at_agent": agent_drops,
+                }
+            )
+        agents = []
+        for a in self.config.agents:
+            st = self.agent_status.get(a.node_id)
+            agents.append(
+                {
+                    "node_id": a.node_id,
+                    "frames": a.frames,
+                    "control": a.control,
+                    "alive": bool(st and time.monotonic() - st[1] < self.config.agent_timeout_s),
+                    "ptp_state": st[0].ptp.state if st else None,
+                    "ptp_offset_ns": st[0].ptp.master_offset_ns if st else None,
+                }
+            )
+        out: dict[str, Any] = {
+            "rig_name": self.config.rig_name,
+            "recording": rec is not None,
+            "disk_free_bytes": self._disk_free,
+            "output_dir": self.config.output_dir,
+            "cameras": cams,
+            "agents": agents,
+            "malformed_messages": self.malformed,
+            "unknown_version_messages": self.unknown_version,
+        }
+        if rec is not None:
+            out.update(
+                {
+                    "case": rec.case,
+                    "file": str(rec.writer.path),
+                    "duration_s": round(time.monotonic() - rec.started_monotonic, 2),
+                    "sets": rec.sets_written,
+                    "frames": rec.frames_written,
+                    "bytes": rec.writer.bytes_written,
+                }
+            )
+        if self.last_stop_summary is not None:
+            out["last_recording"] = self.last_stop_summary
+        return out
+
+
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="egosurg recorder",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--config", required=True, help="rig.toml")
+    args = parser.parse_args(argv)
+    config = RigConfig.from_toml(args.config)
+    recorder = Recorder(config)
+    stop = threading.Event()
+
+    def _signal(signum: int, _frame: object) -> None:
+        log.info("signal %d: stopping (a recording in progress is closed cleanly)", signum)
+        stop.set()
+
+    signal.signal(signal.SIGTERM, _signal)
+    signal.signal(signal.SIGINT, _signal)
+    recorder.start()
+    print(
+        f"egosurg recorder {config.rig_name}: {len(config.agents)} agent(s); control on "
+        f"{config.control_bind}; sessions in {config.output_dir}",
+        flush=True,
+    )
+    while not stop.wait(0.5):
+        if not recorder._thread or not recorder._thread.is_alive():
+            log.error("the recorder's I/O thread ended unexpectedly")
+            return 1
+    recorder.stop()
+    return 0

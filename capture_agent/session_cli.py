@@ -1,0 +1,235 @@
+"""``egosurg session``: look inside a recorded session.
+
+Examples::
+
+    egosurg session info sessions/case-0042_20261121-101500.h5
+    egosurg session verify sessions/case-0042_20261121-101500.h5
+    egosurg session export-frames sessions/case-0042_20261121-101500.h5 --out frames/ --sets 0:30
+
+``export-frames`` exports by synchronised set, so the files of one set index show one instant
+from every camera: ``<out>/set_000012/SN<serial>_left.png``. With ``--by-camera`` it exports
+each camera's frames in order instead: ``<out>/SN<serial>/left_<frame_index>.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from capture_agent.encode import decode_image
+from protocol.errors import UserError
+from protocol.session import GapKind, SessionReader
+
+
+class SessionArgumentError(UserError, ValueError):
+    pass
+
+
+def _slice(text: str | None, n: int) -> range:
+    if not text:
+        return range(n)
+    a, sep, b = text.partition(":")
+    try:
+        start = int(a) if a else 0
+        stop = int(b) if (sep and b) else (n if sep else start + 1)
+    except ValueError:
+        raise SessionArgumentError(f"{text!r} must look like 10:20, 10: or 10") from None
+    if start < 0 or start >= max(n, 1) or stop <= start:
+        raise SessionArgumentError(f"range {text!r} is outside 0:{n}")
+    return range(start, min(stop, n))
+
+
+def summarise(reader: SessionReader) -> dict:
+    info = reader.info
+    sets = reader.sets()
+    cams = []
+    for serial in info.camera_serials:
+        table = reader.frame_table(serial)
+        stamps = table["capture_unix_ns"]
+        fps = (len(stamps) - 1) / ((stamps[-1] - stamps[0]) / 1e9) if len(stamps) > 1 else 0.0
+        ci = info.camera(serial)
+        col = list(info.camera_serials).index(serial)
+        cams.append(
+            {
+                "serial": serial,
+                "node_id": ci.node_id,
+                "mode": f"{ci.resolution} {ci.width}x{ci.height} @ {ci.fps_nominal:g} fps",
+                "encoding": ci.encoding,
+                "frames": len(stamps),
+                "fps_measured": round(float(fps), 2),
+                "missing_in_sets": int((sets.members[:, col] < 0).sum())
+                if len(sets.members)
+                else 0,
+            }
+        )
+    gaps: dict[str, dict[str, int]] = {}
+    for g in reader.gaps():
+        per = gaps.setdefault(str(g.camera_serial), {})
+        name = GapKind(g.kind).name.lower()
+        per[name] = per.get(name, 0) + max(g.missing_count, 1 if g.missing_count < 0 else 0)
+    first = min(
+        (
+            int(reader.frame_table(s)["capture_unix_ns"][0])
+            for s in info.camera_serials
+            if reader.frame_count(s)
+        ),
+        default=0,
+    )
+    last = max(
+        (
+            int(reader.frame_table(s)["capture_unix_ns"][-1])
+            for s in info.camera_serials
+            if reader.frame_count(s)
+        ),
+        default=0,
+    )
+    spread_ms = sets.spread_ns / 1e6
+    complete = int((sets.members >= 0).all(axis=1).sum()) if len(sets.members) else 0
+    return {
+        "file": str(reader.path),
+        "session": info.session_name,
+        "metadata": info.case_metadata,
+        "closed_cleanly": info.closed_cleanly,
+        "duration_s": round((last - first) / 1e9, 3) if last > first else 0.0,
+        "sets": len(sets.set_unix_ns),
+        "complete_sets": complete,
+        "spread_ms": {
+            "median": round(float(np.median(spread_ms)), 3) if len(spread_ms) else None,
+            "p95": round(float(np.percentile(spread_ms, 95)), 3) if len(spread_ms) else None,
+            "max": round(float(spread_ms.max()), 3) if len(spread_ms) else None,
+        },
+        "tolerance_ms": info.tolerance_ns / 1e6,
+        "cameras": cams,
+        "drops_and_gaps": gaps,
+    }
+
+
+def format_info(s: dict) -> str:
+    state = "closed cleanly" if s["closed_cleanly"] else "NOT CLOSED CLEANLY (recorder killed?)"
+    lines = [
+        f"{s['file']}",
+        f"session {s['session']}  {state}",
+        f"duration {s['duration_s']:.2f} s; {s['sets']} synchronised sets, "
+        f"{s['complete_sets']} complete",
+    ]
+    if s["sets"]:
+        sp = s["spread_ms"]
+        lines.append(
+            f"set spread: median {sp['median']:.2f} ms, p95 {sp['p95']:.2f} ms, max "
+            f"{sp['max']:.2f} ms (tolerance +-{s['tolerance_ms']:.2f} ms)"
+        )
+    if s["metadata"]:
+        lines.append("metadata: " + ", ".join(f"{k}={v}" for k, v in s["metadata"].items()))
+    lines.append(
+        "camera       node      mode                       frames    fps  "
+        "missing-in-sets  drops/gaps"
+    )
+    for c in s["cameras"]:
+        g = s["drops_and_gaps"].get(str(c["serial"]), {})
+        gtext = ", ".join(f"{k} {v}" for k, v in sorted(g.items())) or "none"
+        lines.append(
+            f"SN{c['serial']:<10} {c['node_id']:<9} {c['mode']:<26} {c['frames']:>6} "
+            f"{c['fps_measured']:>6.2f} {c['missing_in_sets']:>16}  {gtext}"
+        )
+    return "\n".join(lines)
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    with SessionReader(args.file) as reader:
+        s = summarise(reader)
+    print(json.dumps(s, indent=2) if args.json else format_info(s))
+    return 0
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    with SessionReader(args.file) as reader:
+        problems = reader.verify(check_images=not args.quick)
+    errors = [p for p in problems if p.startswith("error")]
+    for p in problems:
+        print(p)
+    print(
+        f"{args.file}: {'OK' if not errors else f'{len(errors)} problem(s)'}"
+        f"{f' ({len(problems) - len(errors)} note(s))' if len(problems) > len(errors) else ''}"
+    )
+    return 0 if not errors else 1
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    sides = ("left", "right") if args.side == "both" else (args.side,)
+    written = 0
+    with SessionReader(args.file) as reader:
+        info = reader.info
+        serials = info.camera_serials
+        if args.camera is not None:
+            if args.camera not in serials:
+                raise SessionArgumentError(
+                    f"no camera {args.camera} in {args.file}; cameras: "
+                    f"{', '.join(map(str, serials))}"
+                )
+            serials = (args.camera,)
+
+        def write(path: Path, serial: int, row: int, side: str) -> None:
+            ci = info.camera(serial)
+            left, right = reader.frame_bytes(serial, row)
+            img = decode_image(left if side == "left" else right, ci.encoding, ci.width, ci.height)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            if not cv2.imwrite(str(path), img):
+                raise OSError(f"could not write {path}")
+
+        if args.by_camera:
+            for serial in serials:
+                table = reader.frame_table(serial)
+                for row in _slice(args.frames, len(table["frame_index"]))[:: args.every]:
+                    for side in sides:
+                        idx = int(table["frame_index"][row])
+                        write(out / f"SN{serial}" / f"{side}_{idx:06d}.png", serial, row, side)
+                        written += 1
+        else:
+            sets = reader.sets()
+            cols = [list(info.camera_serials).index(s) for s in serials]
+            for k in _slice(args.sets, len(sets.set_unix_ns))[:: args.every]:
+                for serial, col in zip(serials, cols, strict=True):
+                    row = int(sets.members[k, col])
+                    if row < 0:
+                        continue
+                    for side in sides:
+                        write(out / f"set_{k:06d}" / f"SN{serial}_{side}.png", serial, row, side)
+                        written += 1
+    print(f"wrote {written} PNG(s) to {out}/")
+    return 0
+
+
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="egosurg session",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("info", help="cameras, duration, sets, drops and spread")
+    p.add_argument("file")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_info)
+    p = sub.add_parser("verify", help="check the file's integrity (exit 1 on a problem)")
+    p.add_argument("file")
+    p.add_argument("--quick", action="store_true", help="skip reading every image")
+    p.set_defaults(func=cmd_verify)
+    p = sub.add_parser("export-frames", help="write frames as PNG")
+    p.add_argument("file")
+    p.add_argument("--out", required=True)
+    p.add_argument("--camera", type=int, help="only this camera serial")
+    p.add_argument("--side", choices=("left", "right", "both"), default="both")
+    p.add_argument("--sets", help="set range, e.g. 0:30 (default: all)")
+    p.add_argument("--by-camera", action="store_true", help="export per camera, not per set")
+    p.add_argument("--frames", help="with --by-camera: row range, e.g. 0:100")
+    p.add_argument("--every", type=int, default=1, help="take every Nth set or frame")
+    p.set_defaults(func=cmd_export)
+    args = parser.parse_args(argv)
+    if getattr(args, "every", 1) < 1:
+        raise SessionArgumentError("--every must be 1 or more")
+    return int(args.func(args))

@@ -1,0 +1,298 @@
+"""The simulated rig deployed as real processes: two capture agents and a recorder on loopback.
+
+``write_sim_rig`` writes the ``node.toml`` of each simulated Jetson (two ZED X each, as on the
+real rig) and a ``rig.toml`` for the recorder; ``SimRig`` starts them as separate ``egosurg``
+processes, waits until every camera streams, and can kill and restart them for fault tests. The
+demo and the integration tests use it; it talks to the processes only through the ``egosurg``
+command and the control protocol, as an operator would.
+
+Example::
+
+    files = write_sim_rig(Path("out/rig"), SimRigSpec(seed=0))
+    with SimRig(files) as rig:
+        rig.wait_streaming(timeout_s=120)
+        rig.control("start", case="demo")
+        time.sleep(10)
+        summary = rig.control("stop")
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from protocol.errors import UserError
+from sim.world import World
+
+
+class SimRigError(UserError, RuntimeError):
+    pass
+
+
+@dataclass(frozen=True, kw_only=True)
+class SimRigSpec:
+    seed: int = 0
+    phase: str = "intraoperative"
+    resolution: str = "SVGA"
+    fps: float = 15.0
+    content_fps: float = 1.0
+    prerender_s: float = 6.0
+    drop_probability: float = 0.002
+    jitter_ns_std: float = 150_000.0
+    encoding: str = "jpeg"
+    jpeg_quality: int = 85
+    pre_encode: bool = True
+    flush_interval_s: float = 0.5
+    max_wait_ms: float = 500.0
+    disk_reserve_gb: float = 0.5
+    planned_duration_min: float = 1.0
+    require_ptp_lock: bool = False
+    ptp_table: dict[str, Any] = field(
+        default_factory=lambda: {"source": "none", "require_lock": False}
+    )
+    faults: dict[int, list[dict[str, Any]]] = field(default_factory=dict)  # camera index -> faults
+
+
+@dataclass(frozen=True)
+class SimRigFiles:
+    directory: Path
+    node_configs: dict[str, Path]
+    rig_config: Path
+    session_dir: Path
+    recorder_url: str
+    epoch_unix_ns: int
+    serials_by_node: dict[str, tuple[int, ...]]
+    camera_index_by_serial: dict[int, int]
+    spec: SimRigSpec
+
+
+def free_ports(n: int) -> list[int]:
+    socks, ports = [], []
+    for _ in range(n):
+        s = socket.socket()
+        s.bind(("127.0.0.1", 0))
+        socks.append(s)
+        ports.append(s.getsockname()[1])
+    for s in socks:
+        s.close()
+    return ports
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return repr(v)
+
+
+def write_sim_rig(directory: Path | str, spec: SimRigSpec | None = None) -> SimRigFiles:
+    """Write node and rig configs for the simulated rig, on free loopback ports."""
+    spec = spec or SimRigSpec()
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    world = World.from_seed(spec.seed, phase=spec.phase)
+    # sim time 0 a moment ago: every agent shares this epoch, as PTP clocks share one timeline
+    epoch = (time.time_ns() // 1_000_000_000) * 1_000_000_000
+    nodes: dict[str, list[int]] = {}
+    for unit in world.rig:
+        nodes.setdefault(unit.node_id, []).append(unit.index)
+    ports = free_ports(2 * len(nodes) + 1)
+    node_paths: dict[str, Path] = {}
+    agents_toml = []
+    serials_by_node: dict[str, tuple[int, ...]] = {}
+    for k, (node, indices) in enumerate(sorted(nodes.items())):
+        fport, cport = ports[2 * k], ports[2 * k + 1]
+        lines = [
+            f"# simulated Jetson node {node}: written by sim.deploy",
+            f'node_id = "{node}"',
+            f'frames_bind = "tcp://127.0.0.1:{fport}"',
+            f'control_bind = "tcp://127.0.0.1:{cport}"',
+            f'encoding = "{spec.encoding}"',
+            f"jpeg_quality = {spec.jpeg_quality}",
+            "",
+            "[ptp]",
+            *[f"{key} = {_toml_value(v)}" for key, v in spec.ptp_table.items()],
+        ]
+        for i in indices:
+            table: dict[str, Any] = {
+                "source": "sim",
+                "seed": spec.seed,
+                "phase": spec.phase,
+                "camera_index": i,
+                "resolution": spec.resolution,
+                "fps": spec.fps,
+                "epoch_unix_ns": epoch,
+                "content_fps": spec.content_fps,
+                "prerender_s": spec.prerender_s,
+                "drop_probability": spec.drop_probability,
+                "jitter_ns_std": spec.jitter_ns_std,
+            }
+            if spec.pre_encode and spec.encoding == "jpeg":
+                table["pre_encode"] = "jpeg"
+                table["jpeg_quality"] = spec.jpeg_quality
+            if spec.faults.get(i):
+                table["faults"] = spec.faults[i]
+            lines += ["", "[[cameras]]", *[f"{key} = {_toml_value(v)}" for key, v in table.items()]]
+        path = out / f"{node}.toml"
+        path.write_text("\n".join(lines) + "\n")
+        node_paths[node] = path
+        serials = tuple(world.rig[i].serial for i in indices)
+        serials_by_node[node] = serials
+        agents_toml += [
+            "",
+            "[[agents]]",
+            f'node_id = "{node}"',
+            f'frames = "tcp://127.0.0.1:{fport}"',
+            f'control = "tcp://127.0.0.1:{cport}"',
+            f"cameras = [{', '.join(str(s) for s in serials)}]",
+        ]
+    control_port = ports[-1]
+    session_dir = out / "sessions"
+    rig = [
+        "# the simulated rig's recorder: written by sim.deploy",
+        'rig_name = "sim-or"',
+        f"fps = {spec.fps}",
+        f'control_bind = "tcp://127.0.0.1:{control_port}"',
+        f'output_dir = "{session_dir}"',
+        f"require_ptp_lock = {_toml_value(spec.require_ptp_lock)}",
+        f"flush_interval_s = {spec.flush_interval_s}",
+        f"max_wait_ms = {spec.max_wait_ms}",
+        f"disk_reserve_gb = {spec.disk_reserve_gb}",
+        f"planned_duration_min = {spec.planned_duration_min}",
+        *agents_toml,
+    ]
+    rig_path = out / "rig.toml"
+    rig_path.write_text("\n".join(rig) + "\n")
+    return SimRigFiles(
+        directory=out,
+        node_configs=node_paths,
+        rig_config=rig_path,
+        session_dir=session_dir,
+        recorder_url=f"tcp://127.0.0.1:{control_port}",
+        epoch_unix_ns=epoch,
+        serials_by_node=serials_by_node,
+        camera_index_by_serial={u.serial: u.index for u in world.rig},
+        spec=spec,
+    )
+
+
+class SimRig:
+    """The agent and recorder processes of a simulated rig. Logs go to ``<dir>/logs/``."""
+
+    def __init__(self, files: SimRigFiles) -> None:
+        self.files = files
+        self.logs = files.directory / "logs"
+        self.logs.mkdir(exist_ok=True)
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def _spawn(self, name: str, *args: str) -> subprocess.Popen:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        with open(self.logs / f"{name}.log", "ab") as log:  # the child keeps its own handle
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "protocol.cli", *args],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                env=env,
+                start_new_session=True,
+            )
+        self.procs[name] = proc
+        return proc
+
+    def start_agent(self, node: str) -> None:
+        self._spawn(f"agent-{node}", "agent", "--config", str(self.files.node_configs[node]))
+
+    def start_recorder(self) -> None:
+        self._spawn("recorder", "recorder", "--config", str(self.files.rig_config))
+
+    def start(self) -> SimRig:
+        for node in self.files.node_configs:
+            self.start_agent(node)
+        self.start_recorder()
+        return self
+
+    def signal(self, name: str, sig: int = signal.SIGTERM) -> None:
+        proc = self.procs[name]
+        if proc.poll() is None:
+            os.kill(proc.pid, sig)
+        proc.wait(timeout=30)
+
+    def control(self, verb: str, timeout_s: float = 10.0, **args: Any) -> dict[str, Any]:
+        """One control request to the recorder; a refusal raises SimRigError with its reason."""
+        import zmq
+
+        from protocol.messages import ControlReply, ControlRequest
+
+        ctx: zmq.Context = zmq.Context.instance()
+        sock = ctx.socket(zmq.REQ)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.RCVTIMEO, int(timeout_s * 1000))
+        try:
+            sock.connect(self.files.recorder_url)
+            sock.send(ControlRequest(verb=verb, args=args).to_bytes())
+            reply = ControlReply.from_bytes(sock.recv())
+        except zmq.Again:
+            raise SimRigError(
+                f"the recorder did not answer '{verb}' in {timeout_s:g} s; see "
+                f"{self.logs}/recorder.log"
+            ) from None
+        finally:
+            sock.close(linger=0)
+        if not reply.ok:
+            raise SimRigError(reply.error or f"{verb} refused")
+        return reply.result
+
+    def wait_streaming(self, timeout_s: float = 180.0) -> dict[str, Any]:
+        """Wait until the recorder sees every camera of the rig streaming."""
+        deadline = time.monotonic() + timeout_s
+        status: dict[str, Any] = {}
+        while time.monotonic() < deadline:
+            for name, proc in self.procs.items():
+                if proc.poll() is not None:
+                    raise SimRigError(
+                        f"{name} exited with code {proc.returncode}; see {self.logs}/{name}.log"
+                    )
+            try:
+                status = self.control("status", timeout_s=2.0)
+            except SimRigError:
+                time.sleep(0.5)
+                continue
+            expected = {s for ss in self.files.serials_by_node.values() for s in ss}
+            streaming = {c["serial"] for c in status["cameras"] if c["streaming"]}
+            if expected <= streaming:
+                return status
+            time.sleep(0.5)
+        raise SimRigError(
+            f"cameras not all streaming after {timeout_s:g} s: {status}; see logs in {self.logs}"
+        )
+
+    def close(self) -> None:
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                try:
+                    os.kill(proc.pid, signal.SIGTERM)
+                except ProcessLookupError:
+                    continue
+        for proc in self.procs.values():
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(timeout=5)
+
+    def __enter__(self) -> SimRig:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,190 @@
+"""PTP status from linuxptp's pmc, with a fake ``pmc`` program (we have no PTP card here).
+
+The fake is a real executable that checks it was called as ``pmc -u -b 0 'GET TIME_STATUS_NP'``
+and prints what linuxptp's pmc prints in each case.
+"""
+
+from __future__ import annotations
+
+import os
+import stat
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from capture_agent.ptp import (
+    PtpConfig,
+    PtpMonitor,
+    PtpStatus,
+    parse_time_status,
+    read_ptp_status,
+)
+from protocol.errors import ConfigError
+
+HEADER = "sending: GET TIME_STATUS_NP\n"
+
+
+def time_status(offset: int, gm_present: bool, spelling: str = "MANAGEMENT") -> str:
+    return HEADER + textwrap.dedent(
+        f"""\
+        \t90e2ba.fffe.20c7f8-0 seq 0 RESPONSE {spelling} TIME_STATUS_NP
+        \t\tmaster_offset              {offset}
+        \t\tingress_time               1361545089345029441
+        \t\tcumulativeScaledRateOffset   +1.000000000
+        \t\tscaledLastGmPhaseChange    0
+        \t\tgmTimeBaseIndicator        0
+        \t\tlastGmPhaseChange          0x0000'0000000000000000.0000
+        \t\tgmPresent                  {"true" if gm_present else "false"}
+        \t\tgmIdentity                 00a069.fffe.0b552d
+        """
+    )
+
+
+def fake_pmc(directory: Path, stdout: str, *, sleep_s: float = 0.0, exit_code: int = 0) -> Path:
+    """Write an executable ``pmc`` that prints ``stdout`` if called with the real arguments."""
+    directory.mkdir(parents=True, exist_ok=True)
+    path = directory / "pmc"
+    tmp = directory / "pmc.tmp"  # written aside and renamed: a polling monitor never sees half
+    tmp.write_text(
+        f"#!{sys.executable}\n"
+        "import sys, time\n"
+        "if sys.argv[1:] != ['-u', '-b', '0', 'GET TIME_STATUS_NP']:\n"
+        "    sys.stderr.write('unexpected arguments: %r\\n' % sys.argv[1:]); sys.exit(2)\n"
+        f"time.sleep({sleep_s})\n"
+        f"sys.stdout.write({stdout!r})\n"
+        f"sys.exit({exit_code})\n"
+    )
+    tmp.chmod(tmp.stat().st_mode | stat.S_IXUSR | stat.S_IXGRP | stat.S_IXOTH)
+    os.replace(tmp, path)
+    return path
+
+
+def test_locked(tmp_path):
+    pmc = fake_pmc(tmp_path, time_status(-142, True))
+    status = read_ptp_status(PtpConfig(pmc_path=str(pmc)))
+    assert status.state == "locked" and status.locked
+    assert status.master_offset_ns == -142 and status.gm_present is True
+    assert "00a069.fffe.0b552d" in status.detail
+    assert abs(status.checked_unix_ns - time.time_ns()) < 10e9
+
+
+def test_old_linuxptp_spelling_is_understood(tmp_path):
+    pmc = fake_pmc(tmp_path, time_status(12, True, spelling="MANAGMENT"))
+    assert read_ptp_status(PtpConfig(pmc_path=str(pmc))).state == "locked"
+
+
+def test_large_offset_is_unlocked(tmp_path):
+    pmc = fake_pmc(tmp_path, time_status(250_000, True))
+    status = read_ptp_status(PtpConfig(pmc_path=str(pmc), lock_threshold_ns=1000))
+    assert status.state == "unlocked" and not status.locked
+    assert status.master_offset_ns == 250_000
+    assert "250000" in status.detail and "1000" in status.detail
+    loose = read_ptp_status(PtpConfig(pmc_path=str(pmc), lock_threshold_ns=500_000))
+    assert loose.state == "locked"
+
+
+def test_no_grandmaster_is_unlocked(tmp_path):
+    pmc = fake_pmc(tmp_path, time_status(0, False))
+    status = read_ptp_status(PtpConfig(pmc_path=str(pmc)))
+    assert status.state == "unlocked" and status.gm_present is False
+    assert "gmPresent false" in status.detail
+
+
+def test_no_answer_means_no_ptp4l(tmp_path):
+    """pmc with no ptp4l to ask prints only what it sent."""
+    pmc = fake_pmc(tmp_path, HEADER)
+    status = read_ptp_status(PtpConfig(pmc_path=str(pmc)))
+    assert status.state == "no_ptp4l"
+    assert status.master_offset_ns is None and status.gm_present is None
+    assert "ptp4l" in status.detail
+
+
+def test_a_pmc_that_hangs_times_out_as_no_ptp4l(tmp_path):
+    pmc = fake_pmc(tmp_path, time_status(1, True), sleep_s=10)
+    t0 = time.monotonic()
+    status = read_ptp_status(PtpConfig(pmc_path=str(pmc), timeout_s=0.5))
+    assert time.monotonic() - t0 < 5
+    assert status.state == "no_ptp4l" and "0.5 s" in status.detail
+
+
+def test_missing_binary_is_no_pmc(tmp_path, monkeypatch):
+    status = read_ptp_status(PtpConfig(pmc_path=str(tmp_path / "nowhere" / "pmc")))
+    assert status.state == "no_pmc" and "linuxptp" in status.detail
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))
+    status = read_ptp_status(PtpConfig())
+    assert status.state == "no_pmc" and "PATH" in status.detail
+
+
+def test_pmc_is_found_on_path(tmp_path, monkeypatch):
+    fake_pmc(tmp_path / "bin", time_status(3, True))
+    monkeypatch.setenv("PATH", str(tmp_path / "bin") + os.pathsep + os.environ.get("PATH", ""))
+    assert read_ptp_status(PtpConfig()).state == "locked"
+
+
+def test_disabled():
+    status = read_ptp_status(PtpConfig(source="none", pmc_path="/definitely/not/here"))
+    assert status.state == "disabled" and not status.locked
+
+
+def test_parse_error_response_and_garbage():
+    text = (
+        HEADER + "\t90e2ba.fffe.20c7f8-0 seq 0 RESPONSE MANAGEMENT_ERROR_STATUS TIME_STATUS_NP\n"
+        "\t\tERROR: NOT_SUPPORTED\n"
+    )
+    fields = parse_time_status(text)
+    assert fields is not None and "NOT_SUPPORTED" in fields["error"]
+    assert parse_time_status("") is None
+    assert parse_time_status("uds: sendto failed: No such file or directory\n") is None
+
+
+def test_error_response_is_unlocked(tmp_path):
+    text = (
+        HEADER + "\t90e2ba.fffe.20c7f8-0 seq 0 RESPONSE MANAGEMENT_ERROR_STATUS TIME_STATUS_NP\n"
+        "\t\tERROR: NOT_SUPPORTED\n"
+    )
+    status = read_ptp_status(PtpConfig(pmc_path=str(fake_pmc(tmp_path, text))))
+    assert status.state == "unlocked" and "NOT_SUPPORTED" in status.detail
+
+
+def test_monitor_follows_the_clock(tmp_path):
+    pmc_dir = tmp_path / "bin"
+    fake_pmc(pmc_dir, HEADER)
+    config = PtpConfig(pmc_path=str(pmc_dir / "pmc"), poll_interval_s=0.05)
+    with PtpMonitor(config) as monitor:
+        first = monitor.latest
+        assert first is not None and first.state == "no_ptp4l"
+        fake_pmc(pmc_dir, time_status(20, True))  # ptp4l comes up and locks
+        status = monitor.wait_for_lock(timeout_s=10)
+        assert status is not None and status.state == "locked"
+        assert status.checked_unix_ns > first.checked_unix_ns
+        fake_pmc(pmc_dir, time_status(90_000, True))
+        status = monitor.wait_for(("unlocked",), timeout_s=10)
+        assert status is not None and status.master_offset_ns == 90_000
+
+
+def test_wait_for_lock_times_out_with_the_latest_status(tmp_path):
+    config = PtpConfig(pmc_path=str(fake_pmc(tmp_path, HEADER)), poll_interval_s=0.05)
+    with PtpMonitor(config) as monitor:
+        t0 = time.monotonic()
+        status = monitor.wait_for_lock(timeout_s=0.3)
+        assert 0.25 < time.monotonic() - t0 < 5
+        assert status is not None and status.state == "no_ptp4l"
+
+
+def test_config_from_table():
+    cfg = PtpConfig.from_table({"source": "pmc", "lock_threshold_ns": 500}, "node.toml [ptp]")
+    assert cfg.lock_threshold_ns == 500 and cfg.require_lock and cfg.poll_interval_s == 1.0
+    assert PtpConfig.from_table({}, "x") == PtpConfig()
+    with pytest.raises(ConfigError, match=r"node.toml \[ptp\]: source = 'gps'.*'pmc', 'none'"):
+        PtpConfig.from_table({"source": "gps"}, "node.toml [ptp]")
+    with pytest.raises(ConfigError, match="lock_threshold_ns = -5"):
+        PtpConfig.from_table({"lock_threshold_ns": -5}, "node.toml [ptp]")
+    with pytest.raises(ConfigError, match="require_lock = 'yes'"):
+        PtpConfig.from_table({"require_lock": "yes"}, "node.toml [ptp]")
+    with pytest.raises(ConfigError, match="unknown option.*treshold"):
+        PtpConfig.from_table({"treshold": 5}, "node.toml [ptp]")
+    with pytest.raises(ValueError):
+        PtpStatus(state="sort of", checked_unix_ns=0)

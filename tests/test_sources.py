@@ -1,0 +1,487 @@
+"""Camera sources: the sim backend against its own truth, the ZED backend through a fake pyzed
+(the SDK's module replaced at its import, replaying PNG frames), and the video backend on real
+video files written here. Timing assertions leave generous slack."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from capture_agent.encode import decode_image
+from capture_agent.sources import (
+    CameraUnavailableError,
+    EndOfRecordingError,
+    make_source,
+)
+from capture_agent.sources.sim_source import (
+    DAY_NS,
+    FaultSpec,
+    SimSource,
+    SimSourceConfig,
+)
+from protocol.camera import Resolution
+from protocol.errors import ConfigError, UserError
+from protocol.zed_conf import ZedFactoryCalibration
+
+REPO = Path(__file__).resolve().parents[1]
+FAKES = Path(__file__).resolve().parent / "fakes"
+WHERE = "node.toml [[cameras]] #1"
+# One epoch for every sim source here, as every agent of a rig shares one; an hour ago keeps
+# sim times small.
+EPOCH = (time.time_ns() - 3600 * 10**9) // 10**9 * 10**9
+
+
+def sim(world, **kw) -> SimSource:
+    kw.setdefault("epoch_unix_ns", EPOCH)
+    return SimSource(SimSourceConfig(seed=11, **kw), world=world)
+
+
+def grab_for(src, seconds: float, timeout_s: float = 1.0) -> list:
+    out = []
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        frame = src.grab(timeout_s)
+        assert frame is not None, "a running sim camera timed out"
+        out.append(frame)
+    return out
+
+
+# ---- sim ---------------------------------------------------------------------------------------
+def test_sim_frames_follow_the_camera_clock_in_real_time(world):
+    src = sim(world, camera_index=0, drop_probability=0.2)
+    with src:
+        t0 = time.monotonic()
+        frames = grab_for(src, 1.5)
+        elapsed = time.monotonic() - t0
+    assert not src.is_open
+    # real time at the configured fps, minus the camera's drops
+    expected = 30 * 0.8 * elapsed
+    assert 0.6 * expected < len(frames) < 1.3 * expected + 3
+    span_s = (frames[-1].capture_unix_ns - frames[0].capture_unix_ns) / 1e9
+    assert abs(span_s - elapsed) < 0.6
+    # grab() waited for each frame's stamp: none arrives before the camera stamped it
+    assert all(f.host_receive_unix_ns >= f.capture_unix_ns - 5_000_000 for f in frames)
+    assert abs(frames[-1].host_receive_unix_ns - time.time_ns()) < 2e9
+
+    truth = src.truth(frames[0].capture_unix_ns - 10**9, frames[-1].capture_unix_ns + 10**9)
+    stamp = dict(zip(truth.frame_index.tolist(), truth.capture_unix_ns.tolist(), strict=True))
+    dropped = dict(zip(truth.frame_index.tolist(), truth.dropped.tolist(), strict=True))
+    indices = [f.frame_index for f in frames]
+    # the index jumps exactly over the frames the camera dropped, and nowhere else
+    for a, b in zip(indices, indices[1:], strict=False):
+        assert b - a - 1 == sum(dropped[i] for i in range(a + 1, b)), (a, b)
+        assert all(dropped[i] for i in range(a + 1, b))
+    assert sum(dropped[i] for i in range(indices[0], indices[-1])) > 0
+    assert src.overrun_frames == 0 and src.fault_frames == 0
+    assert [f.capture_unix_ns for f in frames] == [stamp[i] for i in indices]
+    # one frame period per index step: 30 fps within the crystal's ppm
+    per_frame_s = span_s / (indices[-1] - indices[0])
+    assert per_frame_s == pytest.approx(1 / 30, rel=1e-3)
+    for f in frames[:3]:
+        assert f.left_bgr is not None and f.right_bgr is not None and f.encoded is None
+        assert f.left_bgr.shape == (600, 960, 3) and f.left_bgr.dtype == np.uint8
+        assert f.right_bgr.shape == (600, 960, 3)
+
+
+def test_sim_images_are_the_world_render_in_bgr(world):
+    src = sim(world, camera_index=1, resolution="SVGA", realtime=False, content_fps=0.5)
+    with src:
+        frame = src.grab(0.0)
+    assert frame is not None and frame.left_bgr is not None and frame.right_bgr is not None
+    exposure = src.clock.exposure_time(frame.frame_index)
+    content_t = math.floor(exposure * 0.5) / 0.5
+    left, right = world.render_stereo(1, content_t, "SVGA")
+    np.testing.assert_array_equal(frame.left_bgr, left.image_rgb[..., ::-1])
+    np.testing.assert_array_equal(frame.right_bgr, right.image_rgb[..., ::-1])
+    assert not frame.left_bgr.flags.writeable  # shared between frames
+
+
+def test_two_cameras_of_one_world_have_their_own_phase(world):
+    a = sim(world, camera_index=0, content_fps=0.5)  # content does not matter here: render less
+    b = sim(world, camera_index=2, content_fps=0.5)
+    assert a.serial != b.serial
+    assert {a.serial, b.serial} <= {u.serial for u in world.rig}
+    period = 1 / 30
+    diff = abs(a.clock.exposure_time(0) - b.clock.exposure_time(0)) % period
+    assert min(diff, period - diff) > 2e-4
+    with a, b:
+        fa, fb = [], []
+        for _ in range(8):
+            fa.append(a.grab(1.0))
+            fb.append(b.grab(1.0))
+    assert all(f is not None for f in fa + fb)
+    # the two streams are offset by their phase difference, not aligned
+    offsets_ms = [
+        ((x.capture_unix_ns - y.capture_unix_ns) / 1e6) % (1000 / 30)
+        for x in fa
+        for y in fb
+        if x.frame_index == fa[0].frame_index
+    ]
+    assert all(min(o, 1000 / 30 - o) > 0.1 for o in offsets_ms)
+    ta = a.truth(fa[0].capture_unix_ns - 10**9, fa[-1].capture_unix_ns + 10**9)
+    tb = b.truth(fa[0].capture_unix_ns - 10**9, fa[-1].capture_unix_ns + 10**9)
+    assert not set(ta.capture_unix_ns.tolist()) & set(tb.capture_unix_ns.tolist())
+
+
+def test_sim_hang_times_out_for_its_duration_then_frames_resume(world):
+    hang = FaultSpec(kind="hang", at_s=0.6, duration_s=1.0)
+    src = sim(world, camera_index=3, content_fps=0.5, faults=(hang,))
+    events = []
+    with src:
+        (kind, start, end) = src.fault_windows_unix_ns()[0]
+        assert kind == "hang"
+        stop = time.monotonic() + 2.4
+        while time.monotonic() < stop:
+            frame = src.grab(0.2)
+            events.append((time.time_ns(), frame))  # when grab() returned
+    pattern = "".join("f" if f is not None else "." for _, f in events)
+    assert re.fullmatch(r"f+\.+f+", pattern), pattern
+    timeouts = [t for t, f in events if f is None]
+    assert (timeouts[-1] - timeouts[0]) / 1e9 == pytest.approx(1.0 - 0.2, abs=0.45)
+    assert timeouts[0] >= start + 0.15e9  # grab() waited out its timeout
+    frames = [f for _, f in events if f is not None]
+    assert not any(start <= f.capture_unix_ns < end for f in frames)
+    before = [f for f in frames if f.capture_unix_ns < start]
+    after = [f for f in frames if f.capture_unix_ns >= end]
+    assert before and after
+    assert after[0].frame_index - before[-1].frame_index >= 0.8 * 30 * 1.0
+    assert src.fault_frames >= 25
+
+
+def test_sim_vanish_raises_until_it_is_over_then_reopen_works(world):
+    vanish = FaultSpec(kind="vanish", at_s=0.5, duration_s=1.0)
+    src = sim(world, camera_index=2, content_fps=0.5, faults=(vanish,))
+    src.open()
+    try:
+        _, start, end = src.fault_windows_unix_ns()[0]
+        last = None
+        with pytest.raises(CameraUnavailableError, match="vanished"):
+            for _ in range(200):
+                last = src.grab(1.0)
+        raised_at = time.time_ns()
+        assert last is not None
+        assert start <= raised_at < start + 0.5e9
+        with pytest.raises(CameraUnavailableError):  # gone until reopened
+            src.grab(0.1)
+        src.close()
+        with pytest.raises(CameraUnavailableError, match="not connected"):
+            src.open()
+        time.sleep(max(0.0, (end - time.time_ns()) / 1e9) + 0.05)
+        src.open()
+        frame = src.grab(1.0)
+        assert frame is not None and frame.capture_unix_ns >= end
+        assert frame.frame_index > last.frame_index + 25
+    finally:
+        src.close()
+
+
+def test_sim_prerendered_jpeg_content_repeats_and_default_epoch(world):
+    src = sim(
+        world,
+        camera_index=1,
+        epoch_unix_ns=None,
+        pre_encode="jpeg",
+        jpeg_quality=80,
+        prerender_s=1.0,
+        realtime=False,
+    )
+    with src:
+        assert src.epoch_unix_ns % DAY_NS == 0  # the start of today, UTC
+        assert src.epoch_unix_ns <= time.time_ns() < src.epoch_unix_ns + DAY_NS
+        t0 = time.monotonic()
+        frames = [src.grab(0.0) for _ in range(80)]  # ~2.7 s of camera time
+        assert time.monotonic() - t0 < 2.0  # not paced, and nothing is rendered any more
+    assert all(f is not None for f in frames)
+    assert all(f.left_bgr is None and f.encoded is not None for f in frames)
+    assert len({id(f.encoded) for f in frames}) == 2  # 1 s of content at 2 fps, repeated
+    pair = frames[0].encoded
+    assert pair.encoding == "jpeg" and (pair.width, pair.height) == (960, 600)
+    assert decode_image(pair.left, "jpeg", 960, 600).shape == (600, 960, 3)
+    steps = np.diff([f.capture_unix_ns for f in frames])
+    assert np.all(steps > 0)
+
+
+def test_sim_factory_conf_is_the_rig_file(world):
+    src = sim(world, camera_index=2)
+    text = src.factory_conf_text()
+    cal = ZedFactoryCalibration.parse(text, serial=src.serial)
+    assert cal.baseline_mm == world.rig[2].factory.baseline_mm
+    assert "[LEFT_CAM_SVGA]" in text and src.resolution is Resolution.SVGA
+
+
+def test_make_source_sim_and_config_errors(world):
+    src = make_source(
+        "sim",
+        {"source": "sim", "seed": 11, "camera_index": 3, "resolution": "svga", "fps": 60},
+        WHERE,
+    )
+    assert isinstance(src, SimSource)
+    assert src.resolution is Resolution.SVGA and src.fps == 60.0
+    assert src.serial == world.rig[3].serial
+    assert src.config.content_fps == 2.0 and src.config.realtime and src.config.free_running
+
+    def bad(table, *patterns):
+        with pytest.raises(ConfigError) as info:
+            make_source("sim", table, WHERE)
+        for p in (re.escape(WHERE), *patterns):
+            assert re.search(p, str(info.value)), (p, str(info.value))
+
+    bad({"resolution": "4K"}, r"resolution = '4K'", "HD1200, HD1080, SVGA")
+    bad({"camera_index": 7}, r"camera_index = 7", "0 to 3")
+    bad({"resolution": "HD1200", "fps": 90}, r"fps = 90", "60")
+    bad({"phase": "lunch"}, r"phase = 'lunch'", "intraoperative")
+    bad({"pre_encode": "png"}, r"pre_encode = 'png'", "'jpeg'")
+    bad({"epoch_unix_ns": "today"}, r"epoch_unix_ns = 'today'")
+    bad({"fsp": 30}, "unknown option.*fsp", "fps")
+    bad({"faults": [{"kind": "explode", "at_s": 1, "duration_s": 1}]}, r"faults\[0\]", "'hang'")
+    bad({"faults": [{"kind": "hang", "at_s": 1}]}, r"faults\[0\]", "duration_s")
+    bad({"drop_probability": 0.7}, "drop_probability = 0.7")
+    with pytest.raises(ConfigError, match=r"unknown camera source 'gige'.*'sim', 'zed', 'video'"):
+        make_source("gige", {}, WHERE)
+
+
+def test_sources_import_without_the_simulator_or_the_sdk():
+    """The agent on a Jetson imports every backend module but sim's without sim/ or numba."""
+    snippet = (
+        "import sys\n"
+        "import capture_agent.sources, capture_agent.ptp, capture_agent.encode\n"
+        "from capture_agent.sources import zed_source, video_source\n"
+        "bad = [m for m in ('sim', 'numba', 'torch', 'open3d', 'pyzed') if m in sys.modules]\n"
+        "print(','.join(bad))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", snippet], capture_output=True, text=True, check=True, cwd=REPO
+    )
+    assert out.stdout.strip() == ""
+
+
+# ---- zed (fake pyzed) --------------------------------------------------------------------------
+SERIAL = 41234567
+T0_NS = 1_767_225_600_008_000_000
+PERIOD_NS = 33_333_333
+
+
+@pytest.fixture
+def fake_sl(monkeypatch, tmp_path):
+    """Put tests/fakes first on sys.path, so ``import pyzed.sl`` finds the replaying fake."""
+    monkeypatch.syspath_prepend(str(FAKES))
+    for name in ("pyzed.sl", "pyzed"):
+        monkeypatch.delitem(sys.modules, name, raising=False)
+    import pyzed.sl as sl
+
+    assert Path(sl.__file__).is_relative_to(FAKES)
+    monkeypatch.setattr(sl, "REPLAY_DIR", tmp_path / "replay")
+    yield sl
+    for name in ("pyzed.sl", "pyzed"):
+        sys.modules.pop(name, None)
+
+
+def write_replay(directory: Path, events: list) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """PNG frames (SVGA BGR, a different colour per side and frame) plus ``replay.json``."""
+    directory.mkdir(parents=True, exist_ok=True)
+    images = {}
+    out = []
+    for i, event in enumerate(events):
+        if isinstance(event, str):
+            out.append({"error": event})
+            continue
+        left = np.zeros((600, 960, 3), np.uint8)
+        left[:] = (200, 40 + 10 * i, 10)  # blue-ish: a BGR/RGB swap would show
+        left[:100, :100] = (0, 0, 255)
+        right = np.zeros_like(left)
+        right[:] = (10, 40 + 10 * i, 200)
+        cv2.imwrite(str(directory / f"l{i}.png"), left)
+        cv2.imwrite(str(directory / f"r{i}.png"), right)
+        out.append({"timestamp_ns": event, "left": f"l{i}.png", "right": f"r{i}.png"})
+        images[event] = (left, right)
+    replay = {"serial": SERIAL, "resolution": "SVGA", "fps": 30, "events": out}
+    (directory / "replay.json").write_text(json.dumps(replay))
+    return images
+
+
+def zed_table(tmp_path: Path, **kw) -> dict:
+    table = {"serial": SERIAL, "resolution": "SVGA", "fps": 30, "settings_dir": str(tmp_path)}
+    table.update(kw)
+    return table
+
+
+def test_zed_frames_and_stamps_flow_through(fake_sl, tmp_path):
+    stamps = [T0_NS, T0_NS + PERIOD_NS, T0_NS + 3 * PERIOD_NS, T0_NS + 4 * PERIOD_NS]
+    events = [stamps[0], stamps[1], stamps[2], "CORRUPTED_FRAME", stamps[3], "CAMERA_NOT_DETECTED"]
+    images = write_replay(tmp_path / "replay", events)
+    (tmp_path / f"SN{SERIAL}.conf").write_text("[STEREO]\nBaseline=120.0\n")
+    src = make_source("zed", zed_table(tmp_path), WHERE)
+    with src:
+        assert src.serial == SERIAL and src.is_open
+        before = time.time_ns()
+        frames = [src.grab(2.0) for _ in range(4)]
+        assert all(f is not None for f in frames)
+        # a frame the camera lost (between stamps 1 and 2) shows as an index gap
+        assert [f.frame_index for f in frames] == [0, 1, 3, 4]
+        assert [f.capture_unix_ns for f in frames] == stamps
+        for f in frames:
+            left, right = images[f.capture_unix_ns]
+            assert f.left_bgr.shape == (600, 960, 3) and f.left_bgr.dtype == np.uint8
+            np.testing.assert_array_equal(f.left_bgr, left)  # BGRA from the SDK -> BGR
+            np.testing.assert_array_equal(f.right_bgr, right)
+            assert before - 10**9 <= f.host_receive_unix_ns <= time.time_ns()
+        with pytest.raises(CameraUnavailableError, match="CAMERA_NOT_DETECTED"):
+            src.grab(2.0)
+        with pytest.raises(CameraUnavailableError):  # stays gone until reopened
+            src.grab(0.1)
+        src.close()
+        src.open()  # the camera is back (the fake replays from its first frame)
+        again = src.grab(2.0)
+        assert again is not None and again.frame_index == 0
+    assert src.corrupted_frames == 1
+    assert src.factory_conf_text() == "[STEREO]\nBaseline=120.0\n"
+
+
+def test_zed_grab_times_out_when_no_frame_comes(fake_sl, tmp_path):
+    write_replay(tmp_path / "replay", [T0_NS])
+    src = make_source("zed", zed_table(tmp_path, settings_dir=str(tmp_path / "none")), WHERE)
+    src.open()
+    try:
+        assert src.grab(2.0) is not None
+        t0 = time.monotonic()
+        assert src.grab(0.2) is None
+        assert 0.15 < time.monotonic() - t0 < 2.0
+        assert src.factory_conf_text() == ""  # no SN<serial>.conf in settings_dir
+    finally:
+        t0 = time.monotonic()
+        src.close()
+        assert time.monotonic() - t0 < 3.0
+
+
+def test_zed_open_failure_is_camera_unavailable(fake_sl, tmp_path):
+    write_replay(tmp_path / "replay", [T0_NS])
+    src = make_source("zed", zed_table(tmp_path, serial=SERIAL + 1), WHERE)
+    with pytest.raises(CameraUnavailableError, match=rf"SN{SERIAL + 1}.*CAMERA_NOT_DETECTED"):
+        src.open()
+    assert not src.is_open
+
+
+def test_zed_without_pyzed_says_what_to_install(monkeypatch):
+    monkeypatch.setitem(sys.modules, "pyzed", None)  # as on a machine without the ZED SDK
+    monkeypatch.delitem(sys.modules, "pyzed.sl", raising=False)
+    with pytest.raises(UserError) as info:
+        make_source("zed", {"serial": SERIAL}, WHERE)
+    message = str(info.value)
+    assert "pyzed" in message and "ZED SDK" in message and "get_python_api.py" in message
+    assert isinstance(info.value, ImportError)
+    # a bad option is reported before the SDK is even needed
+    with pytest.raises(ConfigError, match=r"fps = 120.*15, 30, 60"):
+        make_source("zed", {"serial": SERIAL, "resolution": "HD1200", "fps": 120}, WHERE)
+
+
+# ---- video -------------------------------------------------------------------------------------
+def write_video(path: Path, frames: list[np.ndarray], fps: float) -> Path:
+    h, w = frames[0].shape[:2]
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (w, h))
+    assert writer.isOpened()
+    for f in frames:
+        writer.write(f)
+    writer.release()
+    return path
+
+
+def solid(h: int, w: int, bgr: tuple[int, int, int]) -> np.ndarray:
+    img = np.zeros((h, w, 3), np.uint8)
+    img[:] = bgr
+    return img
+
+
+def test_video_side_by_side_replay(tmp_path):
+    colours = [((30 * i, 60, 200), (200, 120, 30 * i)) for i in range(5)]
+    sbs = [np.hstack([solid(600, 960, lc), solid(600, 960, rc)]) for lc, rc in colours]
+    path = write_video(tmp_path / "sbs.avi", sbs, fps=25)
+    conf = tmp_path / "SN7.conf"
+    conf.write_text("[STEREO]\n")
+    src = make_source("video", {"path": str(path), "serial": 7, "conf_path": str(conf)}, WHERE)
+    assert src.fps == 25.0 and src.resolution is Resolution.SVGA and src.serial == 7
+    assert src.factory_conf_text() == "[STEREO]\n"
+    with src:
+        t0 = time.monotonic()
+        frames = [src.grab(1.0) for _ in range(5)]
+        elapsed = time.monotonic() - t0
+        with pytest.raises(EndOfRecordingError, match="ended"):
+            src.grab(1.0)
+    assert all(f is not None for f in frames)
+    assert elapsed > 0.12  # paced at 25 fps: frame 4 is due 0.16 s after open
+    assert [f.frame_index for f in frames] == list(range(5))
+    first = frames[0].capture_unix_ns
+    assert [f.capture_unix_ns - first for f in frames] == [round(i * 1e9 / 25) for i in range(5)]
+    assert abs(first - frames[0].host_receive_unix_ns) < 1e9
+    for f, (lc, rc) in zip(frames, colours, strict=True):
+        assert f.left_bgr.shape == (600, 960, 3) and f.right_bgr.shape == (600, 960, 3)
+        assert np.abs(f.left_bgr[300, 480].astype(int) - lc).max() < 12
+        assert np.abs(f.right_bgr[300, 480].astype(int) - rc).max() < 12
+
+
+def test_video_two_files_loop_and_resize(tmp_path):
+    lefts = [solid(60, 96, (0, 0, 80 * i + 40)) for i in range(3)]
+    rights = [solid(60, 96, (80 * i + 40, 0, 0)) for i in range(3)]
+    table = {
+        "left_path": str(write_video(tmp_path / "l.avi", lefts, fps=10)),
+        "right_path": str(write_video(tmp_path / "r.avi", rights, fps=10)),
+        "fps": 50,
+        "loop": True,
+        "realtime": False,
+        "resolution": "SVGA",
+    }
+    with make_source("video", table, WHERE) as src:
+        frames = [src.grab(0.0) for _ in range(7)]
+    assert all(f is not None for f in frames)
+    assert [f.frame_index for f in frames] == list(range(7))
+    assert [f.capture_unix_ns - frames[0].capture_unix_ns for f in frames] == [
+        i * 20_000_000 for i in range(7)
+    ]
+    reds = [int(f.left_bgr[30, 48, 2]) for f in frames]
+    blues = [int(f.right_bgr[30, 48, 0]) for f in frames]
+    assert reds[:3] == pytest.approx([40, 120, 200], abs=12)
+    assert reds[3:6] == reds[:3] and reds[6] == reds[0]  # looped, both sides together
+    assert blues[:3] == pytest.approx([40, 120, 200], abs=12) and blues[3:6] == blues[:3]
+    assert frames[0].left_bgr.shape == (600, 960, 3)  # resized to SVGA
+
+
+def test_video_realtime_grab_times_out_between_frames(tmp_path):
+    path = write_video(tmp_path / "sbs.avi", [np.zeros((600, 1920, 3), np.uint8)] * 3, fps=25)
+    with make_source("video", {"path": str(path), "fps": 4}, WHERE) as src:
+        assert src.grab(1.0) is not None
+        assert src.grab(0.05) is None  # the next frame is due 0.25 s after the first
+        t0 = time.monotonic()
+        frame = src.grab(1.0)
+        assert frame is not None and frame.frame_index == 1
+        assert time.monotonic() - t0 < 0.5
+
+
+def test_video_config_errors(tmp_path):
+    with pytest.raises(ConfigError, match=rf"{re.escape(WHERE)}: give either 'path'"):
+        make_source("video", {}, WHERE)
+    with pytest.raises(ConfigError, match="give either 'path'"):
+        make_source("video", {"path": "a.avi", "left_path": "b.avi"}, WHERE)
+    with pytest.raises(ConfigError, match="give either 'path'"):
+        make_source("video", {"left_path": "b.avi"}, WHERE)
+    with pytest.raises(ConfigError, match="fps = -1"):
+        make_source("video", {"path": "a.avi", "fps": -1}, WHERE)
+    with pytest.raises(ConfigError, match="does not exist"):
+        make_source("video", {"path": str(tmp_path / "missing.avi")}, WHERE).open()
+    small = write_video(tmp_path / "small.avi", [np.zeros((60, 192, 3), np.uint8)] * 2, fps=10)
+    with pytest.raises(ConfigError, match=r"96x60 per side, not a ZED X mode.*'resolution'"):
+        make_source("video", {"path": str(small)}, WHERE).open()
+    other = write_video(tmp_path / "other.avi", [np.zeros((64, 96, 3), np.uint8)] * 2, fps=10)
+    src = make_source(
+        "video", {"left_path": str(small), "right_path": str(other), "resolution": "SVGA"}, WHERE
+    )
+    with pytest.raises(ConfigError, match="differ in frame size"):
+        src.open()
+    assert not src.is_open
