@@ -102,6 +102,9 @@ class Recording:
     started_monotonic: float
     serials: tuple[int, ...]
     sets_written: int = 0
+    leading_sets_skipped: int = 0
+    trailing_sets_skipped: int = 0
+    take_started: bool = False
     frames_written: int = 0
     ignored_frames: int = 0
     last_flush: float = 0.0
@@ -242,6 +245,16 @@ class Recorder:
 
     def _write_sets(self, rec: Recording, sets: list[SyncedSet]) -> None:
         for s in sets:
+            complete = all(m is not None for m in s.members)
+            if not rec.take_started:
+                # The cameras free-run, so the first window after "start" may hold only some of
+                # them. The take begins at the first complete set, so every take starts with all
+                # cameras (their earlier frames are still stored, outside any set).
+                waited = s.set_unix_ns - rec.started_unix_ns > 2e9
+                if not complete and not waited:
+                    rec.leading_sets_skipped += 1
+                    continue
+                rec.take_started = True
             rec.writer.append_set(s.set_unix_ns, s.member_rows(), s.spread_ns)
             rec.sets_written += 1
 
@@ -463,7 +476,13 @@ class Recorder:
     def _stop_recording(self, reason: str) -> dict[str, Any]:
         rec = self.recording
         assert rec is not None
-        self._write_sets(rec, rec.sync.flush())
+        tail = rec.sync.flush()
+        # Likewise at the end: windows the stop cut short (some cameras' frames for them were
+        # captured after the stop) are not sets of the take; a take ends on a complete set.
+        while tail and any(m is None for m in tail[-1].members):
+            tail.pop()
+            rec.trailing_sets_skipped += 1
+        self._write_sets(rec, tail)
         stopped_ns = time.time_ns()
         totals = rec.accounting.totals()
         per_camera = {}
@@ -484,6 +503,7 @@ class Recorder:
             "reason": reason,
             "duration_s": round((stopped_ns - rec.started_unix_ns) / 1e9, 3),
             "sets": rec.sets_written,
+            "partial_sets_trimmed": rec.leading_sets_skipped + rec.trailing_sets_skipped,
             "frames": rec.frames_written,
             "bytes": rec.writer.bytes_written,
             "cameras": per_camera,

@@ -61,7 +61,7 @@ def test_bad_quality_is_refused(quality):
 
 def test_bad_inputs_are_refused_with_clear_errors():
     left, right = _pair()
-    with pytest.raises(EncodeError, match="unknown encoding 'png'.*jpeg, raw_bgr8"):
+    with pytest.raises(EncodeError, match=r"unknown encoding 'png'.*jpeg, raw_bgr8"):
         encode_pair(left, right, "png")
     with pytest.raises(EncodeError, match="differ in size"):
         encode_pair(left, right[:30], "jpeg")

@@ -184,7 +184,7 @@ def test_config_from_table():
         PtpConfig.from_table({"lock_threshold_ns": -5}, "node.toml [ptp]")
     with pytest.raises(ConfigError, match="require_lock = 'yes'"):
         PtpConfig.from_table({"require_lock": "yes"}, "node.toml [ptp]")
-    with pytest.raises(ConfigError, match="unknown option.*treshold"):
+    with pytest.raises(ConfigError, match=r"unknown option.*treshold"):
         PtpConfig.from_table({"treshold": 5}, "node.toml [ptp]")
     with pytest.raises(ValueError):
         PtpStatus(state="sort of", checked_unix_ns=0)
