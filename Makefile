@@ -27,15 +27,19 @@ typecheck: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python bench/bench_sim.py
 
+# libusb-1.0-0: open3d needs it at import. hdf5-tools: h5dump/h5ls/h5clear, to read sessions with
+# the standard tools (and for the test that checks a session opens in h5dump).
 system-deps:
-	@if ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
-		echo "system: libusb-1.0-0 present (open3d needs it at import)"; \
+	@if ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' && command -v h5dump >/dev/null; then \
+		echo "system: libusb-1.0-0 and hdf5-tools present"; \
 	elif [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
-		echo "system: installing libusb-1.0-0 for open3d"; \
-		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0; \
+		echo "system: installing libusb-1.0-0 (for open3d) and hdf5-tools (h5dump)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 hdf5-tools; \
+	elif ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
+		echo "system: hdf5-tools missing (optional: sudo apt-get install hdf5-tools for h5dump)"; \
 	else \
 		echo "open3d needs the system library libusb-1.0-0, which is missing."; \
-		echo "Install it as root, then run make again:  sudo apt-get install libusb-1.0-0"; \
+		echo "Install it as root, then run make again:  sudo apt-get install libusb-1.0-0 hdf5-tools"; \
 		exit 1; \
 	fi
 

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import zmq
 
 from capture_agent.accounting import StreamAccounting
@@ -108,6 +109,28 @@ class Recording:
     frames_written: int = 0
     ignored_frames: int = 0
     last_flush: float = 0.0
+    # capture stamps of frames written since the last flush, and capture-to-durable latencies
+    unflushed_capture_ns: list[int] = field(default_factory=list)
+    durable_latency_ns: collections.deque = field(
+        default_factory=lambda: collections.deque(maxlen=200_000)
+    )
+
+    def flush(self) -> None:
+        self.writer.flush()
+        now = time.time_ns()
+        self.durable_latency_ns.extend(now - c for c in self.unflushed_capture_ns)
+        self.unflushed_capture_ns.clear()
+        self.last_flush = time.monotonic()
+
+    def latency_ms(self) -> dict[str, float | None]:
+        if not self.durable_latency_ns:
+            return {"p50": None, "p99": None, "max": None}
+        a = np.asarray(self.durable_latency_ns, dtype=np.float64) / 1e6
+        return {
+            "p50": round(float(np.percentile(a, 50)), 2),
+            "p99": round(float(np.percentile(a, 99)), 2),
+            "max": round(float(a.max()), 2),
+        }
 
 
 class Recorder:
@@ -241,6 +264,7 @@ class Recorder:
             ptp_locked=msg.ptp_locked,
         )
         rec.frames_written += 1
+        rec.unflushed_capture_ns.append(msg.capture_unix_ns)
         self._write_sets(rec, rec.sync.add(msg.camera_serial, msg.capture_unix_ns, row, rx_ns))
 
     def _write_sets(self, rec: Recording, sets: list[SyncedSet]) -> None:
@@ -264,8 +288,7 @@ class Recorder:
         if rec is not None:
             self._write_sets(rec, rec.sync.poll(time.time_ns()))
             if now - rec.last_flush >= self.config.flush_interval_s:
-                rec.writer.flush()
-                rec.last_flush = now
+                rec.flush()
         if now - self._last_disk_check >= 1.0:
             self._last_disk_check = now
             self._disk_free = self._free_bytes()
@@ -483,6 +506,7 @@ class Recorder:
             tail.pop()
             rec.trailing_sets_skipped += 1
         self._write_sets(rec, tail)
+        rec.flush()
         stopped_ns = time.time_ns()
         totals = rec.accounting.totals()
         per_camera = {}
@@ -506,6 +530,7 @@ class Recorder:
             "partial_sets_trimmed": rec.leading_sets_skipped + rec.trailing_sets_skipped,
             "frames": rec.frames_written,
             "bytes": rec.writer.bytes_written,
+            "capture_to_durable_ms": rec.latency_ms(),
             "cameras": per_camera,
             "malformed_messages": self.malformed,
             "unknown_version_messages": self.unknown_version,

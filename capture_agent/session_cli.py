@@ -120,7 +120,7 @@ def format_info(s: dict) -> str:
         sp = s["spread_ms"]
         lines.append(
             f"set spread: median {sp['median']:.2f} ms, p95 {sp['p95']:.2f} ms, max "
-            f"{sp['max']:.2f} ms (tolerance +-{s['tolerance_ms']:.2f} ms)"
+            f"{sp['max']:.2f} ms (each frame within +-{s['tolerance_ms']:.2f} ms of its set time)"
         )
     if s["metadata"]:
         lines.append("metadata: " + ", ".join(f"{k}={v}" for k, v in s["metadata"].items()))

@@ -225,6 +225,13 @@ def test_sim_prerendered_jpeg_content_repeats_and_default_epoch(world):
     assert np.all(steps > 0)
 
 
+def test_sim_epoch_in_the_future_is_refused(world):
+    src = sim(world, epoch_unix_ns=time.time_ns() + 3600 * 10**9)
+    with pytest.raises(ConfigError, match=r"epoch_unix_ns = .* is in the future"):
+        src.open()
+    assert not src.is_open
+
+
 def test_sim_factory_conf_is_the_rig_file(world):
     src = sim(world, camera_index=2)
     text = src.factory_conf_text()

@@ -216,6 +216,7 @@ class ZedSource(CameraSource):
         if self._thread is not None:
             self._thread.join(timeout=1.0)
             self._thread = None
+        self._failure = None
 
     def grab(self, timeout_s: float) -> GrabbedFrame | None:
         if self._failure is not None:
