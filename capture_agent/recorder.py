@@ -597,6 +597,7 @@ class Recorder:
                     "sets": rec.sets_written,
                     "frames": rec.frames_written,
                     "bytes": rec.writer.bytes_written,
+                "capture_to_durable_ms": rec.latency_ms(),
                 }
             )
         if self.last_stop_summary is not None:
