@@ -161,8 +161,8 @@ def test_malformed_conf_is_reported_by_name(tmp_path):
     assert "SN123.conf" in out.stderr and "fx" in out.stderr
 
 
-def test_demo_writes_its_pictures_and_video(tmp_path):
-    out = run_egosurg("demo", "--out", str(tmp_path), timeout=600)
+def test_demo_runs_every_stage(tmp_path):
+    out = run_egosurg("demo", "--out", str(tmp_path), "--record-s", "4", timeout=900)
     assert out.returncode == 0, out.stderr
     mosaic = cv2.imread(str(tmp_path / "sim" / "rig_views.png"))
     assert mosaic.shape[0] > 4 * 200 and mosaic.shape[1] >= 2 * 480  # eight views, 4 x 2
@@ -171,3 +171,7 @@ def test_demo_writes_its_pictures_and_video(tmp_path):
     assert video.get(cv2.CAP_PROP_FRAME_COUNT) >= 20
     for name in ("rig_views.png", "room_topdown.png", "ground_truth.mp4"):
         assert name in out.stdout  # the demo says where it wrote them
+    # the capture stage recorded a session through real agent and recorder processes
+    sessions = list((tmp_path / "capture" / "sessions").glob("*.h5"))
+    assert len(sessions) == 1 and str(sessions[0]) in out.stdout
+    assert "closed cleanly" in out.stdout and "synchronised sets" in out.stdout
