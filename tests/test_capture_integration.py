@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import shutil
 import signal
+import subprocess
 import threading
 import time
 import tomllib
@@ -206,7 +207,7 @@ def test_start_is_refused_when_ptp_is_not_locked(rig, tmp_path):
 
 def test_start_is_refused_when_the_disk_is_too_full(rig, tmp_path):
     free_gb = shutil.disk_usage(tmp_path).free / 1e9
-    rec, client = _in_process_recorder(rig, tmp_path, disk_reserve_gb=free_gb + 1.0)
+    rec, client = _in_process_recorder(rig, tmp_path, disk_reserve_gb=free_gb + 1000.0)
     try:
         with pytest.raises(CommandRefusedError, match="not enough disk"):
             client.start("full-disk")
@@ -215,11 +216,25 @@ def test_start_is_refused_when_the_disk_is_too_full(rig, tmp_path):
         rec.stop()
 
 
-def test_recording_stops_cleanly_before_the_disk_fills(rig, tmp_path):
-    # leave the recording 40 MB before the reserve, as if the disk were nearly full
-    free = shutil.disk_usage(tmp_path).free
-    reserve_gb = (free - 40e6) / 1e9
-    rec, client = _in_process_recorder(rig, tmp_path, disk_reserve_gb=reserve_gb)
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 120 MB filesystem of its own (tmpfs, as root), so other disk traffic cannot interfere;
+    without root, the real disk with a reserve set 40 MB under its free space."""
+    mount = tmp_path / "small"
+    mount.mkdir()
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=120m", "tmpfs", str(mount)], capture_output=True
+    )
+    if done.returncode == 0:
+        yield mount, 0.05
+        subprocess.run(["umount", "-l", str(mount)], check=False)
+    else:
+        yield mount, (shutil.disk_usage(mount).free - 40e6) / 1e9
+
+
+def test_recording_stops_cleanly_before_the_disk_fills(rig, tmp_path, small_disk):
+    directory, reserve_gb = small_disk
+    rec, client = _in_process_recorder(rig, directory, disk_reserve_gb=reserve_gb)
     try:
         started = client.start("filling", planned_duration_min=0.001)
         deadline = time.monotonic() + 60
@@ -228,9 +243,11 @@ def test_recording_stops_cleanly_before_the_disk_fills(rig, tmp_path):
         st = client.status()
         assert not st["recording"], "the recorder kept recording into the reserve"
         assert "reserve" in st["last_recording"]["reason"]
+        assert shutil.disk_usage(directory).free > 0.8 * reserve_gb * 1e9  # stopped in time
         with SessionReader(started["file"]) as reader:
             assert reader.info.closed_cleanly
             assert reader.frame_count(reader.info.camera_serials[0]) > 10
+            assert not [p for p in reader.verify() if p.startswith("error")]
     finally:
         rec.stop()
 
@@ -334,6 +351,26 @@ def test_a_killed_agent_leaves_a_recorded_gap_and_spares_the_others(rig):
                 inside = (truth.frame_index >= idx[0]) & (truth.frame_index <= idx[-1])
                 np.testing.assert_array_equal(idx, truth.frame_index[inside & ~truth.dropped])
                 assert kinds <= {GapKind.FRAME_INDEX_GAP, GapKind.TIME_GAP}
+
+
+def test_operator_console_rig_object(rig):
+    """What `egosurg shell` gives the operator: a connected rig with readable results."""
+    from capture_agent.console import Rig
+
+    console_rig = Rig(RigClient(rig.files.recorder_url))
+    text = repr(console_rig.status())
+    assert "streaming" in text and "disk" in text
+    serial = next(iter(rig.files.camera_index_by_serial))
+    img = console_rig.last_frame(serial)
+    assert img.shape == (600, 960, 3) and img.dtype == np.uint8 and img.std() > 10
+    with pytest.raises(CommandRefusedError, match="file name"):
+        console_rig.start("bad/case name")
+    console_rig.start("console-case", surgeon="A. Smith")
+    time.sleep(1.0)
+    summary = console_rig.stop()
+    assert "console-case" in repr(summary) and "frames" in repr(summary)
+    with SessionReader(summary["file"]) as reader:
+        assert reader.info.case_metadata == {"surgeon": "A. Smith"}
 
 
 def test_a_killed_recorder_leaves_a_readable_file(rig):
