@@ -209,10 +209,24 @@ class RayImage:
     object_index: np.ndarray  # (H, W) int32; SPHERE_OBJECT_BASE + k for wand sphere k
 
 
-def render_view(scene: FrameScene, camera: Camera) -> RayImage:
+def render_view(
+    scene: FrameScene,
+    camera: Camera,
+    background: RayImage | None = None,
+    region: np.ndarray | None = None,
+) -> RayImage:
+    """Render ``camera``'s view of ``scene``.
+
+    With ``background`` (a render of the static room from the same camera) and ``region`` (flat
+    pixel indices that every moving object's projection falls in), only the region is ray-cast
+    and the rest is copied from the background. Lighting casts no shadows, so moving objects
+    change no pixel outside their own projection and the result is identical to a full render.
+    """
     intr = camera.intrinsics
     H, W = intr.height_px, intr.width_px
     dirs_cam = ray_directions(intr).reshape(-1, 3)
+    if region is not None:
+        dirs_cam = np.ascontiguousarray(dirs_cam[region])
     R = camera.pose.R.astype(np.float32)
     origin = camera.pose.centre_m.astype(np.float32)
     rays = kernels.make_rays(dirs_cam, R, origin)
@@ -232,12 +246,49 @@ def render_view(scene: FrameScene, camera: Camera) -> RayImage:
         scene.light_pos,
         scene.light_power,
         AMBIENT,
-    ).reshape(H, W, 3)
+    )
+    if region is not None and background is not None:
+        full_rad = background.radiance.reshape(-1, 3).copy()
+        full_t = background.depth_m.reshape(-1).copy()
+        full_obj = background.object_index.reshape(-1).copy()
+        full_rad[region] = radiance
+        full_t[region] = t
+        full_obj[region] = objects
+        radiance, t, objects = full_rad, full_t, full_obj
+    radiance = radiance.reshape(H, W, 3)
     depth = t.reshape(H, W)  # ray z = 1 in the camera frame, so t is depth; misses are inf
     objects = objects.reshape(H, W)
     if scene.spheres is not None:
         _composite_spheres(scene, camera, radiance, depth, objects)
     return RayImage(radiance, depth, objects)
+
+
+def moving_region(camera: Camera, meshes: list, margin_px: int = 3) -> np.ndarray | None:
+    """Flat indices of the pixels that the given meshes can cover, as a union of the
+    projected bounding boxes of their vertices (plus a margin for the lens' curvature of
+    straight edges); None when a mesh reaches behind or beside the camera (render everything)."""
+    intr = camera.intrinsics
+    H, W = intr.height_px, intr.width_px
+    mask = np.zeros((H, W), bool)
+    for mesh in meshes:
+        v = mesh.vertices.astype(np.float64)
+        if len(v) == 0:
+            continue
+        z = v @ camera.pose.R[2] + camera.pose.t_m[2]
+        if z.min() < 0.05:
+            if z.max() < 0.05:
+                continue  # wholly behind the camera
+            return None
+        px, _ = camera.project(v)
+        u0, v0 = np.floor(px.min(axis=0)).astype(int) - margin_px
+        u1, v1 = np.ceil(px.max(axis=0)).astype(int) + margin_px
+        if u1 < 0 or v1 < 0 or u0 >= W or v0 >= H:
+            continue
+        # a wide lens maps points far outside the view to odd places: be safe, render it all
+        if u0 < -W or v0 < -H or u1 > 2 * W or v1 > 2 * H:
+            return None
+        mask[max(v0, 0) : min(v1, H - 1) + 1, max(u0, 0) : min(u1, W - 1) + 1] = True
+    return np.flatnonzero(mask)
 
 
 def _composite_spheres(

@@ -24,7 +24,7 @@ from protocol.wand import WandSpec
 from sim.geometry import Mesh, cylinder
 from sim.people import Person, PersonState, Waypoint, person_objects, person_state
 from sim.phases import phase_script
-from sim.render import FrameScene, Spheres, render_view
+from sim.render import FrameScene, RayImage, Spheres, moving_region, render_view
 from sim.rig import ZedUnit, build_rig
 from sim.room import Footprint, RoomSpec, SceneObject, build_room, footprints
 from sim.sensor import SensorSpec, encode_ideal, expose
@@ -83,6 +83,8 @@ class World:
         )
         self.show_wand = self.script.with_wand if cfg.show_wand is None else cfg.show_wand
         self._scene_cache = functools.lru_cache(maxsize=2)(self._build_scene)
+        self._static_scene = FrameScene(list(self.static_objects), self.lights, self.textures)
+        self._backgrounds: dict[tuple, RayImage] = {}
 
     @classmethod
     def from_seed(cls, seed: int, phase: str = "intraoperative", **kwargs: object) -> World:
@@ -170,7 +172,7 @@ class World:
         """An ideal view: no noise, vignetting or exposure change (ground truth)."""
         t = require_time(t_s)
         self.config.room.require_inside(camera.pose.centre_m, f"camera '{camera.name}'")
-        img = render_view(self.scene_at(t), camera)
+        img = self._render_view(camera, t)
         return Render(encode_ideal(img.radiance), img.depth_m, img.object_index, camera, t)
 
     def render_sensor(
@@ -187,7 +189,7 @@ class World:
         t = require_time(t_s)
         u = self.unit(unit)
         cam = u.sensor(side, resolution)
-        img = render_view(self.scene_at(t), cam)
+        img = self._render_view(cam, t)
         if noise:
             key = [self.config.seed, u.serial, 0 if side == "left" else 1, round(t * 1e9)]
             noise_key = int(np.random.SeedSequence(key).generate_state(1, np.uint64)[0])
@@ -247,6 +249,29 @@ class World:
         )
         state = person_state(person, t)
         return person, state
+
+    def _background(self, camera: Camera) -> RayImage:
+        key = (camera.name, camera.intrinsics, camera.pose.matrix.tobytes())
+        img = self._backgrounds.get(key)
+        if img is None:
+            if len(self._backgrounds) >= 16:
+                self._backgrounds.pop(next(iter(self._backgrounds)))
+            img = self._backgrounds[key] = render_view(self._static_scene, camera)
+        return img
+
+    def _render_view(self, camera: Camera, t: float) -> RayImage:
+        """Ray-cast only where moving things are; the static room comes from a cached render.
+
+        Fixed cameras (the rig) see most of their pixels unchanged from frame to frame, so this
+        is several times faster there; a camera seen once (a virtual view) is rendered whole.
+        """
+        scene = self.scene_at(t)
+        moving = [o.mesh for o in scene.objects[len(self.static_objects) :]]
+        fixed = camera.name.startswith("SN")
+        region = moving_region(camera, moving) if fixed else None
+        if region is None:
+            return render_view(scene, camera)
+        return render_view(scene, camera, self._background(camera), region)
 
     def _build_scene(self, t: float) -> FrameScene:
         objects: list[SceneObject] = list(self.static_objects)

@@ -213,3 +213,19 @@ def test_unknown_phase_lists_the_phases():
 
     with pytest.raises(UnknownPhaseError, match="intraoperative"):
         World.from_seed(0, phase="surgery")
+
+
+@pytest.mark.parametrize("phase", ["wand", "intraoperative"])
+def test_rendering_only_where_things_move_gives_the_full_render(phase):
+    """The fast path (cached static room + ray-casting only the moving objects' region) is
+    pixel-identical to ray-casting the whole image."""
+    from sim.render import render_view
+
+    w = World.from_seed(4, phase=phase)
+    for unit, t in ((0, 6.3), (3, 9.1)):
+        cam = w.sensor(unit, "right", "SVGA")
+        full = render_view(w.scene_at(t), cam)
+        fast = w._render_view(cam, t)
+        np.testing.assert_array_equal(fast.radiance, full.radiance)
+        np.testing.assert_array_equal(fast.depth_m, full.depth_m)
+        np.testing.assert_array_equal(fast.object_index, full.object_index)
