@@ -28,6 +28,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "status": ("capture_agent.control:main_status", "the rig's health: fps, drops, PTP, disk"),
     "shell": ("capture_agent.console:main", "an operator console with a connected 'rig'"),
     "session": ("capture_agent.session_cli:main", "inspect, verify and export a session file"),
+    "calibrate": ("calibration.cli:main", "extrinsic calibration of the rig from a wand session"),
     "sim": ("sim.cli:main", "the simulated operating room: frames, factory files, views"),
 }
 
