@@ -111,7 +111,8 @@ def _work(args: tuple) -> tuple[np.ndarray, dict[str, dict[str, int]]]:
             for side in SIDES:
                 intr = stereo[serial].left if side == "left" else stereo[serial].right
                 det = SphereDetector(intr, wand.radius_m, detector_cfg)
-                det.set_background(backgrounds[(serial, side)])
+                # the median was taken in the parent; the median of copies of it is itself
+                det.fit_background([backgrounds[(serial, side)]] * 3)
                 detectors[(serial, side)] = det
         cache: dict[tuple[int, int], tuple[np.ndarray | None, str]] = {}
 
