@@ -38,12 +38,28 @@ def main() -> None:
     for res in ("HD1200", "HD1080", "SVGA"):
         world.render_stereo(0, 1.0, res)  # warm: ray tables, JIT
         k = iter(range(1000))
-        best, med = _best(lambda: world.render_stereo(0, 1.0 + 0.01 * next(k), res), args.repeats)
+        best, med = _best(
+            lambda k=k, res=res: world.render_stereo(0, 1.0 + 0.01 * next(k), res), args.repeats
+        )
         rows.append((f"stereo pair {res} (scene build + 2 x cast + shade + sensor)", best, med, ""))
 
     cam = world.sensor(0, "left", "HD1200")
     scene = world.scene_at(2.0)
     img = render_view(scene, cam)
+    for phase in ("intraoperative", "wand"):
+        w = World.from_seed(0, phase=phase)
+        c = w.sensor(1, "left", "HD1200")
+        w._render_view(c, 5.0)  # warm the background cache
+        full = _best(lambda w=w, c=c: render_view(w.scene_at(5.0), c), args.repeats)
+        fast = _best(lambda w=w, c=c: w._render_view(c, 5.0), args.repeats)
+        rows.append(
+            (
+                f"one HD1200 view, {phase}: cast only where things move",
+                *fast,
+                f"{full[0] / fast[0]:.1f}x faster",
+            )
+        )
+        rows.append((f"one HD1200 view, {phase}: cast every pixel", *full, "reference"))
     best, med = _best(lambda: world._build_scene(2.0 + 1e-6 * time.perf_counter()), args.repeats)
     rows.append(("scene build at one instant (meshes + BVH)", best, med, ""))
     from sim import kernels
