@@ -1,0 +1,723 @@
+"""Wand-sphere detection: the sub-pixel image of each sphere's *centre* in one BGR frame.
+
+Pipeline (about 20-30 ms per HD1200 frame on a 2-core machine, most of it per-sphere numpy):
+
+1. Candidates on a half-size copy: pixels of the spheres' hue and saturation that also differ
+   from a background model (temporal median of frames from the session: the wand moves, the room
+   mostly does not), closed, outlined (``cv2.findContours``) and kept by size and shape.
+2. Per candidate, at full resolution in a small window: a first outline from the moments of the
+   colour mask, then rays across it, sampled bilinearly in *linear* RGB (the gamma undone). An
+   edge pixel's colour is ``c * E * rho + (1 - c) * B``: its coverage ``c`` mixes the sphere's
+   colour ``rho`` (matte, so its chromaticity is the same in light and in shadow, whatever the
+   irradiance ``E``) with what lies behind, ``B``. Projecting out ``rho`` leaves
+   ``(1 - c) * B``, so ``c`` follows without knowing the shading. ``B`` is the background model
+   where the frame matches it just outside the sphere (per pixel, so a sphere in front of an edge
+   in the room is unmixed correctly), else the frame 2-3 px beyond the edge on the same ray. The
+   edge is where ``c`` crosses one half (less a small correction for the edge's curvature).
+   Channels that clip near the edge (a sphere lit hard by a lamp turns yellow-white) are left out
+   of that ray.
+3. The edge points are undistorted to normalized coordinates and fitted with the image of a
+   sphere: the rays ``u`` of its silhouette make a fixed angle ``alpha`` with the direction ``a``
+   of its centre, ``a . u = cos(alpha)``, which is linear in ``w = a / cos(alpha)`` (three
+   parameters instead of a general conic's five, which matters for blobs of 3-5 px radius; points
+   off the outline, where the rod or a hand crosses it, are dropped and the fit repeated).
+   This is the tangent cone ``x^T C x = 0`` with ``C = a a^T - cos^2(alpha) I``; its axis ``a``
+   is the eigenvector of ``C``'s eigenvalue of distinct sign and is the direction of the sphere's
+   centre, *not* the centre of the ellipse, which lies further from the principal point by
+   ``f tan(theta) sin^2(alpha) / (cos^2(theta) - sin^2(alpha))`` (up to ~0.8 px near the edge of
+   a wide lens at 1 m). ``centre_method="conic"`` fits a general conic instead and takes its
+   cone axis (``cone_axis_from_conic``); on the simulator's 3-5 px spheres it is as good in the
+   median but its worst cases are several times worse, so "sphere" is the default.
+4. ``a`` goes back through the lens (distortion) to give ``centre_px``; the cone's opening gives
+   the distance ``D = R / sin(alpha)``.
+
+Adapting to a real wand: the defaults describe the simulator's matte orange spheres. Grab a few
+frames of the real wand, pick pixels well inside its spheres, and build the colour model with
+``DetectorConfig.from_sphere_pixels(pixels_bgr)``; set ``gamma`` to the camera's encoding
+(2.2 for the ZED's default sRGB-like output). Glossy spheres break the constant-chromaticity
+assumption at their highlights; use matte ones.
+
+JPEG: the unmixing needs each pixel's own colour. At quality 92 with 4:4:4 chroma the centres
+stay within about 0.04 px (median) of the truth on the simulator; OpenCV's default 4:2:0 stores
+colour per 2x2 block and the centres of 3-5 px spheres wander by about 0.3 px (median, up to
+0.9 px), so wand sessions should be encoded with ``cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from protocol.camera import Intrinsics, undistort_to_normalized
+
+log = logging.getLogger(__name__)
+
+CENTRE_METHODS = ("sphere", "conic")
+
+
+@dataclass(frozen=True, kw_only=True)
+class DetectorConfig:
+    """How the wand's spheres look. Colours are for BGR uint8 frames (OpenCV convention).
+
+    ``hue_range`` (OpenCV hue, 0-180), ``min_saturation`` and ``min_value`` (0-255) pick candidate
+    pixels; ``sphere_rgb`` is the spheres' colour in *linear* RGB (only its direction matters),
+    used to measure how much of each edge pixel the sphere covers.
+    """
+
+    hue_range: tuple[int, int] = (4, 30)
+    min_saturation: int = 100
+    min_value: int = 30
+    sphere_rgb: tuple[float, float, float] = (0.95, 0.42, 0.08)
+    gamma: float = 2.2
+    min_radius_px: float = 2.0
+    max_radius_px: float = 80.0
+    background_threshold: int = 18  # max-channel |frame - background| in 8-bit levels
+    mask_downsample: int = 2
+    max_candidates: int = 40
+    max_fit_rms_px: float = 0.35
+    min_edge_fraction: float = 0.5
+    clip_level: int = 250  # 8-bit value at which a channel is treated as saturated
+    min_background_contrast: float = 0.02  # linear; edge rays against a sphere-coloured or
+    # black background carry no coverage information and are dropped
+    centre_method: str = "sphere"
+    rays_per_px: float = 2.0  # edge rays per pixel of circumference
+    max_rays: int = 128
+
+    def __post_init__(self) -> None:
+        h0, h1 = self.hue_range
+        if not 0 <= h0 < h1 <= 180:
+            raise ValueError(
+                f"DetectorConfig.hue_range={self.hue_range} must satisfy 0<=lo<hi<=180"
+            )
+        for name in ("min_saturation", "min_value", "background_threshold", "clip_level"):
+            v = getattr(self, name)
+            if not 0 <= v <= 255:
+                raise ValueError(f"DetectorConfig.{name}={v} must be an 8-bit level (0-255)")
+        rgb = np.asarray(self.sphere_rgb, dtype=float)
+        if rgb.shape != (3,) or (rgb < 0).any() or rgb.sum() <= 0:
+            raise ValueError(f"DetectorConfig.sphere_rgb={self.sphere_rgb} must be 3 values >= 0")
+        if not 1.0 <= self.gamma <= 3.0:
+            raise ValueError(f"DetectorConfig.gamma={self.gamma} must be between 1 and 3")
+        if not 1.0 <= self.min_radius_px < self.max_radius_px:
+            raise ValueError(
+                f"DetectorConfig radii {self.min_radius_px}..{self.max_radius_px} px must satisfy "
+                "1 <= min < max"
+            )
+        if self.mask_downsample not in (1, 2, 4):
+            raise ValueError(f"DetectorConfig.mask_downsample={self.mask_downsample} not in 1,2,4")
+        if self.centre_method not in CENTRE_METHODS:
+            raise ValueError(
+                f"DetectorConfig.centre_method={self.centre_method!r} not in {CENTRE_METHODS}"
+            )
+        if not 0.0 < self.min_edge_fraction <= 1.0:
+            raise ValueError(
+                f"DetectorConfig.min_edge_fraction={self.min_edge_fraction} not in (0,1]"
+            )
+
+    @classmethod
+    def from_sphere_pixels(cls, pixels_bgr: np.ndarray, **overrides: object) -> DetectorConfig:
+        """A config whose colour model is learned from pixels well inside a real wand's spheres.
+
+        ``pixels_bgr``: (N, 3) uint8 (or an image crop). The hue window is the central 98% of the
+        pixels' hues widened by 4; the saturation floor is 60% of their 5th percentile.
+        """
+        px = np.asarray(pixels_bgr, dtype=np.uint8).reshape(-1, 1, 3)
+        if len(px) < 10:
+            raise ValueError(f"need at least 10 sphere pixels to learn a colour, got {len(px)}")
+        hsv = cv2.cvtColor(px, cv2.COLOR_BGR2HSV).reshape(-1, 3).astype(float)
+        h_lo, h_hi = np.percentile(hsv[:, 0], [1, 99])
+        gamma = float(overrides.get("gamma", cls.gamma))  # type: ignore[arg-type]
+        lin = (px.reshape(-1, 3)[:, ::-1].astype(float) / 255.0) ** gamma
+        rgb = np.median(lin, axis=0)
+        learned: dict[str, object] = {
+            "hue_range": (max(0, int(h_lo) - 4), min(180, math.ceil(h_hi) + 4)),
+            "min_saturation": int(0.6 * np.percentile(hsv[:, 1], 5)),
+            "sphere_rgb": tuple(float(v) for v in rgb / rgb.max()),
+        }
+        learned.update(overrides)
+        return cls(**learned)  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True, kw_only=True)
+class SphereBlob:
+    """One detected sphere.
+
+    ``centre_px``: distorted pixel of the projection of the sphere's centre (bias-corrected);
+    ``ellipse_centre_px``: the centre of its imaged outline (what a plain ellipse fit reports);
+    ``centre_normalized``: the undistorted normalized coordinates (x/z, y/z) of ``centre_px``;
+    ``radius_px``: mean radius of the outline; ``distance_m``: camera centre to sphere centre
+    from the cone's opening; ``focal_px``: pixels per unit of normalized coordinates, to turn
+    tolerances in px into normalized units; ``score`` in (0, 1], higher is better.
+    """
+
+    centre_px: tuple[float, float]
+    ellipse_centre_px: tuple[float, float]
+    radius_px: float
+    score: float
+    distance_m: float = float("nan")
+    centre_normalized: tuple[float, float] = (float("nan"), float("nan"))
+    focal_px: float = float("nan")
+    edge_rms_px: float = float("nan")
+    n_edge_points: int = 0
+
+
+# ---- the geometry of a sphere's image ---------------------------------------------------------
+
+
+def rays_from_normalized(xy: np.ndarray) -> np.ndarray:
+    """(N, 2) normalized coordinates -> (N, 3) unit rays."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    u = np.column_stack([xy, np.ones(len(xy))])
+    return u / np.linalg.norm(u, axis=1, keepdims=True)
+
+
+def fit_sphere_cone(rays: np.ndarray) -> tuple[np.ndarray, float]:
+    """Silhouette rays (N, 3) of a sphere -> (unit centre direction (3,), sin(alpha)).
+
+    Solves ``w . u_i = 1`` in least squares, ``w = a / cos(alpha)``: a circle on the unit
+    sphere. Its residual ``1 - w . u`` is the angular error times ``tan(alpha)``, the same all
+    round the outline, so the fit is effectively geometric.
+    """
+    U = np.asarray(rays, dtype=np.float64).reshape(-1, 3)
+    if len(U) < 3:
+        raise ValueError(f"need at least 3 silhouette rays, got {len(U)}")
+    w, *_ = np.linalg.lstsq(U, np.ones(len(U)), rcond=None)
+    n = float(np.linalg.norm(w))
+    a = w / n
+    if a[2] < 0:
+        a = -a
+    sin_alpha = math.sqrt(max(1.0 - 1.0 / (n * n), 0.0)) if n > 1.0 else float("nan")
+    return a, sin_alpha
+
+
+def conic_of_sphere(axis: np.ndarray, sin_alpha: float) -> np.ndarray:
+    """The 3x3 conic (normalized homogeneous coordinates) of a sphere seen along ``axis``."""
+    a = np.asarray(axis, dtype=np.float64).reshape(3)
+    a = a / np.linalg.norm(a)
+    return np.outer(a, a) - (1.0 - sin_alpha**2) * np.eye(3)
+
+
+def fit_conic(xy: np.ndarray) -> np.ndarray:
+    """General conic through (N >= 5, 2) normalized points: 3x3 symmetric C, x^T C x = 0.
+
+    Direct algebraic fit, with the points centred and scaled to unit spread first (Hartley) so
+    the SVD is well conditioned.
+    """
+    p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    if len(p) < 5:
+        raise ValueError(f"a conic needs at least 5 points, got {len(p)}")
+    m = p.mean(axis=0)
+    s = math.sqrt(2.0) / max(float(np.sqrt(((p - m) ** 2).sum(axis=1)).mean()), 1e-12)
+    q = (p - m) * s
+    x, y = q[:, 0], q[:, 1]
+    A = np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)])
+    _, _, vt = np.linalg.svd(A, full_matrices=False)
+    a, b, c, d, e, f = vt[-1]
+    Cs = np.array([[a, b / 2, d / 2], [b / 2, c, e / 2], [d / 2, e / 2, f]])
+    T = np.array([[s, 0.0, -s * m[0]], [0.0, s, -s * m[1]], [0.0, 0.0, 1.0]])
+    C = T.T @ Cs @ T
+    return C / np.linalg.norm(C)
+
+
+def cone_axis_from_conic(C: np.ndarray) -> tuple[np.ndarray, float]:
+    """Axis (unit, z > 0) and sin(alpha) of the circular cone ``x^T C x = 0``.
+
+    For ``C = a a^T - cos^2(alpha) I`` the eigenvalues are ``sin^2(alpha)`` (eigenvector ``a``)
+    and ``-cos^2(alpha)`` twice: the axis is the eigenvector of the eigenvalue of distinct sign,
+    and ``sin^2(alpha) = l1 / (l1 - l2)`` with ``l2`` the mean of the other two. A fitted conic's
+    pair is not exactly equal; their mean is used.
+    """
+    Cm = np.asarray(C, dtype=np.float64).reshape(3, 3)
+    Cm = 0.5 * (Cm + Cm.T)
+    vals, vecs = np.linalg.eigh(Cm)
+    if (vals > 0).sum() == 2:  # make the distinct eigenvalue the positive one
+        vals, vecs = -vals[::-1], vecs[:, ::-1]
+    if (vals > 0).sum() != 1:
+        raise ValueError(f"conic eigenvalues {vals} do not describe a real cone")
+    i = int(np.argmax(vals))
+    l1 = float(vals[i])
+    l2 = float(np.delete(vals, i).mean())
+    a = vecs[:, i]
+    if a[2] < 0:
+        a = -a
+    return a, math.sqrt(l1 / (l1 - l2))
+
+
+def ellipse_centre(C: np.ndarray) -> np.ndarray:
+    """Centre (2,) of the ellipse ``x^T C x = 0`` (normalized coordinates)."""
+    Cm = np.asarray(C, dtype=np.float64)
+    return np.linalg.solve(Cm[:2, :2], -Cm[:2, 2])
+
+
+def eccentricity_bias_px(focal_px: float, theta_rad: float, sin_alpha: float) -> float:
+    """Distance from the projected sphere centre to the imaged ellipse's centre (pinhole), px."""
+    s2 = sin_alpha**2
+    return focal_px * math.tan(theta_rad) * s2 / (math.cos(theta_rad) ** 2 - s2)
+
+
+def project_directions(directions: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """(N, 3) camera-frame directions (z > 0) -> (N, 2) distorted pixels."""
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    zero = np.zeros(3)
+    px, _ = cv2.projectPoints(d, zero, zero, intr.K, intr.dist_array)
+    return px.reshape(-1, 2)
+
+
+@dataclass(frozen=True)
+class SphereImageFit:
+    """What ``fit_sphere_outline`` recovers from one sphere's outline."""
+
+    centre_px: np.ndarray  # (2,)
+    ellipse_centre_px: np.ndarray  # (2,)
+    centre_normalized: np.ndarray  # (2,)
+    axis: np.ndarray  # (3,) unit direction of the centre
+    sin_alpha: float
+    distance_m: float
+    residuals_px: np.ndarray  # (N,) signed, per edge point (positive: outside the fitted outline)
+
+
+def fit_sphere_outline(
+    edge_px: np.ndarray, intr: Intrinsics, sphere_radius_m: float, method: str = "sphere"
+) -> SphereImageFit:
+    """(N, 2) distorted edge pixels of one sphere -> its centre's image and its distance."""
+    xy = undistort_to_normalized(np.asarray(edge_px, dtype=np.float64).reshape(-1, 2), intr)
+    U = rays_from_normalized(xy)
+    axis, sin_alpha = _fit_cone(xy, U, method)
+    return _sphere_image(axis, sin_alpha, U, intr, sphere_radius_m)
+
+
+def _fit_cone(xy: np.ndarray, U: np.ndarray, method: str) -> tuple[np.ndarray, float]:
+    if method == "sphere":
+        return fit_sphere_cone(U)
+    if method == "conic":
+        return cone_axis_from_conic(fit_conic(xy))
+    raise ValueError(f"unknown centre method {method!r}; use one of {CENTRE_METHODS}")
+
+
+def _cone_residuals_px(
+    U: np.ndarray, axis: np.ndarray, sin_alpha: float, focal_px: float
+) -> np.ndarray:
+    """Angle of each ray outside the cone, in px (f per radian: close enough for residuals)."""
+    ang = np.arccos(np.clip(U @ axis, -1.0, 1.0)) - math.asin(min(max(sin_alpha, 0.0), 1.0))
+    return ang * focal_px
+
+
+def _sphere_image(
+    axis: np.ndarray, sin_alpha: float, U: np.ndarray, intr: Intrinsics, sphere_radius_m: float
+) -> SphereImageFit:
+    e_norm = ellipse_centre(conic_of_sphere(axis, sin_alpha))
+    pts = project_directions(np.array([axis, [e_norm[0], e_norm[1], 1.0]]), intr)
+    f = 0.5 * (intr.fx_px + intr.fy_px)
+    return SphereImageFit(
+        centre_px=pts[0],
+        ellipse_centre_px=pts[1],
+        centre_normalized=axis[:2] / axis[2],
+        axis=axis,
+        sin_alpha=sin_alpha,
+        distance_m=sphere_radius_m / sin_alpha if sin_alpha > 0 else float("nan"),
+        residuals_px=_cone_residuals_px(U, axis, sin_alpha, f),
+    )
+
+
+# ---- the detector ----------------------------------------------------------------------------
+
+
+@dataclass
+class BlobCandidate:
+    """A coarse blob worth refining: centre (2,) and radius in full-resolution pixels."""
+
+    centre_px: np.ndarray
+    radius_px: float
+
+
+class SphereDetector:
+    """Finds the wand's spheres in the frames of one sensor.
+
+    ``intrinsics`` are that sensor's (factory) intrinsics at the capture resolution;
+    ``sphere_radius_m`` is the wand's sphere radius (``WandSpec.radius_m``).
+    """
+
+    def __init__(
+        self,
+        intrinsics: Intrinsics,
+        sphere_radius_m: float,
+        config: DetectorConfig | None = None,
+    ) -> None:
+        if not 0.001 < sphere_radius_m < 0.5:
+            raise ValueError(f"sphere_radius_m={sphere_radius_m} is not a wand sphere radius (m)")
+        self.intrinsics = intrinsics
+        self.sphere_radius_m = float(sphere_radius_m)
+        self.config = config or DetectorConfig()
+        self._background: np.ndarray | None = None  # downsampled, for the candidate mask
+        self._background_full: np.ndarray | None = None  # for unmixing edge pixels
+        levels = np.arange(256, dtype=np.float64) / 255.0
+        self._lut = (levels**self.config.gamma).astype(np.float32)
+        rho = np.asarray(self.config.sphere_rgb, dtype=np.float64)[::-1]  # BGR, like the frames
+        self._rho = rho / np.linalg.norm(rho)
+
+    # ---- background ----
+    @property
+    def has_background(self) -> bool:
+        return self._background is not None
+
+    def fit_background(self, images_bgr: Sequence[np.ndarray]) -> None:
+        """Temporal median of frames spread over the session (at least 3; 7-15 is plenty)."""
+        if len(images_bgr) < 3:
+            raise ValueError(f"fit_background needs at least 3 frames, got {len(images_bgr)}")
+        frames = np.stack([self._check(img) for img in images_bgr])
+        self._background_full = np.median(frames, axis=0).astype(np.uint8)
+        self._background = self._downsample(self._background_full)
+        log.debug("background fitted from %d frames", len(frames))
+
+    def clear_background(self) -> None:
+        self._background = None
+        self._background_full = None
+
+    # ---- detection ----
+    def detect(self, image_bgr: np.ndarray) -> list[SphereBlob]:
+        """All sphere-like blobs in the frame, best score first."""
+        img = self._check(image_bgr)
+        blobs = []
+        for cand in self.candidates(img):
+            blob = self.refine(img, cand.centre_px, cand.radius_px)
+            if blob is not None:
+                blobs.append(blob)
+        blobs.sort(key=lambda b: -b.score)
+        return blobs
+
+    def candidates(self, image_bgr: np.ndarray) -> list[BlobCandidate]:
+        """Coarse blobs of the spheres' colour that are not background, most ellipse-like first."""
+        cfg = self.config
+        ds = cfg.mask_downsample
+        small = self._downsample(image_bgr)
+        mask = self._colour_mask(small)
+        if self._background is not None:
+            b, g, r = cv2.split(cv2.absdiff(small, self._background))
+            diff = cv2.max(cv2.max(b, g), r)
+            moving = cv2.threshold(diff, cfg.background_threshold, 1, cv2.THRESH_BINARY)[1]
+            mask &= cv2.dilate(moving, np.ones((3, 3), np.uint8))
+        mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
+        # contours, not connected components: the mask is sparse and this is ~30x faster
+        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        rmin, rmax = cfg.min_radius_px / ds, cfg.max_radius_px / ds
+        out: list[tuple[float, BlobCandidate]] = []
+        for cnt in contours:
+            x, y, w, h = cv2.boundingRect(cnt)
+            r_box = 0.5 * max(w, h)
+            if not 0.5 * rmin <= r_box <= 1.3 * rmax + 1 or max(w, h) > 3 * min(w, h) + 1:
+                continue
+            # pixel count of the blob: the polygon through the boundary pixels' centres plus
+            # the half pixel outside it all round
+            area = cv2.contourArea(cnt) + 0.5 * cv2.arcLength(cnt, True) + 1.0
+            if area < max(2.0, 0.5 * math.pi * rmin * rmin) or area > 1.5 * math.pi * rmax**2:
+                continue
+            if area < 0.45 * math.pi * r_box * r_box or area < 0.35 * w * h:
+                continue
+            # an upright ellipse fills pi/4 of its box; rank by how close the blob comes to that
+            misfit = abs(area / (0.25 * math.pi * w * h) - 1.0)
+            centre = (np.array([x + 0.5 * (w - 1), y + 0.5 * (h - 1)]) + 0.5) * ds - 0.5
+            out.append((misfit, BlobCandidate(centre, max(math.sqrt(area / math.pi), r_box) * ds)))
+        out.sort(key=lambda t: t[0])
+        return [c for _, c in out[: cfg.max_candidates]]
+
+    def refine(
+        self, image_bgr: np.ndarray, centre_px: Sequence[float] | np.ndarray, radius_px: float
+    ) -> SphereBlob | None:
+        """Sub-pixel fit of the sphere near ``centre_px`` (coarse: within about half its radius).
+
+        Returns None if no sphere-shaped outline of the spheres' colour is there.
+        """
+        cfg = self.config
+        img = image_bgr
+        H, W = img.shape[:2]
+        coarse = self._coarse_ellipse(img, np.asarray(centre_px, dtype=np.float64), radius_px)
+        if coarse is None:
+            return None
+        c, A = coarse
+        fit, keep, n_rays = None, np.zeros(0, bool), 0
+        for attempt in range(3):
+            reach = 1.0 / math.sqrt(float(np.linalg.eigvalsh(A)[0])) + 5.0
+            if reach > cfg.max_radius_px + 5.0:
+                return None
+            x0, y0 = max(int(c[0] - reach), 0), max(int(c[1] - reach), 0)
+            x1, y1 = min(int(c[0] + reach) + 2, W), min(int(c[1] + reach) + 2, H)
+            roi = img[y0:y1, x0:x1]
+            bg = None if self._background_full is None else self._background_full[y0:y1, x0:x1]
+            # the first pass only has to centre the next one: half the rays will do
+            density = cfg.rays_per_px * (0.5 if attempt == 0 else 1.0)
+            edges, n_rays = self._edge_points(roi, bg, c - (x0, y0), A, density)
+            need = max(8.0, cfg.min_edge_fraction * n_rays)
+            if len(edges) < need:
+                return None
+            edges += (x0, y0)
+            fit, keep = self._robust_fit(edges)
+            if fit is None or keep.sum() < need:
+                return None
+            if np.sqrt(np.mean(fit.residuals_px[keep] ** 2)) > 3 * cfg.max_fit_rms_px:
+                return None  # not a sphere's outline: no point in another pass
+            outline = _ellipse_through(edges[keep])
+            if outline is None:
+                return None
+            moved = float(np.linalg.norm(outline[0] - c))
+            c, A = outline
+            if moved < 0.1:
+                break
+        assert fit is not None
+        rms = float(np.sqrt(np.mean(fit.residuals_px[keep] ** 2)))
+        radius = float(np.linalg.norm(edges[keep] - fit.ellipse_centre_px, axis=1).mean())
+        if rms > cfg.max_fit_rms_px or not cfg.min_radius_px <= radius <= cfg.max_radius_px:
+            return None
+        if not math.isfinite(fit.distance_m):
+            return None
+        frac = min(float(keep.sum()) / n_rays, 1.0)
+        f = 0.5 * (self.intrinsics.fx_px + self.intrinsics.fy_px)
+        return SphereBlob(
+            centre_px=(float(fit.centre_px[0]), float(fit.centre_px[1])),
+            ellipse_centre_px=(float(fit.ellipse_centre_px[0]), float(fit.ellipse_centre_px[1])),
+            radius_px=radius,
+            score=frac / (1.0 + (rms / 0.15) ** 2),
+            distance_m=float(fit.distance_m),
+            centre_normalized=(float(fit.centre_normalized[0]), float(fit.centre_normalized[1])),
+            focal_px=f,
+            edge_rms_px=rms,
+            n_edge_points=int(keep.sum()),
+        )
+
+    # ---- internals ----
+    def _check(self, img: np.ndarray) -> np.ndarray:
+        intr = self.intrinsics
+        if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+            raise ValueError(f"expected an (H, W, 3) uint8 BGR image, got {img.shape} {img.dtype}")
+        if img.shape[:2] != (intr.height_px, intr.width_px):
+            raise ValueError(
+                f"image is {img.shape[1]}x{img.shape[0]} but the intrinsics are for "
+                f"{intr.width_px}x{intr.height_px}"
+            )
+        return img
+
+    def _downsample(self, img: np.ndarray) -> np.ndarray:
+        ds = self.config.mask_downsample
+        if ds == 1:
+            return img
+        return cv2.resize(
+            img, (img.shape[1] // ds, img.shape[0] // ds), interpolation=cv2.INTER_AREA
+        )
+
+    def _colour_mask(self, bgr: np.ndarray) -> np.ndarray:
+        cfg = self.config
+        hsv = cv2.cvtColor(bgr, cv2.COLOR_BGR2HSV)
+        lo = np.array([cfg.hue_range[0], cfg.min_saturation, cfg.min_value], np.uint8)
+        hi = np.array([cfg.hue_range[1], 255, 255], np.uint8)
+        return (cv2.inRange(hsv, lo, hi) > 0).astype(np.uint8)
+
+    def _coarse_ellipse(
+        self, img: np.ndarray, c: np.ndarray, r: float
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Centre and shape ``A`` (edge at ``d^T A d = 1``) from the full-resolution colour mask
+        around a candidate: a uniform ellipse's second moments are a quarter of its axes squared.
+        """
+        H, W = img.shape[:2]
+        half = math.ceil(1.5 * r + 4)
+        x0, y0 = max(int(c[0]) - half, 0), max(int(c[1]) - half, 0)
+        x1, y1 = min(int(c[0]) + half + 1, W), min(int(c[1]) + half + 1, H)
+        mask = self._colour_mask(img[y0:y1, x0:x1])
+        n, labels, stats, cents = cv2.connectedComponentsWithStats(mask, connectivity=8)
+        if n < 2:
+            return None
+        d = np.linalg.norm(cents[1:] + np.array([x0, y0]) - c, axis=1)
+        areas = stats[1:, cv2.CC_STAT_AREA].astype(float)
+        i = int(np.argmax(areas / (1.0 + d / max(r, 1.0)))) + 1
+        m = cv2.moments((labels == i).astype(np.uint8), binaryImage=True)
+        if m["m00"] < math.pi * (0.7 * self.config.min_radius_px) ** 2:
+            return None
+        centre = np.array([m["m10"] / m["m00"] + x0, m["m01"] / m["m00"] + y0])
+        cov = np.array([[m["mu20"], m["mu11"]], [m["mu11"], m["mu02"]]]) / m["m00"]
+        cov += np.eye(2) / 12.0  # the pixels' own extent
+        try:
+            A = np.linalg.inv(4.0 * cov)
+        except np.linalg.LinAlgError:
+            return None
+        return centre, A
+
+    def _edge_points(
+        self,
+        roi: np.ndarray,
+        bg_roi: np.ndarray | None,
+        c: np.ndarray,
+        A: np.ndarray,
+        rays_per_px: float,
+    ) -> tuple[np.ndarray, int]:
+        """Sub-pixel edge points (ROI pixel coordinates) on rays from ``c`` across the expected
+        outline ``(p - c)^T A (p - c) = 1``; and the number of rays cast."""
+        cfg = self.config
+        off = _OFFSETS
+        evals = np.linalg.eigvalsh(A)
+        r_mean = float(np.mean(1.0 / np.sqrt(np.maximum(evals, 1e-9))))
+        n_rays = int(np.clip(round(rays_per_px * 2 * math.pi * r_mean), 16, cfg.max_rays))
+        ang = (np.arange(n_rays) + 0.5) * (2 * math.pi / n_rays)
+        dirs = np.column_stack([np.cos(ang), np.sin(ang)])
+        rho = 1.0 / np.sqrt(((dirs @ A) * dirs).sum(axis=1))  # expected edge per ray
+        s = np.maximum(rho[:, None] + off[None, :], 0.0)  # (R, S)
+        pts = (c[None, None, :] + s[:, :, None] * dirs[:, None, :]).reshape(-1, 2)
+        cover, ok, inside = self._coverage(roi, bg_roi, pts)
+        # a pixel centred on a convex edge is a little less than half covered
+        thr = 0.5 - 1.0 / (24.0 * max(r_mean, 1.0))
+        above = cover >= thr
+        cross = above[:, :-1] & ~above[:, 1:]
+        dist = np.where(cross, np.abs(0.5 * (off[:-1] + off[1:]))[None, :], np.inf)
+        j = np.argmin(dist, axis=1)
+        rows = np.arange(n_rays)
+        c0, c1 = cover[rows, j], cover[rows, j + 1]
+        o_edge = off[j] + _STEP * (c0 - thr) / np.maximum(c0 - c1, 1e-9)
+        ok &= np.isfinite(dist[rows, j]) & (np.abs(o_edge) <= 2.0)
+        ok &= inside[:, _WINDOW].all(axis=1) & (rho + o_edge > 0.5)
+        # the profile must look like an edge: the sphere just inside it
+        in_sel = (off[None, :] >= o_edge[:, None] - 1.5) & (off[None, :] <= o_edge[:, None] - 1.0)
+        in_cov = np.where(in_sel, cover, 0).sum(axis=1) / np.maximum(in_sel.sum(axis=1), 1)
+        ok &= (in_cov >= 0.75) & (in_sel.sum(axis=1) > 0)
+        edges = c[None, :] + (rho[ok] + o_edge[ok])[:, None] * dirs[ok]
+        return edges, n_rays
+
+    def _coverage(
+        self, roi: np.ndarray, bg_roi: np.ndarray | None, pts: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Coverage (R, S) along the rays by unmixing the sphere's colour; usable rays (R,);
+        samples inside the ROI (R, S)."""
+        cfg = self.config
+        n_off = len(_OFFSETS)
+        lin = self._lut[roi]  # (h, w, 3) float32 linear BGR
+        layers = [lin, (roi >= cfg.clip_level).astype(np.float32)]
+        lin_bg = None
+        if bg_roi is not None:
+            lin_bg = self._lut[bg_roi]
+            layers += [lin_bg, (bg_roi >= cfg.clip_level).astype(np.float32)]
+        samples, inside_flat = _bilinear(np.concatenate(layers, axis=2), pts)
+        samples = samples.reshape(-1, n_off, samples.shape[1])
+        n_rays = len(samples)
+        vals = samples[..., :3]
+        window, outside = _WINDOW, _OUTSIDE
+        # a channel saturated anywhere near the edge breaks the linear mixing: leave it out of
+        # that ray (a sphere lit hard by a lamp clips its red channel first)
+        clipped = samples[:, window, 3:6] > 0
+        if bg_roi is not None:
+            clipped |= samples[:, window, 9:12] > 0
+        usable = np.logical_not(clipped.any(axis=1))  # (R, 3)
+        sph = np.where(usable, self._rho[None, :], 0.0)
+        sph /= np.maximum(np.linalg.norm(sph, axis=1, keepdims=True), 1e-12)
+        P = usable[:, :, None] * np.eye(3)[None] - sph[:, :, None] * sph[:, None, :]
+        P = P.astype(np.float32)
+        # without a background model: the background colour per ray, just beyond the edge
+        B = vals[:, outside].mean(axis=1)  # (R, 3)
+        PB = np.matmul(P, B[:, :, None])  # (R, 3, 1); P is symmetric
+        pb2 = (PB * PB).sum(axis=(1, 2))
+        # (I P) . (P B) = I . (P B): one batched product per ray
+        cover = 1.0 - np.matmul(vals, PB)[..., 0] / np.maximum(pb2, 1e-12)[:, None]
+        ok = np.sqrt(pb2) >= cfg.min_background_contrast
+        if lin_bg is not None:
+            # where the frame matches the model beyond the edge, the model is what the sphere
+            # hides: unmix each pixel against its own background, then interpolate coverage
+            bgv = samples[..., 6:9]
+            dev = np.abs(vals[:, outside] - bgv[:, outside]).max(axis=2).mean(axis=1)
+            bg_ray = dev <= 0.015 + 0.08 * B.max(axis=1)
+            code = usable @ np.array([1, 2, 4])
+            for k in set(code[bg_ray].tolist()):
+                pattern = np.array([k & 1, k & 2, k & 4], dtype=bool)
+                if pattern.sum() < 2:
+                    continue  # one channel cannot separate coverage from shading
+                sel = bg_ray & (code == k)
+                cmap = self._coverage_map(lin, lin_bg, pattern)
+                ray_pts = pts.reshape(n_rays, n_off, 2)[sel].reshape(-1, 2)
+                prof_k = _bilinear(cmap[..., None], ray_pts)[0].reshape(-1, n_off)
+                good = np.isfinite(prof_k[:, window]).all(axis=1)
+                idx = np.flatnonzero(sel)[good]
+                cover[idx] = prof_k[good]
+                ok[idx] = True
+        ok &= usable.sum(axis=1) >= 2
+        return cover, ok, inside_flat.reshape(n_rays, n_off)
+
+    def _coverage_map(
+        self, lin: np.ndarray, lin_bg: np.ndarray, channels: np.ndarray
+    ) -> np.ndarray:
+        """(h, w) fraction of each pixel the sphere covers, NaN where the background is too
+        close to the sphere's colour (or too dark) to tell."""
+        sph = np.where(channels, self._rho, 0.0)
+        sph /= np.linalg.norm(sph)
+        P = (np.diag(channels.astype(float)) - np.outer(sph, sph)).astype(np.float32)
+        PI = lin @ P
+        PB = lin_bg @ P
+        pb2 = (PB * PB).sum(axis=2)
+        cmap = 1.0 - (PI * PB).sum(axis=2) / np.maximum(pb2, 1e-12)
+        cmap[pb2 < self.config.min_background_contrast**2] = np.nan
+        return cmap
+
+    def _robust_fit(self, edges: np.ndarray) -> tuple[SphereImageFit | None, np.ndarray]:
+        """Fit, drop edge points far off the outline (occluders, the rod), refit."""
+        intr = self.intrinsics
+        f = 0.5 * (intr.fx_px + intr.fy_px)
+        xy = undistort_to_normalized(edges, intr)
+        U = rays_from_normalized(xy)
+        keep = np.ones(len(edges), bool)
+        axis, sin_alpha = np.zeros(3), float("nan")
+        for _ in range(3):
+            if keep.sum() < 6:
+                return None, keep
+            try:
+                axis, sin_alpha = _fit_cone(xy[keep], U[keep], self.config.centre_method)
+            except (ValueError, np.linalg.LinAlgError):
+                return None, keep
+            if not math.isfinite(sin_alpha):
+                return None, keep
+            res = _cone_residuals_px(U, axis, sin_alpha, f)
+            med = float(np.median(np.abs(res[keep])))
+            new_keep = np.abs(res) <= max(4.0 * 1.4826 * med, 0.2)
+            if (new_keep == keep).all():
+                break
+            keep = new_keep
+        return _sphere_image(axis, sin_alpha, U, intr, self.sphere_radius_m), keep
+
+
+_STEP = 0.25  # px between samples along a ray
+
+
+_OFFSETS = np.arange(-3.0, 3.0 + 1e-9, _STEP)  # samples relative to the expected edge
+_WINDOW = (_OFFSETS >= -2.0) & (_OFFSETS <= 3.0)  # where clipping or leaving the ROI matters
+_OUTSIDE = _OFFSETS >= 2.0  # where the background is read
+
+
+def _ellipse_through(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Centre and shape ``A`` (``(p - c)^T A (p - c) = 1``) of the ellipse through (N, 2) px."""
+    try:
+        C = fit_conic(points)
+        centre = ellipse_centre(C)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    k = float(centre @ C[:2, :2] @ centre - C[2, 2])
+    A = C[:2, :2] / k
+    if not np.isfinite(A).all() or np.linalg.eigvalsh(A)[0] <= 0:
+        return None
+    return centre, A
+
+
+def _bilinear(img: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear samples (N, C) of an (h, w, C) image at (N, 2) (x, y); and which were inside."""
+    h, w, nc = img.shape
+    x, y = pts[:, 0], pts[:, 1]
+    inside = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
+    xc = np.clip(x, 0, w - 1.001)
+    yc = np.clip(y, 0, h - 1.001)
+    x0 = xc.astype(np.intp)
+    y0 = yc.astype(np.intp)
+    fx = (xc - x0)[:, None].astype(np.float32)
+    fy = (yc - y0)[:, None].astype(np.float32)
+    flat = img.reshape(-1, nc)
+    i00 = y0 * w + x0
+    v00, v01 = flat[i00], flat[i00 + 1]
+    v10, v11 = flat[i00 + w], flat[i00 + w + 1]
+    top = v00 + (v01 - v00) * fx
+    bot = v10 + (v11 - v10) * fx
+    return top + (bot - top) * fy, inside
