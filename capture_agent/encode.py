@@ -4,7 +4,10 @@ Images on the capture path are BGR, 8-bit, ``(height, width, 3)`` (see docs/capt
 encodings exist:
 
 - ``jpeg``: one baseline JPEG per side (``cv2.imencode``), decoded back to BGR by
-  ``cv2.imdecode``; a 1920x1200 frame at quality 90 is about 0.3 to 0.6 MB instead of 6.9 MB;
+  ``cv2.imdecode``; a 1920x1200 frame at quality 90 is about 0.3 to 0.6 MB instead of 6.9 MB.
+  Colour is kept at full resolution (4:4:4 chroma, not OpenCV's default 4:2:0): wand detection
+  reads each pixel's own colour, and with 4:2:0 its sphere centres were 10x worse (0.3 px median
+  against 0.03 px on the sim), which alone would break the calibration's 0.3 px goal;
 - ``raw_bgr8``: the C-contiguous bytes of the array, row-major, B G R per pixel.
 
 Example::
@@ -81,7 +84,13 @@ def encode_image(image_bgr: np.ndarray, encoding: str, jpeg_quality: int = 90) -
     if require_encoding(encoding) == "raw_bgr8":
         return np.ascontiguousarray(image_bgr).tobytes()
     quality = require_jpeg_quality(jpeg_quality)
-    ok, buf = cv2.imencode(".jpg", image_bgr, [int(cv2.IMWRITE_JPEG_QUALITY), quality])
+    params = [
+        int(cv2.IMWRITE_JPEG_QUALITY),
+        quality,
+        int(cv2.IMWRITE_JPEG_SAMPLING_FACTOR),
+        int(cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444),
+    ]
+    ok, buf = cv2.imencode(".jpg", image_bgr, params)
     if not ok:  # pragma: no cover - OpenCV fails only on unsupported input, checked above
         raise EncodeError(f"OpenCV could not JPEG-encode an image of shape {image_bgr.shape}")
     return buf.tobytes()

@@ -79,3 +79,17 @@ def test_bad_inputs_are_refused_with_clear_errors():
     with pytest.raises(EncodeError):
         EncodedPair(encoding="jpeg", width=0, height=60, left=b"", right=b"")
     assert issubclass(EncodeError, UserError) and issubclass(EncodeError, ValueError)
+
+
+def test_jpeg_keeps_colour_at_full_resolution():
+    """4:4:4 chroma: wand detection reads each pixel's colour (4:2:0 made it 10x less accurate)."""
+    import numpy as np
+
+    from capture_agent.encode import encode_pair
+
+    img = np.random.default_rng(0).integers(0, 255, (64, 96, 3), dtype=np.uint8)
+    jpg = encode_pair(img, img, "jpeg", 90).left
+    sof = jpg.index(b"\xff\xc0")  # baseline frame header: per component, id and sampling byte
+    n_components = jpg[sof + 9]
+    sampling = [jpg[sof + 10 + 3 * k + 1] for k in range(n_components)]
+    assert n_components == 3 and sampling == [0x11, 0x11, 0x11]
