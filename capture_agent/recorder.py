@@ -57,6 +57,8 @@ log = logging.getLogger(__name__)
 
 CASE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 LIVE_WINDOW_S = 2.0
+DISK_CHECK_S = 0.25
+DISK_HEADROOM_S = 3.0  # seconds of recording kept free above the reserve
 
 
 class StartRefused(Exception):
@@ -289,14 +291,20 @@ class Recorder:
             self._write_sets(rec, rec.sync.poll(time.time_ns()))
             if now - rec.last_flush >= self.config.flush_interval_s:
                 rec.flush()
-        if now - self._last_disk_check >= 1.0:
+        if now - self._last_disk_check >= DISK_CHECK_S:
             self._last_disk_check = now
             self._disk_free = self._free_bytes()
-            if rec is not None and self._disk_free < self._reserve_bytes():
+            # Stop while there is still room for what arrives before the next checks and for
+            # closing the file: the reserve stays untouched.
+            headroom = 0.0
+            if rec is not None:
+                elapsed = max(now - rec.started_monotonic, 1e-3)
+                headroom = DISK_HEADROOM_S * rec.writer.bytes_written / elapsed + 8e6
+            if rec is not None and self._disk_free < self._reserve_bytes() + headroom:
                 log.error("disk space under the reserve: stopping the recording cleanly")
                 self._stop_recording(
-                    f"the disk holding {self.config.output_dir} reached the reserve of "
-                    f"{self.config.disk_reserve_gb:g} GB; stopped before it filled"
+                    f"the disk holding {self.config.output_dir} came within a few seconds of the "
+                    f"reserve of {self.config.disk_reserve_gb:g} GB; stopped before it filled"
                 )
 
     # -- control --------------------------------------------------------------------------------
