@@ -23,7 +23,6 @@ import argparse
 import collections
 import logging
 import queue
-import signal
 import threading
 import time
 from dataclasses import dataclass, field
@@ -31,6 +30,7 @@ from dataclasses import dataclass, field
 import zmq
 
 from capture_agent.config import CameraEntry, NodeConfig
+from capture_agent.daemon import run_until_signal
 from capture_agent.encode import EncodedPair, encode_pair
 from capture_agent.ptp import PtpConfig, PtpMonitor, PtpStatus
 from capture_agent.sources import make_source
@@ -450,21 +450,9 @@ def main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     config = NodeConfig.from_toml(args.config)
     agent = Agent(config)
-    stop = threading.Event()
-
-    def _signal(signum: int, _frame: object) -> None:
-        log.info("signal %d: stopping", signum)
-        stop.set()
-
-    signal.signal(signal.SIGTERM, _signal)
-    signal.signal(signal.SIGINT, _signal)
-    agent.start()
-    print(
+    return run_until_signal(
+        agent.start,
+        agent.stop,
         f"egosurg agent {config.node_id}: streaming {len(agent.workers)} camera(s) on "
         f"{config.frames_bind}; control on {config.control_bind}",
-        flush=True,
     )
-    while not stop.wait(0.5):
-        pass
-    agent.stop()
-    return 0

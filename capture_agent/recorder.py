@@ -28,7 +28,6 @@ import collections
 import logging
 import re
 import shutil
-import signal
 import threading
 import time
 from dataclasses import dataclass, field
@@ -40,6 +39,7 @@ import zmq
 
 from capture_agent.accounting import StreamAccounting
 from capture_agent.config import RigConfig
+from capture_agent.daemon import run_until_signal
 from capture_agent.sync import SyncConfig, SyncedSet, Synchroniser
 from protocol import __version__
 from protocol.messages import (
@@ -605,7 +605,7 @@ class Recorder:
                     "sets": rec.sets_written,
                     "frames": rec.frames_written,
                     "bytes": rec.writer.bytes_written,
-                "capture_to_durable_ms": rec.latency_ms(),
+                    "capture_to_durable_ms": rec.latency_ms(),
                 }
             )
         if self.last_stop_summary is not None:
@@ -623,23 +623,10 @@ def main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     config = RigConfig.from_toml(args.config)
     recorder = Recorder(config)
-    stop = threading.Event()
-
-    def _signal(signum: int, _frame: object) -> None:
-        log.info("signal %d: stopping (a recording in progress is closed cleanly)", signum)
-        stop.set()
-
-    signal.signal(signal.SIGTERM, _signal)
-    signal.signal(signal.SIGINT, _signal)
-    recorder.start()
-    print(
+    return run_until_signal(
+        recorder.start,
+        recorder.stop,
         f"egosurg recorder {config.rig_name}: {len(config.agents)} agent(s); control on "
         f"{config.control_bind}; sessions in {config.output_dir}",
-        flush=True,
+        healthy=lambda: recorder._thread is not None and recorder._thread.is_alive(),
     )
-    while not stop.wait(0.5):
-        if not recorder._thread or not recorder._thread.is_alive():
-            log.error("the recorder's I/O thread ended unexpectedly")
-            return 1
-    recorder.stop()
-    return 0
