@@ -24,31 +24,14 @@ from calibration.exports import (
     undistorted_pinhole,
 )
 from protocol.camera import Camera, undistort_to_normalized
-from protocol.rig_calibration import CalibrationFileError, RigCalibration, SensorCalibration
+from protocol.rig_calibration import CalibrationFileError, RigCalibration
 
 EXACT_PX = 1e-6
 
 
 @pytest.fixture(scope="module")
-def rig() -> RigCalibration:
-    """The simulator's true rig: 4 ZED X, 8 sensors, factory lenses with k3 != 0."""
-    from sim import World
-
-    world = World.from_seed(0)
-    sensors = []
-    for unit in world.rig:
-        for side in ("left", "right"):
-            cam = unit.sensor(side, "HD1200")
-            sensors.append(
-                SensorCalibration(
-                    name=cam.name,
-                    camera_serial=unit.serial,
-                    side=side,
-                    intrinsics=cam.intrinsics,
-                    pose=cam.pose,
-                )
-            )
-    return RigCalibration(sensors=tuple(sensors), metadata={"note": "sim truth"})
+def rig(sim_true_rig: RigCalibration) -> RigCalibration:
+    return sim_true_rig
 
 
 @pytest.fixture(scope="module")

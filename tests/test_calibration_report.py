@@ -19,31 +19,15 @@ from calibration.report import (
     verdict,
     write_report,
 )
-from protocol.rig_calibration import RigCalibration, SensorCalibration
+from protocol.rig_calibration import RigCalibration
 
 SPEC_MM = 450.0
 SPHERES_M = np.array([0.0, 0.150, 0.450])
 
 
 @pytest.fixture(scope="module")
-def rig() -> RigCalibration:
-    from sim import World
-
-    world = World.from_seed(0)
-    sensors = []
-    for unit in world.rig:
-        for side in ("left", "right"):
-            cam = unit.sensor(side, "HD1200")
-            sensors.append(
-                SensorCalibration(
-                    name=cam.name,
-                    camera_serial=unit.serial,
-                    side=side,
-                    intrinsics=cam.intrinsics,
-                    pose=cam.pose,
-                )
-            )
-    return RigCalibration(sensors=tuple(sensors))
+def rig(sim_true_rig: RigCalibration) -> RigCalibration:
+    return sim_true_rig
 
 
 def synthetic(
