@@ -22,7 +22,7 @@ lint: $(STAMP)
 	$(BIN)/ruff check . && $(BIN)/ruff format --check .
 
 typecheck: $(STAMP)
-	$(BIN)/mypy protocol sim
+	$(BIN)/mypy protocol sim capture_agent calibration reconstructor
 
 bench: $(STAMP)
 	$(BIN)/python bench/bench_sim.py

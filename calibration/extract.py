@@ -26,10 +26,11 @@ import cv2
 import numpy as np
 
 from calibration.detect import DetectorConfig, SphereDetector
-from calibration.label import label_stereo, label_wand
+from calibration.label import label_stereo, label_wand, refit_without_rod
 from calibration.observations import SIDES, SensorKey, WandObservations
 from protocol.errors import UserError
-from protocol.session import SessionReader
+from protocol.images import EncodeError, decode_image
+from protocol.session import CameraInfo, SessionReader
 from protocol.wand import WandSpec
 from protocol.zed_conf import ConfFormatError, StereoCalibration, ZedFactoryCalibration
 
@@ -88,11 +89,15 @@ def choose_sets(set_unix_ns: np.ndarray, config: ExtractConfig) -> np.ndarray:
     return np.unique(np.concatenate([early, pick]))
 
 
-def _decode(buf: bytes) -> np.ndarray:
-    img = cv2.imdecode(np.frombuffer(buf, np.uint8), cv2.IMREAD_COLOR)
-    if img is None:
-        raise ExtractionError("a frame in the session is not a decodable image")
-    return img
+def _decode(buf: bytes, cam: CameraInfo) -> np.ndarray:
+    """One stored image, in whichever encoding its camera recorded, as BGR."""
+    try:
+        return decode_image(buf, cam.encoding, cam.width, cam.height)
+    except EncodeError as exc:
+        raise ExtractionError(
+            f"camera SN{cam.camera_serial}: a stored frame cannot be decoded: {exc}; "
+            "check the file with 'egosurg session verify'"
+        ) from exc
 
 
 def _work(args: tuple) -> tuple[np.ndarray, dict[str, dict[str, int]]]:
@@ -121,14 +126,18 @@ def _work(args: tuple) -> tuple[np.ndarray, dict[str, dict[str, int]]]:
             key = (serial, row)
             if key not in cache:
                 left_buf, right_buf = reader.frame_bytes(serial, row)
-                labels = [
-                    label_wand(detectors[(serial, side)].detect(_decode(buf)), wand)
-                    for side, buf in zip(SIDES, (left_buf, right_buf), strict=True)
-                ]
+                cam = reader.info.camera(serial)
+                labels = []
+                for side, buf in zip(SIDES, (left_buf, right_buf), strict=True):
+                    image = _decode(buf, cam)
+                    det = detectors[(serial, side)]
+                    label = label_wand(det.detect(image), wand)
+                    labels.append(refit_without_rod(det, image, label))
                 res = label_stereo(labels[0], labels[1], stereo[serial], wand)
-                cache[key] = (
-                    (np.stack([res.left_px, res.right_px]), "") if res.ok else (None, res.reason)
-                )
+                if res.ok and res.left_px is not None and res.right_px is not None:
+                    cache[key] = (np.stack([res.left_px, res.right_px]), "")
+                else:
+                    cache[key] = (None, res.reason or "rejected")
             return cache[key]
 
         points = np.full((len(set_rows), 2 * len(serials), 3, 2), np.nan)
@@ -192,7 +201,8 @@ def extract(
             n = reader.frame_count(serial)
             rows = np.linspace(0, n - 1, min(cfg.background_frames, n)).round().astype(int)
             for s, side in enumerate(SIDES):
-                frames = [_decode(reader.frame_bytes(serial, int(r))[s]) for r in rows]
+                cam = reader.info.camera(serial)
+                frames = [_decode(reader.frame_bytes(serial, int(r))[s], cam) for r in rows]
                 backgrounds[(serial, side)] = np.median(np.stack(frames), axis=0).astype(np.uint8)
         frames_seen = {
             SensorKey(serial, side): int((sets.members[chosen, c] >= 0).sum())

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from calibration.detect import SphereBlob
+from calibration.detect import SphereBlob, SphereDetector
 from protocol.camera import undistort_to_normalized
 from protocol.wand import WandSpec
 from protocol.zed_conf import StereoCalibration
@@ -208,6 +208,38 @@ def _wand_depths(rays: np.ndarray, wand: WandSpec) -> np.ndarray | None:
     if length <= 0:
         return None
     return lam * ((p2 - p0) / 1000.0 / length)
+
+
+def refit_without_rod(
+    detector: SphereDetector, image_bgr: np.ndarray, label: LabelResult
+) -> LabelResult:
+    """Fit the labelled spheres again with the outline along the wand's axis left out.
+
+    Labelling tells where the rod is: it runs through all three spheres along the line from
+    the first to the last. A sphere whose refit fails keeps its first fit.
+    """
+    if label.points_px is None or len(label.blobs) != 3:
+        return label
+    axis = label.points_px[2] - label.points_px[0]
+    if float(np.linalg.norm(axis)) < 1e-6:
+        return label
+    blobs, points = [], label.points_px.copy()
+    for k, blob in enumerate(label.blobs):
+        again = detector.refine(
+            image_bgr, blob.ellipse_centre_px, blob.radius_px, exclude_axis_px=axis
+        )
+        if again is None:
+            blobs.append(blob)
+            continue
+        blobs.append(again)
+        points[k] = again.centre_px
+    return LabelResult(
+        points_px=points,
+        blobs=tuple(blobs),
+        reason=label.reason,
+        cost=label.cost,
+        depths_m=label.depths_m,
+    )
 
 
 def label_wand(

@@ -31,11 +31,11 @@ import zmq
 
 from capture_agent.config import CameraEntry, NodeConfig
 from capture_agent.daemon import run_until_signal
-from capture_agent.encode import EncodedPair, encode_pair
 from capture_agent.ptp import PtpConfig, PtpMonitor, PtpStatus
 from capture_agent.sources import make_source
 from capture_agent.sources.base import CameraSource, CameraUnavailableError, GrabbedFrame
 from protocol import __version__
+from protocol.images import EncodedPair, encode_pair
 from protocol.messages import (
     AgentStatus,
     CameraStatus,

@@ -21,8 +21,8 @@ import numpy as np
 import zmq
 
 from capture_agent.config import RigConfig, connect_address
-from capture_agent.encode import decode_image
 from protocol.errors import UserError
+from protocol.images import decode_image
 from protocol.messages import (
     ControlReply,
     ControlRequest,

@@ -20,8 +20,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from capture_agent.encode import decode_image
 from protocol.errors import UserError
+from protocol.images import decode_image
 from protocol.session import GapKind, SessionReader
 
 

@@ -8,10 +8,15 @@ Stages so far:
 1. build the simulated OR and write the rig's eight views, a top-down map and a ground-truth video;
 2. run the capture chain as deployed: two simulated Jetson agents (two ZED X each) and the
    recorder as separate processes over loopback TCP; record about 10 s of the OR, stop, and print
-   the session summary (``egosurg session info``).
+   the session summary (``egosurg session info``);
+3. calibrate the rig: record a wand session through the same agents and recorder, run
+   ``egosurg calibrate`` on it, and compare the recovered camera poses with the sim's truth;
+4. reconstruct one timestamp of the stage-2 session with that calibration (``egosurg
+   reconstruct``), score it on the recorded views, and render what one of the people saw
+   (``egosurg render``) beside the simulator's ground-truth view from the same eyes.
 
-Later capabilities (calibration, reconstruction, evaluation) add their stages here, each run
-through the ``egosurg`` command as a user would run it.
+Later capabilities (evaluation) add their stages here, each run through the ``egosurg`` command
+as a user would run it.
 """
 
 from __future__ import annotations
@@ -22,12 +27,21 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
+import numpy as np
+
+from protocol.camera import Pose
+from protocol.rig_calibration import RigCalibration
+from protocol.session import SessionReader
+from protocol.wand import WandSpec
 from sim import pictures
 from sim.cli import write_pictures
-from sim.deploy import SimRig, SimRigSpec, write_sim_rig
+from sim.deploy import SimRig, SimRigFiles, SimRigSpec, write_sim_rig
+from sim.timing import ClockSpec
+from sim.truth import align_to_truth, calibration_errors, content_time_s, true_rig_calibration
 from sim.world import World
 
-STAGES = 2
+STAGES = 4
 
 
 def _stage(k: int, text: str) -> None:
@@ -46,7 +60,7 @@ def stage_sim(out: Path, seed: int) -> None:
         print(f"        {p}")
 
 
-def stage_capture(out: Path, seed: int, record_s: float) -> Path:
+def stage_capture(out: Path, seed: int, record_s: float) -> tuple[Path, SimRigFiles]:
     _stage(2, "capture: 2 agents + recorder as processes on loopback, recording the OR")
     files = write_sim_rig(
         out / "capture",
@@ -55,12 +69,21 @@ def stage_capture(out: Path, seed: int, record_s: float) -> Path:
     for node, path in files.node_configs.items():
         print(f"      egosurg agent --config {path}        ({node})")
     print(f"      egosurg recorder --config {files.rig_config}")
+    summary = _record(files, "demo-case", record_s, meta={"procedure": "simulated"})
+    session = Path(summary["file"])
+    _egosurg("session", "info", str(session))
+    print(f"      logs: {files.directory / 'logs'}")
+    return session, files
+
+
+def _record(files, case: str, record_s: float, meta: dict[str, str] | None = None) -> dict:
+    """Start the sim rig's processes, record ``record_s`` seconds with progress, stop."""
     with SimRig(files) as rig:
         t0 = time.monotonic()
-        rig.wait_streaming(timeout_s=600)
+        rig.wait_streaming(timeout_s=900)
         print(f"      all 4 cameras streaming after {time.monotonic() - t0:.0f} s")
-        started = rig.control("start", case="demo-case", meta={"procedure": "simulated"})
-        print(f"      egosurg record start --case demo-case   -> {started['file']}")
+        started = rig.control("start", case=case, meta=meta or {})
+        print(f"      egosurg record start --case {case}   -> {started['file']}")
         for k in range(int(record_s)):
             time.sleep(1.0)
             st = rig.control("status")
@@ -73,19 +96,133 @@ def stage_capture(out: Path, seed: int, record_s: float) -> Path:
         print()
         summary = rig.control("stop")
         print("      egosurg record stop")
-    session = Path(summary["file"])
-    print(f"      egosurg session info {session}")
-    info = subprocess.run(
-        [sys.executable, "-m", "protocol.cli", "session", "info", str(session)],
-        capture_output=True,
-        text=True,
-        check=False,
+    return dict(summary)
+
+
+def _egosurg(*args: str) -> subprocess.CompletedProcess[str]:
+    print("      egosurg " + " ".join(args))
+    done = subprocess.run(
+        [sys.executable, "-m", "protocol.cli", *args], capture_output=True, text=True, check=False
     )
-    print("\n".join("        " + line for line in info.stdout.splitlines()))
-    if info.returncode != 0:
-        print(info.stderr, file=sys.stderr)
-    print(f"      logs: {files.directory / 'logs'}")
-    return session
+    print("\n".join("        " + line for line in done.stdout.splitlines()))
+    if done.returncode != 0:
+        print(done.stderr, file=sys.stderr)
+    return done
+
+
+def stage_calibration(out: Path, seed: int, record_s: float) -> Path | None:
+    _stage(3, "calibration: record a wand session, calibrate, compare with the sim's true rig")
+    # SVGA keeps the demo quick; the accuracy test and the benchmark use HD1200
+    files = write_sim_rig(
+        out / "wand",
+        SimRigSpec(
+            seed=seed,
+            phase="wand",
+            resolution="SVGA",
+            fps=15.0,
+            content_fps=15.0,
+            # content loops every N s with the wand on the floor for its first 2 s: record
+            # more than N + 2 s so that the floor placement is in the session whole
+            prerender_s=max(record_s - 3.0, 6.0),
+            jpeg_quality=92,
+        ),
+    )
+    print(f"      rendering {record_s:.0f} s of an operator waving the wand (takes a while)")
+    summary = _record(files, "wand-calibration", record_s)
+    session = Path(summary["file"])
+    wand = out / "wand" / "wand.toml"
+    wand.write_text(WandSpec().to_toml())
+    calibration = out / "calibration.toml"
+    # a demo session is shorter than a real one (a minute or two), so relax the report's
+    # thresholds for frames per camera and image coverage
+    done = _egosurg(
+        "calibrate", str(session), "--wand", str(wand), "--out", str(calibration),
+        "--min-frames", "60", "--min-coverage-cells", "4",
+    )  # fmt: skip
+    if done.returncode != 0 or not calibration.exists():
+        print("      calibration failed; see the message above")
+        return None
+    truth = true_rig_calibration(World.from_seed(seed, phase="wand"), "HD1200")
+    print("      against the simulator's true rig (after the best rigid fit of the whole rig):")
+    for e in calibration_errors(RigCalibration.read(calibration), truth):
+        print(
+            f"        {e.name:<20} rotation {e.rotation_deg:.3f} deg, "
+            f"position {e.translation_mm:.1f} mm, height {e.height_mm:+.1f} mm"
+        )
+    print(f"      report: {calibration.parent / 'calibration_report' / 'report.html'}")
+    return calibration
+
+
+def stage_reconstruction(
+    out: Path, seed: int, session: Path, files: SimRigFiles, calibration: Path | None, steps: int
+) -> None:
+    _stage(4, "reconstruction: Gaussian splats of one timestamp, and a person's view of it")
+    world = World.from_seed(seed, phase=files.spec.phase)
+    truth = true_rig_calibration(world)
+    recon = out / "recon"
+    recon.mkdir(parents=True, exist_ok=True)
+    cal_path = recon / "calibration.toml"
+    if calibration is not None:
+        # the wand calibration picks its own heading; move it rigidly into the sim's frame so
+        # that the sim's ground-truth views line up with the reconstruction
+        align_to_truth(RigCalibration.read(calibration), truth).write(cal_path)
+        print("      calibration: stage 3's wand calibration, placed in the sim's world frame")
+    else:
+        truth.write(cal_path)
+        print("      calibration: the sim's true rig (stage 3 did not produce one)")
+    # a set in the middle of a second of content, so that every camera shows the same instant
+    spec = files.spec
+    with SessionReader(session) as reader:
+        set_ns = reader.sets().set_unix_ns
+    t_exposure = (set_ns - files.epoch_unix_ns) / 1e9 - ClockSpec().readout_latency_ns / 1e9
+    middle = np.abs((t_exposure * spec.content_fps) % 1.0 - 0.5)
+    middle[: len(middle) // 3] = np.inf
+    k = int(np.argmin(middle))
+    done = _egosurg(
+        "reconstruct", str(session), "--calibration", str(cal_path), "--at", f"set:{k}",
+        "--out", str(recon), "--steps", str(steps), "--evaluate",
+    )  # fmt: skip
+    runs = sorted(p for p in recon.iterdir() if (p / "splats.ply").exists())
+    if done.returncode != 0 or not runs:
+        print("      reconstruction failed; see the message above")
+        return
+    model = runs[-1] / "splats.ply"
+    t_content = content_time_s(
+        float(t_exposure[k]),
+        fps=spec.fps,
+        content_fps=spec.content_fps,
+        prerender_s=spec.prerender_s,
+    )
+    heads = world.head_poses(t_content)
+    who = next((n for n in heads if "surgeon" in n), next(iter(heads)))
+    eye = heads[who].centre_m
+    target = eye + heads[who].R[2]  # the head camera's forward axis
+    view = Pose.look_at(eye, target)
+    cam = world.virtual_camera(view, hfov_deg=90.0, size_px=(960, 600), name=f"{who}'s eyes")
+    rendered_png = recon / f"{who}_view_splats.png"
+    eye_s, target_s = ",".join(f"{v:.4f}" for v in eye), ",".join(f"{v:.4f}" for v in target)
+    done = _egosurg(
+        "render", str(model), "--camera", f"eye={eye_s} target={target_s}",
+        "--hfov", "90", "--size", "960x600", "--out", str(rendered_png),
+    )  # fmt: skip
+    if done.returncode != 0:
+        return
+    truth_rgb = world.render(cam, t_content).image_rgb
+    bgr = cv2.imread(str(rendered_png))
+    if bgr is None:
+        print(f"      cannot read {rendered_png}")
+        return
+    rendered = bgr[:, :, ::-1]
+    mse = float(np.mean((rendered.astype(np.float64) - truth_rgb.astype(np.float64)) ** 2))
+    psnr_db = 10 * np.log10(255.0**2 / max(mse, 1e-9))
+    pair = np.concatenate([truth_rgb, rendered], axis=1)[:, :, ::-1].copy()
+    for x, label in ((10, f"ground truth: {who}'s eyes"), (970, f"splats ({steps} steps)")):
+        cv2.putText(pair, label, (x, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (0, 0, 0), 3)
+        cv2.putText(pair, label, (x, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (255, 255, 255), 1)
+    side = recon / f"{who}_view_vs_truth.png"
+    cv2.imwrite(str(side), pair)
+    print(f"      {who}'s view, rendered vs the sim's ground truth: PSNR {psnr_db:.1f} dB")
+    print(f"      wrote {side}")
 
 
 def main(argv: list[str]) -> int:
@@ -97,11 +234,19 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     parser.add_argument("--seed", type=int, default=0, help="scene seed")
     parser.add_argument("--record-s", type=float, default=10.0, help="length of the recording")
+    parser.add_argument(
+        "--wand-s", type=float, default=12.0, help="length of the wand recording (stage 3)"
+    )
+    parser.add_argument(
+        "--steps", type=int, default=300, help="training steps of stage 4 (the paper: 2000)"
+    )
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     stage_sim(out, args.seed)
-    stage_capture(out, args.seed, args.record_s)
+    session, files = stage_capture(out, args.seed, args.record_s)
+    calibration = stage_calibration(out, args.seed, args.wand_s)
+    stage_reconstruction(out, args.seed, session, files, calibration, args.steps)
     print(f"demo finished in {time.perf_counter() - t0:.0f} s; everything is under {out}/")
     return 0

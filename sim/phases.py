@@ -5,7 +5,9 @@
 - ``intraoperative``: the crowded phase: surgeon, assistant, anaesthetist, scrub nurse, circulator
   and a robot-side assistant around the patient;
 - ``turnover``: the patient has left; three staff clean and restock;
-- ``wand``: a calibration session: one operator waves the wand through the empty room.
+- ``wand``: a calibration session: the mobile equipment (robot cart, C-arm) is pushed aside, as
+  sites do before calibrating, and one operator waves the wand through the open space over the
+  table.
 
 Each phase is a list of people with closed waypoint loops, slightly varied by the seed so that
 different seeds give different (but equally plausible) scenes.
@@ -46,6 +48,7 @@ class PhaseScript:
     people: tuple[Person, ...]
     with_patient: bool
     with_wand: bool
+    with_mobile_equipment: bool = True  # the robot cart and the C-arm
 
 
 def phase_script(name: str, seed: int) -> PhaseScript:
@@ -75,7 +78,9 @@ def phase_script(name: str, seed: int) -> PhaseScript:
     if name == "empty":
         return PhaseScript(name, (), with_patient=False, with_wand=False)
     if name == "wand":
-        return PhaseScript(name, (), with_patient=False, with_wand=True)
+        return PhaseScript(
+            name, (), with_patient=False, with_wand=True, with_mobile_equipment=False
+        )
     if name == "setup":
         people: tuple[Person, ...] = (
             person(

@@ -6,6 +6,7 @@ table (head end at -x), y across it. The room spans x in [-3.5, 3.5], y in [-3, 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -87,7 +88,9 @@ TABLE_TOP_Z_M = 0.92  # top of the mattress
 TABLE_CENTRE_XY_M = (0.0, 0.0)
 
 
-def build_room(room: RoomSpec, *, with_patient: bool) -> tuple[list[SceneObject], list[Light]]:
+def build_room(
+    room: RoomSpec, *, with_patient: bool, with_mobile_equipment: bool = True
+) -> tuple[list[SceneObject], list[Light]]:
     """The static objects (grouped one material per mesh) and the lights."""
     x0, x1 = room.x_range_m
     y0, y1 = room.y_range_m
@@ -142,21 +145,8 @@ def build_room(room: RoomSpec, *, with_patient: bool) -> tuple[list[SceneObject]
         # anaesthesia screen: a drape frame across the table at the patient's neck
         add("fabric", box((-0.72, 0.0, 1.3), (0.02, 0.9, 0.5)), drape_tint)
 
-    # Robot cart beside the table with its arm over the patient.
-    add("plastic", box((0.9, 1.15, 0.55), (0.75, 0.6, 1.1)), (0.93, 0.93, 0.95))
-    add("rubber", box((0.9, 1.15, 0.05), (0.8, 0.65, 0.1)))
-    add("plastic", cylinder((0.9, 1.15, 1.1), (0.9, 1.15, 1.75), 0.09), (0.9, 0.9, 0.92))
-    add("plastic", cylinder((0.9, 1.15, 1.75), (0.55, 0.45, 1.55), 0.07), (0.9, 0.9, 0.92))
-    add("plastic", cylinder((0.55, 0.45, 1.55), (0.35, 0.15, 1.2), 0.05), (0.9, 0.9, 0.92))
-
-    # C-arm: base, column and the arc around the table's head end.
-    add("plastic", box((-0.45, -1.65, 0.5), (0.9, 0.55, 1.0)), (0.82, 0.86, 0.9))
-    add("plastic", box((-0.45, -1.25, 1.05), (0.25, 0.4, 0.25)), (0.82, 0.86, 0.9))
-    add(
-        "plastic",
-        torus_arc((-0.45, -0.35, 1.05), 0.78, 0.07, -1.35, 1.35, R=rot_z(np.pi / 2) @ rot_x(0.0)),
-        (0.82, 0.86, 0.9),
-    )
+    if with_mobile_equipment:
+        _add_mobile_equipment(add)
 
     # Monitors on ceiling booms, facing the table.
     for mx, my, yaw in ((1.7, -1.35, 2.5), (-1.5, 1.5, -0.9)):
@@ -210,18 +200,36 @@ def build_room(room: RoomSpec, *, with_patient: bool) -> tuple[list[SceneObject]
     return objects, lights
 
 
-def footprints(with_patient: bool) -> list[Footprint]:
+def _add_mobile_equipment(add: Callable[..., None]) -> None:
+    """The robot cart beside the table, with its arm over the patient, and the C-arm."""
+    add("plastic", box((0.9, 1.15, 0.55), (0.75, 0.6, 1.1)), (0.93, 0.93, 0.95))
+    add("rubber", box((0.9, 1.15, 0.05), (0.8, 0.65, 0.1)))
+    add("plastic", cylinder((0.9, 1.15, 1.1), (0.9, 1.15, 1.75), 0.09), (0.9, 0.9, 0.92))
+    add("plastic", cylinder((0.9, 1.15, 1.75), (0.55, 0.45, 1.55), 0.07), (0.9, 0.9, 0.92))
+    add("plastic", cylinder((0.55, 0.45, 1.55), (0.35, 0.15, 1.2), 0.05), (0.9, 0.9, 0.92))
+    # C-arm: base, column and the arc around the table's head end.
+    add("plastic", box((-0.45, -1.65, 0.5), (0.9, 0.55, 1.0)), (0.82, 0.86, 0.9))
+    add("plastic", box((-0.45, -1.25, 1.05), (0.25, 0.4, 0.25)), (0.82, 0.86, 0.9))
+    add(
+        "plastic",
+        torus_arc((-0.45, -0.35, 1.05), 0.78, 0.07, -1.35, 1.35, R=rot_z(np.pi / 2) @ rot_x(0.0)),
+        (0.82, 0.86, 0.9),
+    )
+
+
+def footprints(with_patient: bool, with_mobile_equipment: bool = True) -> list[Footprint]:
     """The furniture outlines for the top-down map."""
     out = [
         Footprint("OR table", (0.0, 0.0), (2.05, 0.56)),
-        Footprint("robot cart", (0.9, 1.15), (0.75, 0.6)),
-        Footprint("C-arm", (-0.45, -1.65), (0.9, 0.55)),
         Footprint("back table", (-1.3, 1.95), (1.3, 0.65)),
         Footprint("anaesthesia", (-2.0, -0.75), (0.6, 0.7)),
         Footprint("cabinets", (-3.25, -1.47), (0.5, 2.48)),
         Footprint("monitor", (1.7, -1.35), (0.06, 0.62), 2.5),
         Footprint("monitor", (-1.5, 1.5), (0.06, 0.62), -0.9),
     ]
+    if with_mobile_equipment:
+        out.append(Footprint("robot cart", (0.9, 1.15), (0.75, 0.6)))
+        out.append(Footprint("C-arm", (-0.45, -1.65), (0.9, 0.55)))
     if with_patient:
         out.append(Footprint("patient", (0.1, 0.0), (1.7, 0.5)))
     return out

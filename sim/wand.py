@@ -20,8 +20,10 @@ class WandMotion:
     seed: int
     floor_lie_s: float = 2.0
     pickup_s: float = 1.5
-    centre_m: tuple[float, float, float] = (0.0, 0.0, 1.2)
-    half_extent_m: tuple[float, float, float] = (2.0, 1.7, 0.75)
+    # the open space over the table, clear of the table top, the monitors and the surgical light:
+    # the volume the rig must reconstruct, seen by all four cameras at 2.5-4.5 m
+    centre_m: tuple[float, float, float] = (0.0, 0.0, 1.45)
+    half_extent_m: tuple[float, float, float] = (1.3, 1.0, 0.4)
 
     def _params(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         rng = np.random.default_rng([self.seed, 0xA4D])

@@ -75,7 +75,9 @@ class World:
         self.script = phase_script(cfg.phase, cfg.seed)
         self.textures = build_textures(cfg.seed)
         self.static_objects, self.lights = build_room(
-            cfg.room, with_patient=self.script.with_patient
+            cfg.room,
+            with_patient=self.script.with_patient,
+            with_mobile_equipment=self.script.with_mobile_equipment,
         )
         self.rig: tuple[ZedUnit, ...] = build_rig(cfg.seed, cfg.room)
         self.wand_motion = WandMotion(
@@ -113,7 +115,7 @@ class World:
         return self.wand_motion.sphere_centres(t) if self.show_wand else None
 
     def footprints(self) -> list[Footprint]:
-        return footprints(self.script.with_patient)
+        return footprints(self.script.with_patient, self.script.with_mobile_equipment)
 
     def clock(
         self, unit: int | ZedUnit, spec: ClockSpec | None = None, epoch_unix_ns: int | None = None

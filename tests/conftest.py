@@ -42,21 +42,7 @@ def run_egosurg(*args: str, timeout: float = 300.0, cwd: Path | None = None):
 @pytest.fixture(scope="session")
 def sim_true_rig():
     """The simulator's true rig as a calibration: 4 ZED X, 8 sensors, lenses with k3 != 0."""
-    from protocol.rig_calibration import RigCalibration, SensorCalibration
     from sim import World
+    from sim.truth import true_rig_calibration
 
-    world = World.from_seed(0)
-    sensors = []
-    for unit in world.rig:
-        for side in ("left", "right"):
-            cam = unit.sensor(side, "HD1200")
-            sensors.append(
-                SensorCalibration(
-                    name=cam.name,
-                    camera_serial=unit.serial,
-                    side=side,
-                    intrinsics=cam.intrinsics,
-                    pose=cam.pose,
-                )
-            )
-    return RigCalibration(sensors=tuple(sensors), metadata={"note": "sim truth"})
+    return true_rig_calibration(World.from_seed(0))

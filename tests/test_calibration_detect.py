@@ -47,7 +47,7 @@ from sim.world import WAND_SPHERE_ALBEDO
 
 UNIT = 2
 FLOOR_T = 1.25  # the wand still lies on the floor
-WAVED_T = (4.25, 5.0, 9.5, 11.0, 12.5)
+WAVED_T = (4.25, 5.0, 9.5, 11.0, 13.5)  # waved in the open, clear of the operator's hand
 BACKGROUND_T = (3.5, 6.5, 7.25, 8.0, 8.75, 10.25, 13.25)
 SIDES = ("left", "right")
 WAND = WandSpec()

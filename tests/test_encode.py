@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from capture_agent.encode import EncodedPair, EncodeError, decode_image, encode_pair
 from protocol.errors import UserError
+from protocol.images import EncodedPair, EncodeError, decode_image, encode_pair
 
 
 def _pair(h: int = 60, w: int = 96) -> tuple[np.ndarray, np.ndarray]:
@@ -85,7 +85,7 @@ def test_jpeg_keeps_colour_at_full_resolution():
     """4:4:4 chroma: wand detection reads each pixel's colour (4:2:0 made it 10x less accurate)."""
     import numpy as np
 
-    from capture_agent.encode import encode_pair
+    from protocol.images import encode_pair
 
     img = np.random.default_rng(0).integers(0, 255, (64, 96, 3), dtype=np.uint8)
     jpg = encode_pair(img, img, "jpeg", 90).left

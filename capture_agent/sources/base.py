@@ -28,8 +28,8 @@ from types import TracebackType
 
 import numpy as np
 
-from capture_agent.encode import EncodedPair
 from protocol.camera import Resolution
+from protocol.images import EncodedPair
 
 
 class CameraUnavailableError(RuntimeError):

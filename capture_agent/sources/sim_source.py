@@ -13,11 +13,15 @@ midnight UTC would disagree, so a rig (and every multi-process test) sets ``epoc
 
 Rendering is slow (SVGA stereo about 0.25 s, HD1200 about 0.8 s on 2 cores), so image *content*
 is rendered ``content_fps`` times per sim second, while stamps and indices run at ``fps``; each
-frame shows the content of ``floor(exposure * content_fps) / content_fps``. With
-``prerender_s = N`` the content of the first N seconds is rendered before ``open()`` returns and
-then repeats, so streaming costs no rendering (the benchmark's mode); with ``prerender_s = 0`` a
-background thread renders just ahead of the clock and a lagging frame reuses the most recent
-content rather than stalling the clock.
+frame shows the content of ``floor(exposure * content_fps) / content_fps``. With ``content_fps``
+equal to ``fps`` every frame shows the scene at its own exposure time, as a real camera does:
+what calibration and reconstruction tests need, since cameras of one set expose at slightly
+different times. With ``prerender_s = N`` the content of sim time ``[0, N)`` is rendered before
+``open()`` returns and then loops (content time = sim time mod N, the same for every agent of a
+rig), so streaming costs no rendering (the benchmark's mode); looped frame-exact content needs
+clocks without drift to repeat exactly, so such cameras run at the nominal rate (``clock_spec``).
+With ``prerender_s = 0`` a background thread renders just ahead of the clock and a lagging frame
+reuses the most recent content rather than stalling the clock.
 
 With ``realtime = true`` (the default) ``grab()`` sleeps until the wall clock reaches the next
 frame's stamp; like the SDK's small frame buffer, a consumer more than ``BUFFER_S`` late loses the
@@ -53,7 +57,6 @@ from typing import TYPE_CHECKING, Any
 import cv2
 import numpy as np
 
-from capture_agent.encode import EncodedPair, encode_pair
 from capture_agent.sources.base import (
     CameraSource,
     CameraUnavailableError,
@@ -63,6 +66,7 @@ from capture_agent.sources.base import (
 from capture_agent.sources.options import TableReader, require
 from protocol.camera import Resolution, ResolutionError
 from protocol.errors import ConfigError
+from protocol.images import EncodedPair, encode_pair
 
 if TYPE_CHECKING:
     from sim.timing import ClockSpec, FrameClock, FrameTruth
@@ -242,11 +246,18 @@ class SimSourceConfig:
     def clock_spec(self) -> ClockSpec:
         from sim.timing import ClockSpec
 
+        # Looped, frame-exact content repeats exactly only if every camera's period divides
+        # the loop; with a clock drift of p ppm, loop n would show content n * N * p seconds
+        # away from the frame's stamp, different for each camera (12 ms after 300 s at 40 ppm
+        # apart: 5 mm of a waved wand). Such cameras keep their random phase, jitter and drops,
+        # but run at the nominal rate.
+        looped_exact = self.prerender_s > 0 and self.content_fps >= self.fps
         return ClockSpec(
             fps=self.fps,
             free_running=self.free_running,
             jitter_ns_std=self.jitter_ns_std,
             drop_probability=self.drop_probability,
+            max_abs_ppm=0.0 if looped_exact else 20.0,
         )
 
 
@@ -362,12 +373,11 @@ class SimSource(CameraSource):
         if fault is not None and fault[0].kind == "vanish":
             raise CameraUnavailableError(f"{self.name} is not connected (simulated 'vanish')")
         _ = self.clock
-        cf = self.config.content_fps
-        first = math.floor(self._sim_now_s() * cf)
         if self.config.prerender_s > 0:
-            count = max(1, math.ceil(self.config.prerender_s * cf))
+            # content of sim time [0, N), the same window for every agent, then looping
+            count = self._loop_count()
             t_start = time.perf_counter()
-            for key in range(first, first + count):
+            for key in range(count):
                 self._content[key] = self._render(key)
             log.info(
                 "%s: prerendered %d content frames in %.1f s",
@@ -375,8 +385,9 @@ class SimSource(CameraSource):
                 count,
                 time.perf_counter() - t_start,
             )
-            self._loop = (first, count)
+            self._loop = (0, count)
         else:
+            first = self._content_index(self._sim_now_s())
             self._content[first] = self._render(first)
         self._vanished = False
         self._pending.clear()
@@ -505,8 +516,27 @@ class SimSource(CameraSource):
         first, count = self._loop
         return first + (content_index - first) % count
 
+    @property
+    def _exact(self) -> bool:
+        """One content frame per camera frame, at its exact exposure time."""
+        return self.config.content_fps >= self.config.fps
+
+    def _loop_count(self) -> int:
+        rate = self.config.fps if self._exact else self.config.content_fps
+        return max(1, math.ceil(self.config.prerender_s * rate))
+
+    def _content_index(self, exposure_t_s: float) -> int:
+        if self._exact:  # the frame's own index: its content is rendered at its exposure time
+            return max(0, round((exposure_t_s - self.clock.exposure_time(0)) / self.clock.period_s))
+        return math.floor(exposure_t_s * self.config.content_fps)
+
+    def _content_time_s(self, key: int) -> float:
+        if self._exact:
+            return self.clock.exposure_time(key)
+        return key / self.config.content_fps
+
     def _render(self, key: int) -> _Content:
-        t_s = key / self.config.content_fps
+        t_s = self._content_time_s(key)
         t0 = time.perf_counter()
         with _RENDER_LOCK:
             left, right = self.world.render_stereo(
@@ -525,7 +555,7 @@ class SimSource(CameraSource):
         return _Content(left_bgr, right_bgr, None)
 
     def _content_for(self, exposure_t_s: float) -> _Content:
-        key = self._key(math.floor(exposure_t_s * self.config.content_fps))
+        key = self._key(self._content_index(exposure_t_s))
         with self._content_lock:
             content = self._content.get(key)
             if content is not None:
@@ -545,10 +575,9 @@ class SimSource(CameraSource):
 
     def _render_ahead(self) -> None:
         """Keep the content that will be current when a render finishes ready (realtime)."""
-        cf = self.config.content_fps
         while not self._stop.is_set():
             now_t = self._sim_now_s()
-            target = math.floor((now_t + self._render_s) * cf)
+            target = self._content_index(now_t + self._render_s)
             with self._content_lock:
                 todo = [k for k in (target, target + 1) if k not in self._content]
             if todo:
@@ -558,5 +587,5 @@ class SimSource(CameraSource):
                     log.exception("%s: rendering content frame %d failed", self.name, todo[0])
                     self._stop.wait(1.0)
                 continue
-            wake = (target + 1) / cf - self._render_s - now_t
+            wake = self._content_time_s(target + 1) - self._render_s - now_t
             self._stop.wait(min(max(wake, 0.005), 0.5))

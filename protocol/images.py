@@ -1,4 +1,4 @@
-"""Encoding of BGR stereo frames for the wire and the session file.
+"""How stereo frames are encoded on the wire and in the session file (the contract both ends share).
 
 Images on the capture path are BGR, 8-bit, ``(height, width, 3)`` (see docs/capture.md). Two
 encodings exist:

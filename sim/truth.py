@@ -1,0 +1,121 @@
+"""The simulator's true rig as a calibration, and how far an estimated calibration is from it.
+
+The calibration a user would get from a perfect wand session is the sim's own camera model: this
+module writes it in the product's calibration format (``protocol.rig_calibration``), so the
+reconstructor can run on the truth before a wand calibration exists, and a wand calibration can
+be scored against it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from protocol.camera import Pose, Resolution
+from protocol.rig_calibration import RigCalibration, SensorCalibration
+from sim.world import World
+
+
+def true_rig_calibration(
+    world: World, resolution: Resolution | str = Resolution.HD1200
+) -> RigCalibration:
+    """The eight sensors of the sim's four ZED X, with their true intrinsics and poses."""
+    res = Resolution.parse(resolution)
+    sensors = []
+    for unit in world.rig:
+        for side in ("left", "right"):
+            cam = unit.sensor(side, res)
+            sensors.append(
+                SensorCalibration(
+                    name=cam.name,
+                    camera_serial=unit.serial,
+                    side=side,
+                    intrinsics=cam.intrinsics,
+                    pose=cam.pose,
+                )
+            )
+    return RigCalibration(
+        sensors=tuple(sensors),
+        resolution=res,
+        world_frame="floor",
+        metadata={"source": f"simulator truth, seed {world.config.seed}"},
+    )
+
+
+@dataclass(frozen=True)
+class PoseError:
+    """One sensor's pose error after the best rigid fit of the estimate onto the truth."""
+
+    name: str
+    rotation_deg: float
+    translation_mm: float  # distance between the estimated and the true camera centre
+    height_mm: float  # error of the camera's height above the floor (world z, before fitting)
+
+
+def calibration_errors(estimate: RigCalibration, truth: RigCalibration) -> list[PoseError]:
+    """Per-sensor pose errors of ``estimate`` against ``truth``.
+
+    A calibration fixes its own world frame (the floor, with an arbitrary heading), so the
+    estimate is first moved rigidly onto the truth (``align_to_truth``, least squares over all
+    camera centres, no scale): what remains is each camera's own error, with no camera singled
+    out as the reference. The height error compares world z as estimated, which is meaningful
+    when both put the floor at z = 0.
+    """
+    aligned = align_to_truth(estimate, truth)
+    out = []
+    for true in truth.sensors:
+        est = aligned.sensor(true.camera_serial, true.side).pose
+        raw = estimate.sensor(true.camera_serial, true.side).pose
+        out.append(
+            PoseError(
+                name=true.name,
+                rotation_deg=rotation_angle_deg(est.R @ true.pose.R.T),
+                translation_mm=float(1000 * np.linalg.norm(est.centre_m - true.pose.centre_m)),
+                height_mm=float(1000 * (raw.centre_m[2] - true.pose.centre_m[2])),
+            )
+        )
+    return out
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """The angle of a rotation matrix, in degrees."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+
+
+def align_to_truth(estimate: RigCalibration, truth: RigCalibration) -> RigCalibration:
+    """``estimate`` moved rigidly into ``truth``'s world frame (Kabsch on the sensor centres).
+
+    A wand calibration chooses its own world frame (the floor, with an arbitrary heading); to
+    compare renders with the sim's ground truth views, express it in the sim's frame. Only the
+    gauge changes: the cameras' poses relative to each other stay as estimated.
+    """
+    pairs = [(s, truth.sensor(s.camera_serial, s.side)) for s in estimate.sensors]
+    a = np.array([s.pose.centre_m for s, _ in pairs])
+    b = np.array([t.pose.centre_m for _, t in pairs])
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T  # estimate world -> truth world
+    est_to_truth = Pose(R=R, t_m=cb - R @ ca)
+    sensors = tuple(
+        dataclasses.replace(s, pose=s.pose.compose(est_to_truth.inverse()))
+        for s in estimate.sensors
+    )
+    return dataclasses.replace(estimate, sensors=sensors)
+
+
+def content_time_s(t_sim_s: float, *, fps: float, content_fps: float, prerender_s: float) -> float:
+    """The sim time whose scene a simulated camera shows at sim time ``t_sim_s``.
+
+    Mirrors ``capture_agent.sources.sim_source``: prerendered content loops over sim time
+    ``[0, N)``; with ``content_fps < fps`` it is quantised to ``1 / content_fps``.
+    """
+    if prerender_s <= 0:
+        return t_sim_s
+    if content_fps >= fps:
+        loop_s = np.ceil(prerender_s * fps) / fps
+        return float(t_sim_s % loop_s)
+    count = int(np.ceil(prerender_s * content_fps))
+    return float((int(np.floor(t_sim_s * content_fps)) % count) / content_fps)
