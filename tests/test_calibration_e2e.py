@@ -1,0 +1,159 @@
+"""Wand calibration end to end: a wand session recorded through the real agent and recorder
+processes, calibrated by the real `egosurg calibrate`, checked against the simulator's truth."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+
+from protocol.rig_calibration import RigCalibration
+from protocol.session import CameraInfo, SessionReader, SessionWriter
+from protocol.wand import WandSpec
+from sim import World
+from sim.deploy import SimRig, SimRigSpec, write_sim_rig
+from sim.truth import calibration_errors, true_rig_calibration
+from tests.conftest import run_egosurg
+
+SEED = 5
+# recording prerenders about 3 minutes of HD1200 frames; calibrating takes 1-2 minutes more
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(1800)]
+
+
+@pytest.fixture(scope="module")
+def wand_session(tmp_path_factory) -> Path:
+    """17 s of the wand phase at HD1200, 15 fps, free-running cameras with drops.
+
+    Every frame shows the scene at its own exposure time (content_fps = fps). The agents loop
+    14 s of prerendered content, so 17 s of recording holds the first 2 s of the loop, where the
+    wand lies on the floor, whole."""
+    spec = SimRigSpec(
+        seed=SEED,
+        phase="wand",
+        resolution="HD1200",
+        fps=15.0,
+        content_fps=15.0,
+        prerender_s=14.0,
+        drop_probability=0.01,
+        jpeg_quality=92,
+    )
+    files = write_sim_rig(tmp_path_factory.mktemp("wandrig"), spec)
+    with SimRig(files) as rig:
+        rig.wait_streaming(timeout_s=900)
+        rig.control("start", case="wand")
+        time.sleep(spec.prerender_s + 3.0)
+        summary = rig.control("stop")
+    return Path(summary["file"])
+
+
+@pytest.fixture(scope="module")
+def wand_file(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("wand") / "wand.toml"
+    path.write_text(WandSpec().to_toml())
+    return path
+
+
+def test_calibration_recovers_the_true_rig(wand_session, wand_file, tmp_path):
+    out = tmp_path / "calibration.toml"
+    done = run_egosurg(
+        "calibrate", str(wand_session), "--wand", str(wand_file), "--out", str(out), timeout=900
+    )
+    assert done.returncode == 0, done.stderr + done.stdout
+    cal = RigCalibration.read(out)
+    truth = true_rig_calibration(World.from_seed(SEED, phase="wand"))
+    errors = calibration_errors(cal, truth)
+    for e in errors:
+        print(f"{e.name}: rotation {e.rotation_deg:.4f} deg, translation {e.translation_mm:.2f} mm")
+    # after the best rigid fit of the rig onto the truth. Measured on this session: at most
+    # 0.03 deg and 2.5 mm (issue 4 asks for 2 mm: not met yet, see its note)
+    assert max(e.rotation_deg for e in errors) <= 0.05
+    assert max(e.translation_mm for e in errors) <= 3.5
+    q = cal.quality
+    print({k: q[k] for k in ("reprojection_px_mean", "wand_score", "world_frame")})
+    assert q["reprojection_px_mean"] <= 0.3
+    assert q["wand_score"] <= 0.5
+    # the wand lay on the floor first: z = 0 is the floor, so camera heights are the truth's
+    assert cal.world_frame == "floor"
+    assert max(abs(e.height_mm) for e in errors) < 5.0
+    report = tmp_path / "calibration_report"
+    assert (report / "report.html").exists() and (report / "colmap" / "cameras.txt").exists()
+    assert (report / "transforms.json").exists() and (report / "calibration_opencv.yaml").exists()
+
+    # the same session checked against its own calibration: no drift
+    done = run_egosurg(
+        "calibrate", str(wand_session), "--wand", str(wand_file), "--check", str(out),
+        "--max-sets", "120", timeout=900,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "drift check: OK" in done.stdout
+
+
+def test_a_wand_that_does_not_match_the_detections_is_named(wand_session, tmp_path):
+    wrong = tmp_path / "wrong.toml"
+    wrong.write_text(WandSpec(sphere_positions_mm=(0.0, 200.0, 500.0)).to_toml())
+    done = run_egosurg(
+        "calibrate",
+        str(wand_session),
+        "--wand",
+        str(wrong),
+        "--out",
+        str(tmp_path / "c.toml"),
+        "--max-sets",
+        "60",
+        timeout=900,
+    )
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert "SN" in done.stderr and "wand" in done.stderr
+
+
+def test_too_few_wand_frames_names_the_camera(wand_session, wand_file, tmp_path):
+    done = run_egosurg(
+        "calibrate",
+        str(wand_session),
+        "--wand",
+        str(wand_file),
+        "--out",
+        str(tmp_path / "c.toml"),
+        "--max-sets",
+        "12",
+        timeout=900,
+    )
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert "SN" in done.stderr
+
+
+def test_a_session_without_factory_files_is_refused(wand_session, wand_file, tmp_path):
+    copy = tmp_path / "no_conf.h5"
+    with SessionReader(wand_session) as reader:
+        cams = [CameraInfo(**{**c.__dict__, "factory_conf_text": ""}) for c in reader.info.cameras]
+        serial = cams[0].camera_serial
+        with SessionWriter(
+            copy,
+            session_name="no-conf",
+            case_metadata={},
+            cameras=cams,
+            tolerance_ns=reader.info.tolerance_ns,
+            software_version="test",
+            started_unix_ns=reader.info.started_unix_ns,
+        ) as writer:
+            table = reader.frame_table(serial)
+            left, right = reader.frame_bytes(serial, 0)
+            writer.append_frame(
+                serial,
+                left=left,
+                right=right,
+                capture_unix_ns=int(table["capture_unix_ns"][0]),
+                host_receive_unix_ns=0,
+                recorder_receive_unix_ns=0,
+                frame_index=0,
+                seq=0,
+                ptp_offset_ns=0,
+                ptp_locked=True,
+            )
+            writer.close(time.time_ns())
+    done = run_egosurg(
+        "calibrate", str(copy), "--wand", str(wand_file), "--out", str(tmp_path / "c.toml")
+    )
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert f"SN{serial}" in done.stderr and "factory" in done.stderr
