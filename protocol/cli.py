@@ -29,6 +29,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "shell": ("capture_agent.console:main", "an operator console with a connected 'rig'"),
     "session": ("capture_agent.session_cli:main", "inspect, verify and export a session file"),
     "calibrate": ("calibration.cli:main", "extrinsic calibration of the rig from a wand session"),
+    "reconstruct": (
+        "reconstructor.cli:main_reconstruct",
+        "3D Gaussian splats of chosen timestamps of a session",
+    ),
+    "render": ("reconstructor.cli:main_render", "render a splat model from any viewpoint"),
     "sim": ("sim.cli:main", "the simulated operating room: frames, factory files, views"),
 }
 

@@ -1,0 +1,106 @@
+"""Seconds per timestamp for the reconstructor's schedule at SVGA, on this machine's CPU.
+
+One simulated OR timestamp (four ZED X at SVGA, 960x600, rendered by sim/ with sensor noise),
+the sim's true calibration, the default config: stereo depth, hole filling, fusion,
+initialisation, then training on the eight views with the paper's losses. Prints a table with
+each stage's time, the training's ms per step split into rendering (forward + backward of the
+rasterizer) and the rest (loss, SSIM, Adam), and the total for the paper's 2000 steps, measured
+or, with ``--steps N``, extrapolated from N steps (the table says which).
+
+    .venv/bin/python bench/bench_reconstruct.py              # the full 2000 steps
+    .venv/bin/python bench/bench_reconstruct.py --steps 100  # quicker, extrapolated
+
+Goal (issue 5): at most 10 minutes per timestamp on 2 cores; the paper's RTX 4090 takes about 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from protocol.camera import Resolution
+from reconstructor.config import ReconstructConfig
+from reconstructor.frames import SensorFrame, Timestamp
+from reconstructor.pipeline import reconstruct
+from reconstructor.train import TrainConfig
+from sim import World
+
+PAPER_STEPS = 2000
+GOAL_S = 600.0
+
+
+def sim_timestamp(seed: int, t_s: float) -> Timestamp:
+    world = World.from_seed(seed, phase="intraoperative")
+    frames = []
+    for unit in world.rig:
+        for side in ("left", "right"):
+            render = world.render_sensor(unit.index, side, t_s, "SVGA")
+            frames.append(
+                SensorFrame(
+                    camera=unit.sensor(side, "SVGA"),
+                    camera_serial=unit.serial,
+                    side=side,
+                    image_rgb=render.image_rgb,
+                    capture_unix_ns=0,
+                )
+            )
+    return Timestamp(
+        session=Path(f"sim seed {seed}"),
+        set_index=0,
+        set_unix_ns=0,
+        t_s=t_s,
+        frames=tuple(frames),
+        missing_serials=(),
+        resolution=Resolution.SVGA,
+    )
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--steps", type=int, default=PAPER_STEPS, help="training steps to run")
+    parser.add_argument("--seed", type=int, default=2)
+    parser.add_argument("--out", default="out/bench_reconstruct")
+    args = parser.parse_args()
+    ts = sim_timestamp(args.seed, 1.0)
+    warm = min(500, args.steps)
+    cfg = ReconstructConfig(
+        train=TrainConfig(warmup_steps=warm, refine_steps=args.steps - warm, log_every_steps=100)
+    )
+    t0 = time.perf_counter()
+    rec = reconstruct(ts, cfg, Path(args.out))
+    total_s = time.perf_counter() - t0
+    steps = rec.trainer.log.steps
+    step_ms = np.array([s.seconds for s in steps]) * 1000
+    train_s = float(step_ms.sum() / 1000)
+    setup_s = total_s - train_s
+    per_step_ms = float(np.median(step_ms[min(5, len(step_ms) - 1) :]))
+    full_s = setup_s + PAPER_STEPS * per_step_ms / 1000
+    measured = args.steps == PAPER_STEPS
+    print(
+        f"\nreconstruction of one SVGA timestamp ({platform.processor() or 'cpu'}, "
+        f"{os.cpu_count()} cores), {rec.gaussians.num} Gaussians, {len(rec.train_views)} views"
+    )
+    print(f"{'stage':<34}{'seconds':>10}")
+    for name, sec in rec.timings_s.items():
+        print(f"{name:<34}{sec:>10.1f}")
+    print(f"{'training ms per step (median)':<34}{per_step_ms:>10.0f}")
+    label = "measured" if measured else f"extrapolated from {args.steps} steps"
+    print(f"{'total for 2000 steps (' + label + ')':<34}{full_s:>10.0f}")
+    print(
+        f"goal: <= {GOAL_S:.0f} s -> {'met' if full_s <= GOAL_S else 'NOT met'} "
+        f"({full_s / GOAL_S:.2f}x the goal; the paper's GPU: about 120 s)"
+    )
+    print(f"final training loss {rec.trainer.log.mean_loss():.4f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

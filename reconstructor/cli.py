@@ -1,0 +1,245 @@
+"""``egosurg reconstruct`` and ``egosurg render``.
+
+Examples::
+
+    egosurg reconstruct case.h5 --calibration calibration.toml --at 12.5 --out recon/
+    egosurg reconstruct case.h5 --calibration calibration.toml --at set:120 --out recon/ \\
+        --steps 300 --train-views left
+    egosurg render recon/t0012.500/splats.ply --camera SN41234567-left --out view.png
+    egosurg render recon/t0012.500/splats.ply --camera "eye=2.0,-1.5,1.7 target=0,0,1" \\
+        --hfov 80 --size 960x600 --out view.png
+
+``--at`` is a time in seconds since the session started or ``set:N``. Each timestamp's outputs go
+to ``OUT/t<seconds>/``: ``splats.ply`` (INRIA 3DGS layout), ``config.toml`` (the resolved
+settings), ``log.txt``, ``summary.json``, ``points.ply`` and the calibration used.
+
+``--camera`` is a sensor name from the calibration saved beside the model (or ``--calibration``),
+or ``"eye=X,Y,Z target=X,Y,Z"`` in metres in the calibration's world frame (z up, floor at 0),
+with ``--hfov`` in degrees and ``--size WxH``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from protocol.camera import Camera, Intrinsics, Pose
+from protocol.errors import UserError
+from protocol.rig_calibration import RigCalibration
+from reconstructor.config import ReconstructConfig
+from reconstructor.errors import ReconstructError
+from reconstructor.frames import load_timestamp
+from reconstructor.train import StepStats
+
+
+class ReconstructArgumentError(ReconstructError, ValueError):
+    pass
+
+
+def find_calibration(session: Path, given: str | None) -> tuple[RigCalibration, Path]:
+    """The calibration to use: ``--calibration``, or ``calibration.toml`` beside the session."""
+    if given:
+        path = Path(given)
+    else:
+        path = session.parent / "calibration.toml"
+        if not path.exists():
+            raise ReconstructArgumentError(
+                f"no calibration for {session}: pass --calibration FILE, or calibrate the rig "
+                "first with 'egosurg calibrate WAND_SESSION.h5 --wand wand.toml --out "
+                f"{path}'"
+            )
+    if not path.exists():
+        raise ReconstructArgumentError(
+            f"the calibration {path} does not exist; run 'egosurg calibrate' on a wand session "
+            "recorded with this rig"
+        )
+    return RigCalibration.read(path), path
+
+
+def _progress(stage: str, k: int, n: int, stats: StepStats) -> None:
+    if k == 1 or k % 25 == 0 or k == n:
+        print(
+            f"\r{stage}: step {k}/{n}, loss {stats.loss:.4f}, {1000 * stats.seconds:.0f} ms/step",
+            end="" if k < n else "\n",
+            file=sys.stderr,
+            flush=True,
+        )
+
+
+def main_reconstruct(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="egosurg reconstruct",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("session", help="a session recorded by 'egosurg record'")
+    parser.add_argument("--calibration", help="calibration.toml (default: beside the session)")
+    parser.add_argument(
+        "--at", required=True, action="append", help="time in s, or set:N (repeatable)"
+    )
+    parser.add_argument("--out", required=True, help="output folder")
+    parser.add_argument("--config", help="a config TOML with settings to change")
+    parser.add_argument("--steps", type=int, help="total training steps (default 2000)")
+    parser.add_argument("--train-views", choices=("all", "left"), help="'left': near-field test")
+    parser.add_argument("--stereo-matcher", help="'sgbm' (default) or an installed plug-in")
+    parser.add_argument("--stereo-weights", help="local weights path for a learned matcher")
+    parser.add_argument(
+        "--evaluate",
+        action="store_true",
+        help="score the views against the recorded images and the depth-reprojection baseline",
+    )
+    args = parser.parse_args(argv)
+
+    session = Path(args.session)
+    if not session.exists():
+        raise ReconstructArgumentError(f"the session {session} does not exist")
+    calibration, cal_path = find_calibration(session, args.calibration)
+    config = ReconstructConfig.read(args.config) if args.config else ReconstructConfig()
+    config = _with_options(config, args)
+    out = Path(args.out)
+    for at in args.at:
+        from reconstructor.pipeline import reconstruct
+
+        ts = load_timestamp(session, calibration, at, calibration_source=str(cal_path))
+        if ts.missing_serials:
+            print(
+                f"set {ts.set_index}: camera(s) "
+                f"{', '.join(f'SN{s}' for s in ts.missing_serials)} missing; reconstructing "
+                f"from the other {len(ts.camera_serials)}",
+                file=sys.stderr,
+            )
+        run_dir = out / f"t{ts.t_s:09.3f}"
+        t0 = time.perf_counter()
+        result = reconstruct(ts, config, run_dir, calibration=calibration, progress=_progress)
+        print(
+            f"{run_dir / 'splats.ply'}: {result.gaussians.num} Gaussians, set {ts.set_index} "
+            f"(t = {ts.t_s:.3f} s), {time.perf_counter() - t0:.0f} s"
+        )
+        if args.evaluate:
+            from reconstructor.evaluate import evaluate
+
+            evaluate(result, run_dir)
+            print((run_dir / "eval.md").read_text())
+    return 0
+
+
+def _with_options(config: ReconstructConfig, args: argparse.Namespace) -> ReconstructConfig:
+    changes: dict[str, object] = {}
+    if args.steps is not None:
+        if args.steps < 1:
+            raise ReconstructArgumentError(f"--steps must be at least 1, got {args.steps}")
+        warm = min(config.train.warmup_steps, args.steps)
+        changes["train"] = dataclasses.replace(
+            config.train, warmup_steps=warm, refine_steps=args.steps - warm
+        )
+    if args.train_views:
+        changes["train_views"] = args.train_views
+    if args.stereo_matcher:
+        changes["stereo_matcher"] = args.stereo_matcher
+    if args.stereo_weights:
+        changes["stereo_weights"] = args.stereo_weights
+    return dataclasses.replace(config, **changes) if changes else config  # type: ignore[arg-type]
+
+
+# ---- render ----------------------------------------------------------------------------------
+
+
+def parse_camera(
+    spec: str, calibration: RigCalibration | None, hfov_deg: float, size: tuple[int, int]
+) -> Camera:
+    """A sensor name from the calibration, or ``eye=X,Y,Z target=X,Y,Z``."""
+    text = spec.strip()
+    if text.startswith("eye="):
+        parts = dict(p.split("=", 1) for p in text.split() if "=" in p)
+        try:
+            eye = np.array([float(v) for v in parts["eye"].split(",")])
+            target = np.array([float(v) for v in parts["target"].split(",")])
+            if eye.shape != (3,) or target.shape != (3,):
+                raise ValueError
+            pose = Pose.look_at(eye, target)
+        except (KeyError, ValueError):
+            raise ReconstructArgumentError(
+                f'--camera {spec!r}: write it as "eye=X,Y,Z target=X,Y,Z" (metres)'
+            ) from None
+        intr = Intrinsics.from_fov(size[0], size[1], hfov_deg)
+        return Camera(name="virtual", intrinsics=intr, pose=pose)
+    if calibration is None:
+        raise ReconstructArgumentError(
+            f"--camera {spec!r} names a sensor, but no calibration was found beside the model; "
+            'pass --calibration FILE or give "eye=X,Y,Z target=X,Y,Z"'
+        )
+    for s in calibration.sensors:
+        if s.name == text:
+            return Camera(name=s.name, intrinsics=s.intrinsics.undistorted(), pose=s.pose)
+    names = ", ".join(s.name for s in calibration.sensors)
+    raise ReconstructArgumentError(f"--camera {spec!r} is not a sensor of the calibration: {names}")
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+        if w < 8 or h < 8:
+            raise ValueError
+    except ValueError:
+        raise ReconstructArgumentError(f"--size {text!r}: write it as WxH, e.g. 960x600") from None
+    return w, h
+
+
+def render_camera(model_path: Path, camera: Camera, background=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """(H, W, 3) uint8 RGB of the splat model seen by ``camera`` (pinhole)."""
+    from reconstructor import ply
+    from reconstructor.train import render
+    from reconstructor.views import novel_view
+
+    g = ply.read_ply(model_path)
+    with torch.no_grad():
+        out = render(g, novel_view(camera), _raster_config(model_path), torch.tensor(background))
+    return (out.image.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+
+
+def _raster_config(model_path: Path):
+    cfg_path = model_path.parent / "config.toml"
+    if cfg_path.exists():
+        try:
+            return ReconstructConfig.read(cfg_path).raster
+        except UserError:
+            pass
+    return ReconstructConfig().raster
+
+
+def main_render(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="egosurg render",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("model", help="a splat PLY written by 'egosurg reconstruct'")
+    parser.add_argument("--camera", required=True, help='sensor name or "eye=.. target=.."')
+    parser.add_argument("--out", required=True, help="PNG to write")
+    parser.add_argument("--calibration", help="calibration.toml (default: beside the model)")
+    parser.add_argument("--hfov", type=float, default=90.0, help="virtual camera hfov, degrees")
+    parser.add_argument("--size", default="960x600", help="virtual camera size WxH")
+    args = parser.parse_args(argv)
+    model = Path(args.model)
+    if not model.exists():
+        raise ReconstructArgumentError(f"the model {model} does not exist")
+    cal_path = Path(args.calibration) if args.calibration else model.parent / "calibration.toml"
+    calibration = RigCalibration.read(cal_path) if cal_path.exists() else None
+    if not 1.0 < args.hfov < 179.0:
+        raise ReconstructArgumentError(f"--hfov {args.hfov}: must be between 1 and 179 degrees")
+    camera = parse_camera(args.camera, calibration, args.hfov, _parse_size(args.size))
+    t0 = time.perf_counter()
+    rgb = render_camera(model, camera)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(out), rgb[:, :, ::-1]):
+        raise ReconstructArgumentError(f"cannot write {out}; use a .png or .jpg path")
+    print(f"{out}: {camera.name} {rgb.shape[1]}x{rgb.shape[0]}, {time.perf_counter() - t0:.2f} s")
+    return 0

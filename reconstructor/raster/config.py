@@ -1,0 +1,105 @@
+"""Rasterizer settings and outputs: :class:`RasterConfig` (validated on creation) and
+:class:`RenderOutput`.
+
+Units live in the names: ``_m`` metres (camera z), ``_px`` pixels, ``_px2`` squared pixels.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from torch import Tensor
+
+BACKENDS = ("numba", "torch")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RasterConfig:
+    """How :func:`reconstructor.raster.rasterize` culls, bins and composites.
+
+    Attributes:
+        tile_px: side of the square screen tiles Gaussians are binned into (1..32).
+        near_m, far_m: Gaussians whose camera z lies outside ``[near_m, far_m]`` are culled.
+        eps2d_px2: low-pass term added to the diagonal of every projected 2D covariance, so that
+            even a point-like Gaussian covers about a pixel (3DGS uses 0.3).
+        alpha_min: fragments with alpha below this are skipped (3DGS: 1/255).
+        alpha_max: alpha is clamped to this (< 1: the backward pass divides by ``1 - alpha``).
+        transmittance_min: a pixel stops compositing before the fragment that would drop its
+            transmittance below this (3DGS: 1e-4).
+        sigma_extent: screen radius of a Gaussian, in standard deviations of its major axis.
+        backend: ``"numba"`` (the fast CPU kernels) or ``"torch"`` (the slow autograd twin).
+    """
+
+    tile_px: int = 16
+    near_m: float = 0.05
+    far_m: float = 100.0
+    eps2d_px2: float = 0.3
+    alpha_min: float = 1 / 255
+    alpha_max: float = 0.99
+    transmittance_min: float = 1e-4
+    sigma_extent: float = 3.0
+    backend: str = "numba"
+
+    def __post_init__(self) -> None:
+        if isinstance(self.tile_px, bool) or not isinstance(self.tile_px, int):
+            raise ValueError(f"RasterConfig.tile_px must be an int, got {self.tile_px!r}")
+        if not 1 <= self.tile_px <= 32:
+            raise ValueError(f"RasterConfig.tile_px must be in [1, 32], got {self.tile_px}")
+        for name in (
+            "near_m",
+            "far_m",
+            "eps2d_px2",
+            "alpha_min",
+            "alpha_max",
+            "transmittance_min",
+            "sigma_extent",
+        ):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise ValueError(f"RasterConfig.{name} must be a number, got {value!r}")
+            if not math.isfinite(value):
+                raise ValueError(f"RasterConfig.{name} must be finite, got {value}")
+        if self.near_m <= 0:
+            raise ValueError(f"RasterConfig.near_m must be > 0, got {self.near_m}")
+        if self.far_m <= self.near_m:
+            raise ValueError(
+                f"RasterConfig.far_m must be > near_m ({self.near_m}), got {self.far_m}"
+            )
+        if self.eps2d_px2 < 0:
+            raise ValueError(f"RasterConfig.eps2d_px2 must be >= 0, got {self.eps2d_px2}")
+        if not 0 < self.alpha_min < 1:
+            raise ValueError(f"RasterConfig.alpha_min must be in (0, 1), got {self.alpha_min}")
+        if not self.alpha_min < self.alpha_max < 1:
+            raise ValueError(
+                f"RasterConfig.alpha_max must be in (alpha_min={self.alpha_min}, 1), "
+                f"got {self.alpha_max}"
+            )
+        if not 0 <= self.transmittance_min < 1:
+            raise ValueError(
+                f"RasterConfig.transmittance_min must be in [0, 1), got {self.transmittance_min}"
+            )
+        if self.sigma_extent <= 0:
+            raise ValueError(f"RasterConfig.sigma_extent must be > 0, got {self.sigma_extent}")
+        if self.backend not in BACKENDS:
+            raise ValueError(
+                f"RasterConfig.backend must be one of {BACKENDS}, got {self.backend!r}"
+            )
+
+
+@dataclass(frozen=True)
+class RenderOutput:
+    """What :func:`reconstructor.raster.rasterize` returns (all float32 on the CPU).
+
+    Attributes:
+        image: (H, W, 3) colour composited over the background; differentiable.
+        alpha: (H, W) ``1 - final transmittance``; differentiable.
+        depth_m: (H, W) alpha-weighted camera-z depth divided by alpha, 0 where alpha < 1e-3;
+            forward only (no gradient).
+        radii_px: (N,) int32 screen radius of each Gaussian, 0 where culled; no gradient.
+    """
+
+    image: Tensor
+    alpha: Tensor
+    depth_m: Tensor
+    radii_px: Tensor

@@ -1,0 +1,273 @@
+"""``rasterize()``: render 3D Gaussians on the CPU, differentiably (the numba fast path).
+
+Conventions:
+    * Camera axes are OpenCV's: x right, y down, z forward; ``viewmat`` maps world to camera.
+    * Pixel centres: pixel (u, v) (column u, row v, integer indices) has its centre at the
+      continuous image point (u, v), as OpenCV's K (cx, cy in pixel-index coordinates). The
+      image covers [-0.5, W - 0.5] x [-0.5, H - 0.5].
+    * Tiles are ``tile_px`` squares from pixel (0, 0); the last row/column may be partial.
+
+Maths (standard 3DGS, Kerbl et al. 2023). Projection (``projection.py``): each Gaussian gives
+mean2d, conic = (Σ2D + eps2d I)⁻¹, its camera depth z and radius = ceil(sigma_extent ·
+sqrt(λ_max)); it is culled (radius 0) if z ∉ [near_m, far_m] or its square mean2d ± radius
+holds no pixel centre. Binning: it is listed in every tile holding a pixel centre of that
+square; each tile's list is sorted front to back by z (ties by index). Compositing, per pixel
+p, over its tile's list in order:
+
+    α_i = min(alpha_max, opacity_i · exp(-½ dᵢᵀ conic_i dᵢ)),  dᵢ = p - mean2d_i
+    skip the fragment if α_i < alpha_min
+    stop (without this fragment) if T · (1 - α_i) < transmittance_min
+    C += c_i α_i T;  D += z_i α_i T;  T *= (1 - α_i)          (T starts at 1)
+    image = C + T · background,  alpha = 1 - T,  depth = D / alpha (0 where alpha < 1e-3)
+
+Differentiable outputs: ``image`` and ``alpha``, to means_m, quats_wxyz, log_scales,
+opacity_logits, colors and background (``alpha`` does not depend on colors/background).
+``depth_m`` and ``radii_px`` carry no gradient. The clamp ``α = alpha_max`` passes no gradient
+(as autograd's clamp); skipped fragments and culled Gaussians get exactly zero.
+
+The backward pass is written out: ``kernels.raster_backward`` (pixel → per-Gaussian screen
+gradients) then ``projection.project_backward`` (screen → world parameters).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor
+
+from reconstructor.raster import kernels, projection
+from reconstructor.raster.config import RasterConfig, RenderOutput
+
+logger = logging.getLogger(__name__)
+
+_DEFAULT_CONFIG = RasterConfig()
+# Tiles differ a lot in cost (sky vs. clutter): hand them out a few at a time, not in halves.
+_TILE_CHUNK = 4
+_stage_ms: dict[str, float] = {}
+
+
+def stage_times_ms() -> dict[str, float]:
+    """Wall time of each stage of the last numba forward/backward, for profiling."""
+    return dict(_stage_ms)
+
+
+def rasterize(
+    means_m: Tensor,
+    quats_wxyz: Tensor,
+    log_scales: Tensor,
+    opacity_logits: Tensor,
+    colors: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    width_px: int,
+    height_px: int,
+    background: Tensor,
+    config: RasterConfig = _DEFAULT_CONFIG,
+) -> RenderOutput:
+    """Render N Gaussians seen by a pinhole camera (CPU, float32).
+
+    Args:
+        means_m: (N, 3) world positions.
+        quats_wxyz: (N, 4) rotations, any non-zero norm (normalised inside, differentiably).
+        log_scales: (N, 3) log of the standard deviations along the Gaussian's axes, metres.
+        opacity_logits: (N,) opacity = sigmoid(logit).
+        colors: (N, 3) RGB (may exceed [0, 1]).
+        viewmat: (4, 4) world-to-camera, OpenCV axes; no gradient.
+        K: (3, 3) pinhole intrinsics, pixel-index centres (see module doc); no gradient.
+        width_px, height_px: image size, > 0.
+        background: (3,) RGB behind everything.
+        config: culling, compositing and backend settings.
+
+    Returns:
+        RenderOutput(image (H, W, 3), alpha (H, W), depth_m (H, W), radii_px (N,) int32);
+        image and alpha are differentiable, depth_m and radii_px are not.
+
+    Raises:
+        ValueError: naming the argument, for wrong shapes/dtypes/devices, non-finite values,
+            zero quaternions or a non-positive image size or focal length.
+    """
+    validate_inputs(
+        means_m, quats_wxyz, log_scales, opacity_logits, colors, viewmat, K,
+        width_px, height_px, background,
+    )  # fmt: skip
+    viewmat = viewmat.detach().to(torch.float64)
+    K = K.detach().to(torch.float64)
+    if config.backend == "torch":
+        from reconstructor.raster.reference import rasterize_reference
+
+        return rasterize_reference(
+            means_m, quats_wxyz, log_scales, opacity_logits, colors, viewmat, K,
+            width_px, height_px, background, config,
+        )  # fmt: skip
+    image, alpha, depth, radii = _RasterizeFn.apply(
+        means_m, quats_wxyz, log_scales, opacity_logits, colors, background, viewmat, K,
+        width_px, height_px, config,
+    )  # fmt: skip
+    return RenderOutput(image=image, alpha=alpha, depth_m=depth, radii_px=radii)
+
+
+def validate_inputs(
+    means_m: Tensor,
+    quats_wxyz: Tensor,
+    log_scales: Tensor,
+    opacity_logits: Tensor,
+    colors: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    width_px: int,
+    height_px: int,
+    background: Tensor,
+) -> None:
+    """Raise ValueError, naming the argument, unless the inputs are what ``rasterize`` takes."""
+    for name, value in (("width_px", width_px), ("height_px", height_px)):
+        if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+            raise ValueError(f"{name} must be a positive int, got {value!r}")
+    n = means_m.shape[0] if isinstance(means_m, Tensor) and means_m.dim() == 2 else -1
+    expected = {
+        "means_m": ((n, 3), means_m),
+        "quats_wxyz": ((n, 4), quats_wxyz),
+        "log_scales": ((n, 3), log_scales),
+        "opacity_logits": ((n,), opacity_logits),
+        "colors": ((n, 3), colors),
+        "background": ((3,), background),
+        "viewmat": ((4, 4), viewmat),
+        "K": ((3, 3), K),
+    }
+    for name, (shape, t) in expected.items():
+        if not isinstance(t, Tensor):
+            raise ValueError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+        if tuple(t.shape) != shape or n < 0:
+            want = "(N, 3)" if n < 0 else str(shape)
+            raise ValueError(f"{name} must have shape {want}, got {tuple(t.shape)}")
+        if t.device.type != "cpu":
+            raise ValueError(f"{name} must be on the CPU, got {t.device}")
+        if name in ("viewmat", "K"):
+            if not t.is_floating_point():
+                raise ValueError(f"{name} must be a floating-point tensor, got {t.dtype}")
+        elif t.dtype != torch.float32:
+            raise ValueError(f"{name} must be float32, got {t.dtype}")
+        # min/max propagate NaN and expose inf; 50x faster here than torch.isfinite().all()
+        a = t.detach().numpy()
+        if a.size and not (np.isfinite(a.min()) and np.isfinite(a.max())):
+            raise ValueError(f"{name} has non-finite values")
+    q = quats_wxyz.detach().numpy()
+    if n > 0 and float(np.einsum("ij,ij->i", q, q).min()) < 1e-24:
+        raise ValueError("quats_wxyz has a zero quaternion; it cannot be normalised")
+    if float(K[0, 0]) <= 0 or float(K[1, 1]) <= 0:
+        raise ValueError(f"K must have positive focal lengths, got fx={K[0, 0]}, fy={K[1, 1]}")
+
+
+def _np32(t: Tensor) -> np.ndarray:
+    """Zero-copy float32 numpy view of a CPU tensor (copies only if not contiguous)."""
+    return t.detach().contiguous().numpy()
+
+
+class _RasterizeFn(torch.autograd.Function):
+    @staticmethod
+    def forward(
+        ctx: Any,
+        means: Tensor,
+        quats: Tensor,
+        log_scales: Tensor,
+        logits: Tensor,
+        colors: Tensor,
+        background: Tensor,
+        viewmat: Tensor,
+        K: Tensor,
+        width: int,
+        height: int,
+        config: RasterConfig,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        tile = config.tile_px
+        ntx = -(-width // tile)
+        nty = -(-height // tile)
+        vm = viewmat.numpy()
+        bg = _np32(background)
+        t0 = time.perf_counter()
+        proj, radii, rect, scales, opacity, intr, lims = projection.project(
+            _np32(means), _np32(quats), _np32(log_scales), _np32(logits), _np32(colors), vm,
+            K.numpy(), width, height, tile, config.near_m, config.far_m, config.eps2d_px2,
+            config.sigma_extent, config.alpha_min,
+        )  # fmt: skip
+        t1 = time.perf_counter()
+        depth_bits = np.ascontiguousarray(proj[:, projection.DEPTH]).view(np.uint32)
+        pairs, offsets, slots, goffsets = kernels.bin_gaussians(
+            depth_bits, radii, rect, ntx, ntx * nty
+        )
+        t2 = time.perf_counter()
+        with numba.parallel_chunksize(_TILE_CHUNK):
+            image, t_final, depth, n_used, drawn = kernels.raster_forward(
+                proj, pairs, offsets, width, height, tile, ntx, bg,
+                config.alpha_min, config.alpha_max, config.transmittance_min,
+            )  # fmt: skip
+        t3 = time.perf_counter()
+        _stage_ms.clear()
+        _stage_ms.update(
+            project_fwd=1e3 * (t1 - t0), bin_sort=1e3 * (t2 - t1), raster_fwd=1e3 * (t3 - t2)
+        )
+        logger.debug(
+            "rasterized %d Gaussians (%d visible, %d tile pairs) at %dx%d",
+            means.shape[0], int((radii > 0).sum()), pairs.shape[0], width, height,
+        )  # fmt: skip
+        ctx.save_for_backward(means, quats)
+        ctx.state = (
+            proj, pairs, offsets, slots, goffsets, t_final, n_used, drawn, scales, opacity,
+            intr, lims, vm, bg,
+        )  # fmt: skip
+        ctx.size = (width, height, tile, ntx)
+        ctx.config = config
+        radii_t = torch.from_numpy(radii)
+        depth_t = torch.from_numpy(depth)
+        ctx.mark_non_differentiable(depth_t, radii_t)
+        return (
+            torch.from_numpy(image),
+            torch.from_numpy(1.0 - t_final),
+            depth_t,
+            radii_t,
+        )
+
+    @staticmethod
+    def backward(
+        ctx: Any, g_image: Tensor | None, g_alpha: Tensor | None, *_: Any
+    ) -> tuple[Tensor | None, ...]:
+        means, quats = ctx.saved_tensors
+        (
+            proj, pairs, offsets, slots, goffsets, t_final, n_used, drawn, scales, opacity,
+            intr, lims, vm, bg,
+        ) = ctx.state  # fmt: skip
+        width, height, tile, ntx = ctx.size
+        config: RasterConfig = ctx.config
+        g_img = np.zeros((height, width, 3), np.float32) if g_image is None else _np32(g_image)
+        g_a = np.zeros((height, width), np.float32) if g_alpha is None else _np32(g_alpha)
+        t0 = time.perf_counter()
+        with numba.parallel_chunksize(_TILE_CHUNK):
+            records = kernels.raster_backward(
+                proj, pairs, offsets, slots, width, height, tile, ntx, bg,
+                config.alpha_min, config.alpha_max, t_final, n_used, drawn, g_img, g_a,
+            )  # fmt: skip
+        t1 = time.perf_counter()
+        g_means, g_quats, g_log_scales, g_logits, g_colors = projection.project_backward(
+            _np32(means), _np32(quats), scales, opacity, vm, intr, lims, config.eps2d_px2,
+            records, goffsets,
+        )  # fmt: skip
+        t2 = time.perf_counter()
+        g_bg = t_final.reshape(-1) @ g_img.reshape(-1, 3)  # dL/dbg = Σ_px T_final dL/dC
+        _stage_ms.update(raster_bwd=1e3 * (t1 - t0), project_bwd=1e3 * (t2 - t1))
+        return (
+            torch.from_numpy(g_means),
+            torch.from_numpy(g_quats),
+            torch.from_numpy(g_log_scales),
+            torch.from_numpy(g_logits),
+            torch.from_numpy(g_colors),
+            torch.from_numpy(np.asarray(g_bg, np.float32)),
+            None,
+            None,
+            None,
+            None,
+            None,
+        )
