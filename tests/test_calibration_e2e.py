@@ -16,6 +16,7 @@ from sim import World
 from sim.deploy import SimRig, SimRigSpec, write_sim_rig
 from sim.truth import calibration_errors, true_rig_calibration
 from tests.conftest import run_egosurg
+from tests.sessions import copy_sets
 
 SEED = 5
 # recording prerenders about 3 minutes of HD1200 frames; calibrating takes 1-2 minutes more
@@ -108,53 +109,12 @@ def test_a_wand_that_does_not_match_the_detections_is_named(wand_session, tmp_pa
     assert "SN" in done.stderr and "wand" in done.stderr
 
 
-def _copy_sets(source: Path, target: Path, set_rows: np.ndarray) -> None:
-    """A session holding only the chosen sets of ``source`` (their frames, as recorded)."""
-    with SessionReader(source) as reader:
-        sets = reader.sets()
-        serials = reader.info.camera_serials
-        tables = {s: reader.frame_table(s) for s in serials}
-        with SessionWriter(
-            target,
-            session_name="few",
-            case_metadata={},
-            cameras=list(reader.info.cameras),
-            tolerance_ns=reader.info.tolerance_ns,
-            software_version="test",
-            started_unix_ns=reader.info.started_unix_ns,
-        ) as writer:
-            for k in set_rows:
-                members = []
-                for column, serial in enumerate(serials):
-                    row = int(sets.members[k, column])
-                    if row < 0:
-                        members.append(-1)
-                        continue
-                    left, right = reader.frame_bytes(serial, row)
-                    members.append(
-                        writer.append_frame(
-                            serial,
-                            left=left,
-                            right=right,
-                            capture_unix_ns=int(tables[serial]["capture_unix_ns"][row]),
-                            host_receive_unix_ns=0,
-                            recorder_receive_unix_ns=0,
-                            frame_index=int(tables[serial]["frame_index"][row]),
-                            seq=0,
-                            ptp_offset_ns=0,
-                            ptp_locked=True,
-                        )
-                    )
-                writer.append_set(int(sets.set_unix_ns[k]), members, int(sets.spread_ns[k]))
-            writer.close(time.time_ns())
-
-
 def test_too_few_wand_frames_names_the_camera(wand_session, wand_file, tmp_path):
     """Two thirds of a second of the session: some cameras see the wand in none of it."""
     few = tmp_path / "few.h5"
     with SessionReader(wand_session) as reader:
         n = len(reader.sets().set_unix_ns)
-    _copy_sets(wand_session, few, np.arange(n // 2, n // 2 + 10))
+    copy_sets(wand_session, few, np.arange(n // 2, n // 2 + 10))
     done = run_egosurg(
         "calibrate", str(few), "--wand", str(wand_file), "--out", str(tmp_path / "c.toml"),
         timeout=900,

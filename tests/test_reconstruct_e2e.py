@@ -11,12 +11,13 @@ import cv2
 import numpy as np
 import pytest
 
-from protocol.session import SessionReader, SessionWriter
+from protocol.session import SessionReader
 from reconstructor import ply
 from sim import World
 from sim.deploy import SimRig, SimRigSpec, write_sim_rig
 from sim.truth import true_rig_calibration
 from tests.conftest import run_egosurg
+from tests.sessions import copy_sets
 
 SEED = 2
 PHASE = "intraoperative"
@@ -116,43 +117,9 @@ def test_a_set_with_a_missing_camera_reconstructs_from_the_rest(recorded, tmp_pa
     session, calibration = recorded
     partial = tmp_path / "partial.h5"
     with SessionReader(session) as reader:
-        sets = reader.sets()
-        k = len(sets.set_unix_ns) // 2
-        serials = reader.info.camera_serials
-        dropped = serials[-1]
-        with SessionWriter(
-            partial,
-            session_name="partial",
-            case_metadata={},
-            cameras=list(reader.info.cameras),
-            tolerance_ns=reader.info.tolerance_ns,
-            software_version="test",
-            started_unix_ns=reader.info.started_unix_ns,
-        ) as writer:
-            members = []
-            for column, serial in enumerate(serials):
-                row = int(sets.members[k, column])
-                if serial == dropped:
-                    members.append(-1)
-                    continue
-                table = reader.frame_table(serial)
-                left, right = reader.frame_bytes(serial, row)
-                members.append(
-                    writer.append_frame(
-                        serial,
-                        left=left,
-                        right=right,
-                        capture_unix_ns=int(table["capture_unix_ns"][row]),
-                        host_receive_unix_ns=0,
-                        recorder_receive_unix_ns=0,
-                        frame_index=int(table["frame_index"][row]),
-                        seq=0,
-                        ptp_offset_ns=0,
-                        ptp_locked=True,
-                    )
-                )
-            writer.append_set(int(sets.set_unix_ns[k]), members, int(sets.spread_ns[k]))
-            writer.close(time.time_ns())
+        k = len(reader.sets().set_unix_ns) // 2
+        dropped = reader.info.camera_serials[-1]
+    copy_sets(session, partial, np.array([k]), drop_serial=dropped)
     out = tmp_path / "o"
     done = run_egosurg(
         "reconstruct", str(partial), "--calibration", str(calibration), "--at", "set:0",
