@@ -161,9 +161,17 @@ def test_malformed_conf_is_reported_by_name(tmp_path):
     assert "SN123.conf" in out.stderr and "fx" in out.stderr
 
 
+@pytest.mark.timeout(2400)
 def test_demo_runs_every_stage(tmp_path):
-    out = run_egosurg("demo", "--out", str(tmp_path), "--record-s", "4", timeout=900)
+    out = run_egosurg(
+        "demo", "--out", str(tmp_path), "--record-s", "4", "--wand-s", "8", "--steps", "10",
+        timeout=2300,
+    )  # fmt: skip
     assert out.returncode == 0, out.stderr
+    assert "[3/4] calibration" in out.stdout and "[4/4] reconstruction" in out.stdout
+    # stage 4 reconstructed a timestamp and put a person's view beside the truth
+    assert list((tmp_path / "recon").glob("t*/splats.ply"))
+    assert list((tmp_path / "recon").glob("*_view_vs_truth.png"))
     mosaic = cv2.imread(str(tmp_path / "sim" / "rig_views.png"))
     assert mosaic.shape[0] > 4 * 200 and mosaic.shape[1] >= 2 * 480  # eight views, 4 x 2
     assert cv2.imread(str(tmp_path / "sim" / "room_topdown.png")) is not None
