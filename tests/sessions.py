@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from protocol.session import SessionReader, SessionWriter
+from sim.deploy import SimRig, SimRigSpec, write_sim_rig
 
 
 def copy_sets(
@@ -52,3 +53,14 @@ def copy_sets(
                     )
                 writer.append_set(int(sets.set_unix_ns[k]), members, int(sets.spread_ns[k]))
             writer.close(time.time_ns())
+
+
+def record_sim_session(directory: Path, spec: SimRigSpec, case: str, seconds: float) -> Path:
+    """Record ``seconds`` through real agent and recorder processes of a sim rig; the file."""
+    files = write_sim_rig(directory, spec)
+    with SimRig(files) as rig:
+        rig.wait_streaming(timeout_s=900)
+        rig.control("start", case=case)
+        time.sleep(seconds)
+        summary = rig.control("stop")
+    return Path(summary["file"])

@@ -13,10 +13,10 @@ from protocol.rig_calibration import RigCalibration
 from protocol.session import CameraInfo, SessionReader, SessionWriter
 from protocol.wand import WandSpec
 from sim import World
-from sim.deploy import SimRig, SimRigSpec, write_sim_rig
+from sim.deploy import SimRigSpec
 from sim.truth import calibration_errors, true_rig_calibration
 from tests.conftest import run_egosurg
-from tests.sessions import copy_sets
+from tests.sessions import copy_sets, record_sim_session
 
 SEED = 5
 # recording prerenders about 3 minutes of HD1200 frames; calibrating takes 1-2 minutes more
@@ -40,13 +40,9 @@ def wand_session(tmp_path_factory) -> Path:
         drop_probability=0.01,
         jpeg_quality=92,
     )
-    files = write_sim_rig(tmp_path_factory.mktemp("wandrig"), spec)
-    with SimRig(files) as rig:
-        rig.wait_streaming(timeout_s=900)
-        rig.control("start", case="wand")
-        time.sleep(spec.prerender_s + 3.0)
-        summary = rig.control("stop")
-    return Path(summary["file"])
+    return record_sim_session(
+        tmp_path_factory.mktemp("wandrig"), spec, "wand", spec.prerender_s + 3.0
+    )
 
 
 @pytest.fixture(scope="module")

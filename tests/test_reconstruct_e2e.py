@@ -4,7 +4,6 @@ through the real ``egosurg reconstruct`` / ``egosurg render`` commands, and its 
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import cv2
@@ -14,10 +13,10 @@ import pytest
 from protocol.session import SessionReader
 from reconstructor import ply
 from sim import World
-from sim.deploy import SimRig, SimRigSpec, write_sim_rig
+from sim.deploy import SimRigSpec
 from sim.truth import true_rig_calibration
 from tests.conftest import run_egosurg
-from tests.sessions import copy_sets
+from tests.sessions import copy_sets, record_sim_session
 
 SEED = 2
 PHASE = "intraoperative"
@@ -36,13 +35,7 @@ def recorded(tmp_path_factory) -> tuple[Path, Path]:
         drop_probability=0.0,
         jpeg_quality=95,
     )
-    files = write_sim_rig(tmp_path_factory.mktemp("reconrig"), spec)
-    with SimRig(files) as rig:
-        rig.wait_streaming(timeout_s=600)
-        rig.control("start", case="recon")
-        time.sleep(3.0)
-        summary = rig.control("stop")
-    session = Path(summary["file"])
+    session = record_sim_session(tmp_path_factory.mktemp("reconrig"), spec, "recon", 3.0)
     calibration = session.parent / "calibration.toml"
     true_rig_calibration(World.from_seed(SEED, phase=PHASE)).write(calibration)
     return session, calibration
