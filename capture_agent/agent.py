@@ -197,9 +197,11 @@ class CameraWorker:
         except CameraUnavailableError as exc:
             self._set_state("reopening", f"cannot open: {exc}")
             return False
+        # The state stays "closed" / "reopening" / "stalled" until the first frame arrives:
+        # "streaming" means frames are flowing, not that the SDK call to open succeeded.
         with self.lock:
-            self.counters.state = "streaming"
-            self.counters.error = None
+            if self.counters.state == "closed":
+                self.counters.error = None  # e.g. no longer "waiting for PTP lock"
         log.info(
             "camera %s open (%s, %s at %g fps)",
             self.serial,
