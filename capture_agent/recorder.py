@@ -16,6 +16,15 @@ served in order between frames and two simultaneous starts cannot race. It:
   much) and stops cleanly before the disk's free space falls under ``disk_reserve_gb``;
 - answers ``start``, ``stop``, ``status`` and ``heartbeat`` on its REP control socket.
 
+The SUB socket queues about ``RECEIVE_QUEUE_S`` of the rig's traffic per agent (its high-water
+mark, in messages). A recorder that falls further behind makes the agents' PUB sockets drop
+messages, which the per-node ``seq`` shows as transport losses: overload becomes counted loss, not
+unbounded memory. At a stop, the take ends at the stop's time: the frames captured before it that
+are still queued are received and written first (for up to ``STOP_WRITE_S``), until every
+streaming camera has delivered a frame captured after it. Whatever of the take cannot be written
+then (the disk reserve was reached, or the queue did not drain in time) is counted per camera as
+``not_written_at_stop`` in the stop summary, never dropped silently.
+
 A start is refused, with the reason and what to do, when a camera the rig expects is not
 streaming, when an agent's PTP is not locked (``require_ptp_lock``), or when the disk cannot hold
 ``planned_duration_min`` at the rig's measured data rate.
@@ -26,6 +35,7 @@ from __future__ import annotations
 import argparse
 import collections
 import logging
+import math
 import re
 import shutil
 import threading
@@ -34,13 +44,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import zmq
 
 from capture_agent.accounting import StreamAccounting
 from capture_agent.config import RigConfig
 from capture_agent.daemon import run_until_signal
-from capture_agent.sync import SyncConfig, SyncedSet, Synchroniser
+from capture_agent.recording import Recording
+from capture_agent.sync import SyncConfig, Synchroniser
 from protocol import __version__
 from protocol.messages import (
     AgentStatus,
@@ -59,6 +69,10 @@ CASE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 LIVE_WINDOW_S = 2.0
 DISK_CHECK_S = 0.25
 DISK_HEADROOM_S = 3.0  # seconds of recording kept free above the reserve
+RECEIVE_QUEUE_S = 2.0  # the SUB socket's high-water mark, in seconds of one agent's frames
+STOP_WRITE_S = 3.0  # at a stop, write the queued frames of the take for at most this long
+STOP_COUNT_S = 1.0  # then count (without writing) what is still queued, for at most this long
+STOP_IDLE_S = 0.25  # a stop stops waiting for frames after this long without a message
 
 
 class StartRefused(Exception):
@@ -95,46 +109,6 @@ class CameraLive:
         return self.frames_rx > 0 and time.monotonic() - self.last_rx_monotonic < LIVE_WINDOW_S
 
 
-@dataclass
-class Recording:
-    writer: SessionWriter
-    sync: Synchroniser
-    accounting: StreamAccounting
-    case: str
-    started_unix_ns: int
-    started_monotonic: float
-    serials: tuple[int, ...]
-    sets_written: int = 0
-    leading_sets_skipped: int = 0
-    trailing_sets_skipped: int = 0
-    take_started: bool = False
-    frames_written: int = 0
-    ignored_frames: int = 0
-    last_flush: float = 0.0
-    # capture stamps of frames written since the last flush, and capture-to-durable latencies
-    unflushed_capture_ns: list[int] = field(default_factory=list)
-    durable_latency_ns: collections.deque = field(
-        default_factory=lambda: collections.deque(maxlen=200_000)
-    )
-
-    def flush(self) -> None:
-        self.writer.flush()
-        now = time.time_ns()
-        self.durable_latency_ns.extend(now - c for c in self.unflushed_capture_ns)
-        self.unflushed_capture_ns.clear()
-        self.last_flush = time.monotonic()
-
-    def latency_ms(self) -> dict[str, float | None]:
-        if not self.durable_latency_ns:
-            return {"p50": None, "p99": None, "max": None}
-        a = np.asarray(self.durable_latency_ns, dtype=np.float64) / 1e6
-        return {
-            "p50": round(float(np.percentile(a, 50)), 2),
-            "p99": round(float(np.percentile(a, 99)), 2),
-            "max": round(float(a.max()), 2),
-        }
-
-
 class Recorder:
     def __init__(self, config: RigConfig) -> None:
         self.config = config
@@ -152,16 +126,7 @@ class Recorder:
 
     # -- lifecycle ------------------------------------------------------------------------------
     def start(self) -> None:
-        Path(self.config.output_dir).mkdir(parents=True, exist_ok=True)
-        self.sub = self.ctx.socket(zmq.SUB)
-        self.sub.setsockopt(zmq.LINGER, 0)
-        self.sub.setsockopt(zmq.RCVHWM, 10_000)
-        self.sub.setsockopt(zmq.SUBSCRIBE, b"")
-        for a in self.config.agents:
-            self.sub.connect(a.frames)
-        self.rep = self.ctx.socket(zmq.REP)
-        self.rep.setsockopt(zmq.LINGER, 0)
-        self.rep.bind(self.config.control_bind)
+        self.open_sockets()
         self._thread = threading.Thread(target=self._loop, name="recorder-io", daemon=True)
         self._thread.start()
         log.info(
@@ -171,6 +136,19 @@ class Recorder:
             self.config.control_bind,
             self.config.output_dir,
         )
+
+    def open_sockets(self) -> None:
+        """The SUB and REP sockets (``start`` calls it; tests drive the I/O by hand)."""
+        Path(self.config.output_dir).mkdir(parents=True, exist_ok=True)
+        self.sub = self.ctx.socket(zmq.SUB)
+        self.sub.setsockopt(zmq.LINGER, 0)
+        self.sub.setsockopt(zmq.RCVHWM, receive_hwm(self.config))
+        self.sub.setsockopt(zmq.SUBSCRIBE, b"")
+        for a in self.config.agents:
+            self.sub.connect(a.frames)
+        self.rep = self.ctx.socket(zmq.REP)
+        self.rep.setsockopt(zmq.LINGER, 0)
+        self.rep.bind(self.config.control_bind)
 
     def stop(self) -> None:
         self.stopped.set()
@@ -236,59 +214,14 @@ class Recorder:
         cam.ptp_locked = msg.ptp_locked
         cam.frames_rx += 1
         cam.last_message = msg  # type: ignore[attr-defined]  # preview for the console
-        rec = self.recording
-        if rec is None:
-            return
-        if msg.camera_serial not in rec.serials:
-            rec.ignored_frames += 1
-            return
-        for gap in rec.accounting.observe(
-            msg.camera_serial, msg.frame_index, msg.seq, msg.capture_unix_ns, msg.node_id
-        ):
-            rec.writer.append_gap(
-                gap.camera_serial,
-                kind=int(gap.kind),
-                first_missing_frame_index=gap.first_missing_frame_index,
-                missing_count=gap.missing_count,
-                start_unix_ns=gap.start_unix_ns,
-                end_unix_ns=gap.end_unix_ns,
-            )
-        row = rec.writer.append_frame(
-            msg.camera_serial,
-            left=msg.left,
-            right=msg.right,
-            capture_unix_ns=msg.capture_unix_ns,
-            host_receive_unix_ns=msg.host_receive_unix_ns,
-            recorder_receive_unix_ns=rx_ns,
-            frame_index=msg.frame_index,
-            seq=msg.seq,
-            ptp_offset_ns=msg.ptp_offset_ns,
-            ptp_locked=msg.ptp_locked,
-        )
-        rec.frames_written += 1
-        rec.unflushed_capture_ns.append(msg.capture_unix_ns)
-        self._write_sets(rec, rec.sync.add(msg.camera_serial, msg.capture_unix_ns, row, rx_ns))
-
-    def _write_sets(self, rec: Recording, sets: list[SyncedSet]) -> None:
-        for s in sets:
-            complete = all(m is not None for m in s.members)
-            if not rec.take_started:
-                # The cameras free-run, so the first window after "start" may hold only some of
-                # them. The take begins at the first complete set, so every take starts with all
-                # cameras (their earlier frames are still stored, outside any set).
-                waited = s.set_unix_ns - rec.started_unix_ns > 2e9
-                if not complete and not waited:
-                    rec.leading_sets_skipped += 1
-                    continue
-                rec.take_started = True
-            rec.writer.append_set(s.set_unix_ns, s.member_rows(), s.spread_ns)
-            rec.sets_written += 1
+        if self.recording is not None:
+            self.recording.write_frame(msg, rx_ns)
 
     def _periodic(self) -> None:
         now = time.monotonic()
         rec = self.recording
         if rec is not None:
-            self._write_sets(rec, rec.sync.poll(time.time_ns()))
+            rec.poll(time.time_ns())
             if now - rec.last_flush >= self.config.flush_interval_s:
                 rec.flush()
         if now - self._last_disk_check >= DISK_CHECK_S:
@@ -298,13 +231,18 @@ class Recorder:
             # closing the file: the reserve stays untouched.
             headroom = 0.0
             if rec is not None:
-                elapsed = max(now - rec.started_monotonic, 1e-3)
-                headroom = DISK_HEADROOM_S * rec.writer.bytes_written / elapsed + 8e6
+                # The rate the streams bring (a rate from the first frames of a recording
+                # alone would be wild), or the write rate if that is higher.
+                elapsed = max(now - rec.started_monotonic, 1.0)
+                streams = sum(self.cameras[s].byte_rate() for s in rec.serials if s in self.cameras)
+                rate = max(streams, rec.writer.bytes_written / elapsed)
+                headroom = DISK_HEADROOM_S * rate + 8e6
             if rec is not None and self._disk_free < self._reserve_bytes() + headroom:
                 log.error("disk space under the reserve: stopping the recording cleanly")
                 self._stop_recording(
                     f"the disk holding {self.config.output_dir} came within a few seconds of the "
-                    f"reserve of {self.config.disk_reserve_gb:g} GB; stopped before it filled"
+                    f"reserve of {self.config.disk_reserve_gb:g} GB; stopped before it filled",
+                    write_queued=False,
                 )
 
     # -- control --------------------------------------------------------------------------------
@@ -504,46 +442,50 @@ class Recorder:
         finally:
             sock.close(linger=0)
 
-    def _stop_recording(self, reason: str) -> dict[str, Any]:
+    def _drain_to_stop(self, rec: Recording, write: bool) -> None:
+        """Receive the take's frames still queued (captured before the stop): written while
+        ``write`` and for up to STOP_WRITE_S, then counted as not written for up to STOP_COUNT_S.
+        Done when every camera still streaming has sent a frame captured after the stop."""
+        rec.begin_stop(time.time_ns(), write=write)
+        t0 = time.monotonic()
+        waiting = {s for s in rec.serials if s in self.cameras and self.cameras[s].streaming()}
+        while not waiting <= rec.passed_stop:
+            elapsed = time.monotonic() - t0
+            if elapsed > STOP_WRITE_S + STOP_COUNT_S:
+                break
+            rec.write_to_stop = write and elapsed < STOP_WRITE_S
+            if time.monotonic() - rec.last_flush >= self.config.flush_interval_s:
+                rec.flush()  # a crash while draining loses no more than at any other time
+            if not self.sub.poll(int(STOP_IDLE_S * 1000)):
+                break
+            for _ in range(256):
+                try:
+                    parts = self.sub.recv_multipart(zmq.NOBLOCK, copy=False)
+                except zmq.Again:
+                    break
+                self._on_published(parts)
+        unwritten = sum(rec.not_written_at_stop.values())
+        log.log(
+            logging.WARNING if unwritten else logging.INFO,
+            "stop: drained the queue in %.2f s; %d frames of the take not written%s",
+            time.monotonic() - t0,
+            unwritten,
+            ""
+            if waiting <= rec.passed_stop
+            else f"; no frame after the stop from {sorted(waiting - rec.passed_stop)}",
+        )
+
+    def _stop_recording(self, reason: str, *, write_queued: bool = True) -> dict[str, Any]:
         rec = self.recording
         assert rec is not None
-        tail = rec.sync.flush()
-        # Likewise at the end: windows the stop cut short (some cameras' frames for them were
-        # captured after the stop) are not sets of the take; a take ends on a complete set.
-        while tail and any(m is None for m in tail[-1].members):
-            tail.pop()
-            rec.trailing_sets_skipped += 1
-        self._write_sets(rec, tail)
-        rec.flush()
-        stopped_ns = time.time_ns()
-        totals = rec.accounting.totals()
-        per_camera = {}
-        for s in rec.serials:
-            t = totals.get(s)
-            per_camera[str(s)] = {
-                "frames": rec.writer.frames_written(s),
-                "dropped": t.frames_dropped_camera if t else 0,
-                "transport_lost": t.transport_lost if t else 0,
-                "time_gaps": t.time_gaps if t else 0,
-                "reconnects": t.reconnects if t else 0,
-                "missing_in_sets": int(rec.sync.missing_markers.get(s, 0)),
-                "unassigned": int(rec.sync.unassigned_frames.get(s, 0)),
-            }
-        summary = {
-            "case": rec.case,
-            "file": str(rec.writer.path),
-            "reason": reason,
-            "duration_s": round((stopped_ns - rec.started_unix_ns) / 1e9, 3),
-            "sets": rec.sets_written,
-            "partial_sets_trimmed": rec.leading_sets_skipped + rec.trailing_sets_skipped,
-            "frames": rec.frames_written,
-            "bytes": rec.writer.bytes_written,
-            "capture_to_durable_ms": rec.latency_ms(),
-            "cameras": per_camera,
-            "malformed_messages": self.malformed,
-            "unknown_version_messages": self.unknown_version,
-        }
-        rec.writer.close(stopped_ns, summary)
+        self._drain_to_stop(rec, write_queued)
+        summary = rec.finish(
+            reason,
+            {
+                "malformed_messages": self.malformed,
+                "unknown_version_messages": self.unknown_version,
+            },
+        )
         self.recording = None
         self.last_stop_summary = summary
         log.info("stopped case %s: %s", rec.case, reason)
@@ -611,6 +553,13 @@ class Recorder:
         if self.last_stop_summary is not None:
             out["last_recording"] = self.last_stop_summary
         return out
+
+
+def receive_hwm(config: RigConfig) -> int:
+    """The SUB socket's high-water mark, in messages: RECEIVE_QUEUE_S of the busiest agent's
+    frames (ZeroMQ applies it to each agent's connection), plus its status messages."""
+    cameras = max((len(a.cameras) for a in config.agents), default=0) or 4
+    return max(100, math.ceil(RECEIVE_QUEUE_S * config.fps * cameras) + 10)
 
 
 def main(argv: list[str]) -> int:

@@ -38,7 +38,13 @@ class SimRigError(UserError, RuntimeError):
 
 @dataclass(frozen=True, kw_only=True)
 class SimRigSpec:
+    """What ``write_sim_rig`` deploys. ``cameras`` is the number of stereo cameras: the sim world
+    has 4 (two per node); camera ``k >= 4`` is camera ``k % 4`` of the world of seed
+    ``seed + k // 4``, on the node of that camera index, so every camera has its own serial and
+    clock (load tests of the recorder). Fewer than 4 uses the world's first cameras."""
+
     seed: int = 0
+    cameras: int = 4
     phase: str = "intraoperative"
     resolution: str = "SVGA"
     fps: float = 15.0
@@ -57,7 +63,11 @@ class SimRigSpec:
     ptp_table: dict[str, Any] = field(
         default_factory=lambda: {"source": "none", "require_lock": False}
     )
-    faults: dict[int, list[dict[str, Any]]] = field(default_factory=dict)  # camera index -> faults
+    faults: dict[int, list[dict[str, Any]]] = field(default_factory=dict)  # camera k -> faults
+
+    def __post_init__(self) -> None:
+        if self.cameras < 1:
+            raise ValueError(f"SimRigSpec.cameras must be >= 1, got {self.cameras}")
 
 
 @dataclass(frozen=True)
@@ -103,11 +113,25 @@ def write_sim_rig(directory: Path | str, spec: SimRigSpec | None = None) -> SimR
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     world = World.from_seed(spec.seed, phase=spec.phase)
+    per_world = len(world.rig)
+    worlds = {spec.seed: world}
+    for k in range(per_world, spec.cameras):
+        s = spec.seed + k // per_world
+        if s not in worlds:
+            worlds[s] = World.from_seed(s, phase=spec.phase)
+    # camera k of the rig: (its world's seed, its unit in that world)
+    units = [
+        (spec.seed + k // per_world, worlds[spec.seed + k // per_world].rig[k % per_world])
+        for k in range(spec.cameras)
+    ]
+    all_serials = [u.serial for _, u in units]
+    if len(set(all_serials)) != len(all_serials):
+        raise SimRigError(f"two simulated cameras share a serial: {all_serials}; pick another seed")
     # sim time 0 a moment ago: every agent shares this epoch, as PTP clocks share one timeline
     epoch = (time.time_ns() // 1_000_000_000) * 1_000_000_000
     nodes: dict[str, list[int]] = {}
-    for unit in world.rig:
-        nodes.setdefault(unit.node_id, []).append(unit.index)
+    for k, (_, unit) in enumerate(units):
+        nodes.setdefault(world.rig[unit.index].node_id, []).append(k)
     ports = free_ports(2 * len(nodes) + 1)
     node_paths: dict[str, Path] = {}
     agents_toml = []
@@ -125,12 +149,13 @@ def write_sim_rig(directory: Path | str, spec: SimRigSpec | None = None) -> SimR
             "[ptp]",
             *[f"{key} = {_toml_value(v)}" for key, v in spec.ptp_table.items()],
         ]
-        for i in indices:
+        for k in indices:
+            seed, unit = units[k]
             table: dict[str, Any] = {
                 "source": "sim",
-                "seed": spec.seed,
+                "seed": seed,
                 "phase": spec.phase,
-                "camera_index": i,
+                "camera_index": unit.index,
                 "resolution": spec.resolution,
                 "fps": spec.fps,
                 "epoch_unix_ns": epoch,
@@ -142,13 +167,13 @@ def write_sim_rig(directory: Path | str, spec: SimRigSpec | None = None) -> SimR
             if spec.pre_encode and spec.encoding == "jpeg":
                 table["pre_encode"] = "jpeg"
                 table["jpeg_quality"] = spec.jpeg_quality
-            if spec.faults.get(i):
-                table["faults"] = spec.faults[i]
+            if spec.faults.get(k):
+                table["faults"] = spec.faults[k]
             lines += ["", "[[cameras]]", *[f"{key} = {_toml_value(v)}" for key, v in table.items()]]
         path = out / f"{node}.toml"
         path.write_text("\n".join(lines) + "\n")
         node_paths[node] = path
-        serials = tuple(world.rig[i].serial for i in indices)
+        serials = tuple(units[k][1].serial for k in indices)
         serials_by_node[node] = serials
         agents_toml += [
             "",
@@ -183,7 +208,7 @@ def write_sim_rig(directory: Path | str, spec: SimRigSpec | None = None) -> SimR
         recorder_url=f"tcp://127.0.0.1:{control_port}",
         epoch_unix_ns=epoch,
         serials_by_node=serials_by_node,
-        camera_index_by_serial={u.serial: u.index for u in world.rig},
+        camera_index_by_serial={u.serial: u.index for _, u in units},
         spec=spec,
     )
 

@@ -393,3 +393,23 @@ def test_a_killed_recorder_leaves_a_readable_file(rig):
     for table in tables.values():
         assert table["capture_unix_ns"][-1] >= killed_at - 1.0e9
     rig.start_recorder()  # the next test (if any) gets a recorder back
+
+
+def test_a_sim_rig_of_more_cameras(tmp_path):
+    """SimRigSpec.cameras: camera k >= 4 is camera k % 4 of the world of seed + k // 4, on that
+    camera index's node, with its own serial; the agents' and the recorder's files agree."""
+    files = write_sim_rig(tmp_path, SimRigSpec(seed=3, cameras=6, fps=FPS))
+    cfg = RigConfig.from_toml(files.rig_config)
+    serials = [s for a in cfg.agents for s in a.cameras]
+    assert len(serials) == len(set(serials)) == 6
+    assert {a.node_id: a.cameras for a in cfg.agents} == files.serials_by_node
+    seeds = []
+    for node, path in files.node_configs.items():
+        tables = tomllib.loads(path.read_text())["cameras"]
+        seeds += [t["seed"] for t in tables]
+        assert [t["camera_index"] for t in tables] == [
+            files.camera_index_by_serial[s] for s in files.serials_by_node[node]
+        ]
+    assert sorted(seeds) == [3, 3, 3, 3, 4, 4]  # cameras 4 and 5 come from the world of seed 4
+    with pytest.raises(ValueError, match="cameras"):
+        SimRigSpec(cameras=0)

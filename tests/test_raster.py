@@ -34,8 +34,10 @@ def make_scene(
     opacity_logit: tuple[float, float] = (-2.0, 3.0),
     scale_m: tuple[float, float] = (0.01, 0.09),
     spread: float = 1.0,
+    needles: int = 0,
 ) -> dict:
-    """n random Gaussians 1-3 m in front of an identity camera (a few outside the view)."""
+    """n random Gaussians 1-3 m in front of an identity camera (a few outside the view); the
+    first ``needles`` are 0.5 mm x 0.8 m, and the next ten sit just past the near plane."""
     g = torch.Generator().manual_seed(seed)
 
     def u(*shape: int, lo: float = 0.0, hi: float = 1.0) -> torch.Tensor:
@@ -43,10 +45,14 @@ def make_scene(
 
     z = u(n, lo=1.0, hi=3.0)
     xy = (u(n, 2) - 0.5) * torch.tensor([width / focal, height / focal]) * 1.2 * spread * z[:, None]
+    log_scales = torch.log(u(n, 3, lo=scale_m[0], hi=scale_m[1]))
+    if needles:
+        log_scales[:needles, 0], log_scales[:needles, 1] = math.log(5e-4), math.log(0.8)
+        z[needles : needles + 10] = 0.06
     return {
         "means_m": torch.cat([xy, z[:, None]], dim=1),
         "quats_wxyz": torch.randn(n, 4, generator=g),
-        "log_scales": torch.log(u(n, 3, lo=scale_m[0], hi=scale_m[1])),
+        "log_scales": log_scales,
         "opacity_logits": u(n, lo=opacity_logit[0], hi=opacity_logit[1]),
         "colors": u(n, 3, lo=-0.1, hi=1.2),
         "viewmat": torch.eye(4),
@@ -85,12 +91,19 @@ SCENES = {
     "dense": dict(n=400, seed=1, opacity_logit=(2.0, 8.0), scale_m=(0.03, 0.12), spread=0.4),
     # size not a multiple of the tile: partial tiles on the right and bottom
     "ragged": dict(n=250, seed=2, width=70, height=45),
+    # needles, Gaussians at the near plane and large ones, opacity up to sigmoid(9)
+    "extreme": dict(
+        n=200, seed=21, scale_m=(0.002, 0.5), opacity_logit=(-3.0, 9.0), spread=1.5, needles=50
+    ),
 }
 
 
-@pytest.mark.parametrize("name", SCENES)
-@pytest.mark.parametrize("tile", [16, 8])
+@pytest.mark.parametrize(
+    ("name", "tile"),
+    [(name, tile) for name in SCENES for tile in (16, 8)] + [("ragged", 12), ("ragged", 5)],
+)
 def test_fast_matches_twin(name: str, tile: int) -> None:
+    """Tiles of 12 and 5 leave some of the kernels' 8-pixel lanes outside every tile."""
     scene = make_scene(**SCENES[name])
     config = RasterConfig(tile_px=tile)
     fast, g_fast = render(scene, config, grad=True)
@@ -272,7 +285,7 @@ def test_fitting_a_target_reduces_the_loss_tenfold() -> None:
         loss = ((out.image - target) ** 2).mean()
         loss.backward()
         opt.step()
-        losses.append(float(loss))
+        losses.append(loss.item())
     assert losses[-1] < losses[0] / 10, (losses[0], losses[-1])
 
 

@@ -61,7 +61,7 @@ def _cameras(*serials: int, raw: int | None = None) -> list[CameraInfo]:
     ]
 
 
-def _writer(path: Path, cameras: list[CameraInfo]) -> SessionWriter:
+def _writer(path: Path, cameras: list[CameraInfo], **options: Any) -> SessionWriter:
     return SessionWriter(
         path,
         session_name="case-042",
@@ -71,6 +71,7 @@ def _writer(path: Path, cameras: list[CameraInfo]) -> SessionWriter:
         rig_config_text='[rig]\nname = "or3"\n',
         software_version="0.1.0",
         started_unix_ns=T0_NS,
+        **options,
     )
 
 
@@ -206,6 +207,75 @@ def test_any_bytes_like_image_is_stored_as_is(tmp_path):
     with SessionReader(path) as r:
         assert all(r.frame_bytes(7, row) == (data, data) for row in range(len(inputs)))
         assert r.verify() == []
+
+
+def test_images_across_chunks_and_flushes_mid_chunk(tmp_path):
+    """Small chunks, so images span several of them (whole ones go straight from the caller's
+    buffer) and flushes land mid-chunk: every flush shows exactly the bytes appended, the tail of
+    the capacity is zeros, and a clean close trims it."""
+    path = tmp_path / "chunks.h5"
+    chunk = 4096
+    sizes = [1, 4095, 4096, 4097, 3 * 4096 + 17, 12, 2 * 4096, 9_000, 5, 4096 * 7 - 3]
+    rng = np.random.default_rng(7)
+    images = [
+        b"\xff\xd8" + rng.integers(0, 256, n, dtype=np.uint8).tobytes() + b"\xff\xd9" for n in sizes
+    ]
+    with _writer(path, _cameras(1, 2), blob_chunk_bytes=chunk) as w:
+        for row, image in enumerate(images):
+            _append(w, 1, row, (image, images[-1 - row]))
+            _append(w, 2, row, (images[-1 - row], image))
+            if row % 3 == 1:
+                w.flush()
+                with SessionReader(path) as r:  # a reader of the live file
+                    assert r.frame_count(1) == row + 1
+                    for k in range(row + 1):
+                        assert r.frame_bytes(1, k) == (images[k], images[-1 - k])
+                    end = int(r.frame_table(1)["left_offset"][row]) + len(image)
+                    with h5py.File(path, "r", swmr=True) as f:
+                        ds = f["cameras/1/left_bytes"]
+                        assert ds.chunks == (chunk,) and ds.shape[0] % chunk == 0
+                        assert not ds[end:].any()  # the capacity's tail: zeros
+    with SessionReader(path) as r:
+        assert r.verify() == []
+        for row, image in enumerate(images):
+            assert r.frame_bytes(1, row) == (image, images[-1 - row])
+            assert r.frame_bytes(2, row) == (images[-1 - row], image)
+    with h5py.File(path, "r") as f:
+        total = sum(len(i) for i in images)
+        assert f["cameras/1/left_bytes"].shape == (total,)
+        assert f["cameras/1/left_bytes"][:].tobytes() == b"".join(images)
+
+
+def test_a_failed_chunk_write_keeps_later_frames_right(tmp_path, monkeypatch):
+    """A write that fails (disk full) loses its frame's row, and nothing else."""
+    from protocol import session_write
+
+    path = tmp_path / "s.h5"
+    real = session_write._Blob._write_chunk
+    failures = iter([True])
+
+    def fail_once(blob: Any, data: Any) -> None:
+        if next(failures, False):
+            raise OSError(28, "No space left on device")
+        real(blob, data)
+
+    frames = [(_image(1, row, 0), _image(1, row, 1)) for row in range(8)]
+    with _writer(path, _cameras(1), blob_chunk_bytes=4096) as w:
+        _append(w, 1, 0, frames[0])
+        monkeypatch.setattr(session_write._Blob, "_write_chunk", fail_once)
+        with pytest.raises(OSError):
+            _append(w, 1, 1, frames[1])
+        for row in range(1, 8):
+            assert _append(w, 1, row, frames[row]) == row
+    with SessionReader(path) as r:
+        assert r.verify() == []
+        assert [r.frame_bytes(1, row) for row in range(8)] == frames
+
+
+def test_blob_chunk_size_is_checked(tmp_path):
+    with pytest.raises(ValueError, match="blob_chunk_bytes"):
+        _writer(tmp_path / "s.h5", _cameras(1), blob_chunk_bytes=0)
+    assert not (tmp_path / "s.h5").exists()
 
 
 def _corrupt_offset(f: h5py.File) -> None:

@@ -197,7 +197,7 @@ class _RasterizeFn(torch.autograd.Function):
         t1 = time.perf_counter()
         depth_bits = np.ascontiguousarray(proj[:, projection.DEPTH]).view(np.uint32)
         pairs, offsets, slots, goffsets = kernels.bin_gaussians(
-            depth_bits, radii, rect, ntx, ntx * nty
+            depth_bits, radii, rect, ntx, ntx * nty, numba.get_num_threads()
         )
         t2 = time.perf_counter()
         with numba.parallel_chunksize(_TILE_CHUNK):

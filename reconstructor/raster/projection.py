@@ -80,6 +80,18 @@ def _tr(a):
 
 
 @njit(cache=True, fastmath=True)
+def _camera_point(i, means, viewmat):
+    """Camera-frame position (t_x, t_y, t_z) of Gaussian i."""
+    x0 = np.float64(means[i, 0])
+    x1 = np.float64(means[i, 1])
+    x2 = np.float64(means[i, 2])
+    tx = viewmat[0, 0] * x0 + viewmat[0, 1] * x1 + viewmat[0, 2] * x2 + viewmat[0, 3]
+    ty = viewmat[1, 0] * x0 + viewmat[1, 1] * x1 + viewmat[1, 2] * x2 + viewmat[1, 3]
+    tz = viewmat[2, 0] * x0 + viewmat[2, 1] * x1 + viewmat[2, 2] * x2 + viewmat[2, 3]
+    return tx, ty, tz
+
+
+@njit(cache=True, fastmath=True)
 def _gaussian_frame(i, means, quats, scales, viewmat):
     """Rotation, scales, camera point and camera-space covariance of Gaussian i."""
     qw = np.float64(quats[i, 0])
@@ -101,12 +113,7 @@ def _gaussian_frame(i, means, quats, scales, viewmat):
         viewmat[1, 0], viewmat[1, 1], viewmat[1, 2],
         viewmat[2, 0], viewmat[2, 1], viewmat[2, 2],
     )  # fmt: skip
-    x0 = np.float64(means[i, 0])
-    x1 = np.float64(means[i, 1])
-    x2 = np.float64(means[i, 2])
-    tx = w[0] * x0 + w[1] * x1 + w[2] * x2 + viewmat[0, 3]
-    ty = w[3] * x0 + w[4] * x1 + w[5] * x2 + viewmat[1, 3]
-    tz = w[6] * x0 + w[7] * x1 + w[8] * x2 + viewmat[2, 3]
+    tx, ty, tz = _camera_point(i, means, viewmat)
     wm = _mm(w, m)
     cov_cam = _mm(wm, _tr(wm))  # W M Mᵀ Wᵀ
     return rq, (sx, sy, sz), m, w, tx, ty, tz, cov_cam
@@ -159,10 +166,25 @@ def project_forward(
         radii[i] = 0
         for c in range(4):
             rect[i, c] = 0
-        _, _, _, _, tx, ty, tz, cov = _gaussian_frame(i, means, quats, scales, viewmat)
+        tx, ty, tz = _camera_point(i, means, viewmat)
         if tz < near or tz > far:
             continue
         j00, j02, j11, j12, _, _ = _jacobian(tx, ty, tz, intr, lims)
+        mx = intr[0] * tx / tz + intr[2]
+        my = intr[1] * ty / tz + intr[3]
+        # cheap early cull of Gaussians far outside the image (a third of a fused cloud is):
+        # λ_max(J Σ Jᵀ) <= |J|_F² max(scales)², so this radius bounds the true one
+        s_max = max(scales[i, 0], scales[i, 1], scales[i, 2])
+        r_bound = (
+            sigma_extent
+            * math.sqrt((j00 * j00 + j02 * j02 + j11 * j11 + j12 * j12) * s_max * s_max + eps2d)
+            + 1.0
+        )
+        if mx + r_bound < 0.0 or my + r_bound < 0.0 or mx - r_bound > width - 1:
+            continue
+        if my - r_bound > height - 1:
+            continue
+        _, _, _, _, _, _, _, cov = _gaussian_frame(i, means, quats, scales, viewmat)
         s00, s01, s11 = _cov2d(j00, j02, j11, j12, cov)
         s00 += eps2d
         s11 += eps2d
@@ -172,8 +194,6 @@ def project_forward(
         mid = 0.5 * (s00 + s11)
         lam = mid + math.sqrt(max(mid * mid - det, 0.0))
         r = math.ceil(sigma_extent * math.sqrt(lam))
-        mx = intr[0] * tx / tz + intr[2]
-        my = intr[1] * ty / tz + intr[3]
         if r <= 0 or mx + r < 0.0 or my + r < 0.0 or mx - r > width - 1 or my - r > height - 1:
             continue
         u0 = max(math.ceil(mx - r), 0)

@@ -1,0 +1,140 @@
+"""The session file's schema, shared by its writer and its reader: names, types, errors.
+
+The layout is documented for readers without EgoSurg in ``docs/session.md``; ``protocol.session``
+re-exports everything public here, in ``protocol.session_write`` and in ``protocol.session_read``.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from protocol.errors import UserError
+
+FORMAT = "egosurg-session"
+FORMAT_VERSION = 1
+ENCODINGS = ("jpeg", "raw_bgr8")
+
+# Column name -> dtype of the per-camera frame table, in file order.
+FRAME_COLUMNS: dict[str, type[np.generic]] = {
+    "capture_unix_ns": np.int64,
+    "host_receive_unix_ns": np.int64,
+    "recorder_receive_unix_ns": np.int64,
+    "frame_index": np.int64,
+    "seq": np.int64,
+    "ptp_offset_ns": np.int64,
+    "ptp_locked": np.uint8,
+    "left_offset": np.uint64,
+    "left_length": np.uint32,
+    "right_offset": np.uint64,
+    "right_length": np.uint32,
+}
+GAP_COLUMNS: dict[str, type[np.generic]] = {
+    "camera_serial": np.int64,
+    "kind": np.uint8,
+    "first_missing_frame_index": np.int64,
+    "missing_count": np.int64,
+    "start_unix_ns": np.int64,
+    "end_unix_ns": np.int64,
+}
+SUMMARY_COLUMNS = ("frames", "missing_frames", "gap_records", "image_bytes")
+
+# The chunk size of the image byte datasets this version writes. Readers never depend on it:
+# images are located by offset and length, whatever the chunking of the file.
+BLOB_CHUNK_BYTES = 1 << 20
+TABLE_CHUNK_ROWS = 4096  # 32 KiB of int64
+
+
+class SessionFormatError(UserError, ValueError):
+    """Not an EgoSurg session, an unsupported format_version, or an inconsistent file."""
+
+
+class SessionNotFoundError(SessionFormatError, FileNotFoundError):
+    """The session file does not exist."""
+
+
+class SessionWriteError(UserError, OSError):
+    """The session file cannot be created or written (it exists, no directory, disk full...)."""
+
+
+class GapKind(enum.IntEnum):
+    """Why frames are missing; the value is the ``kind`` code stored in ``/gaps/kind``."""
+
+    FRAME_INDEX_GAP = 1  # the camera's frame_index skipped: the camera or its SDK dropped frames
+    SEQ_GAP = 2  # the publisher's seq skipped: messages lost in transport
+    TIME_GAP = 3  # capture_unix_ns jumped by more than 1.5x the median frame interval
+    RECONNECT = 4  # the camera reconnected or its agent restarted
+
+
+@dataclass(frozen=True, kw_only=True)
+class CameraInfo:
+    """One stereo camera of a recording, as stored in ``/cameras/<serial>`` attributes."""
+
+    camera_serial: int
+    node_id: str
+    resolution: str
+    width: int
+    height: int
+    fps_nominal: float
+    encoding: str
+    factory_conf_text: str = ""
+
+    def __post_init__(self) -> None:
+        if self.camera_serial < 0:
+            raise ValueError(f"camera_serial must be >= 0, got {self.camera_serial}")
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"camera {self.camera_serial}: bad size {self.width}x{self.height}")
+        if not self.fps_nominal > 0:
+            raise ValueError(f"camera {self.camera_serial}: fps_nominal must be > 0")
+        if self.encoding not in ENCODINGS:
+            raise ValueError(
+                f"camera {self.camera_serial}: encoding {self.encoding!r} is not one of {ENCODINGS}"
+            )
+
+
+@dataclass(frozen=True, kw_only=True)
+class GapRecord:
+    """One row of ``/gaps``. -1 in an integer field means unknown."""
+
+    camera_serial: int
+    kind: GapKind
+    first_missing_frame_index: int
+    missing_count: int
+    start_unix_ns: int
+    end_unix_ns: int
+
+
+@dataclass(frozen=True, kw_only=True)
+class SessionInfo:
+    """The root attributes and camera descriptions of a session file."""
+
+    path: Path
+    format_version: int
+    session_name: str
+    case_metadata: dict[str, str]
+    software_version: str
+    rig_config_toml: str
+    tolerance_ns: int
+    started_unix_ns: int
+    stopped_unix_ns: int  # 0 unless closed cleanly
+    closed_cleanly: bool
+    camera_serials: tuple[int, ...]  # the column order of the sets' members
+    cameras: tuple[CameraInfo, ...] = field(default=())
+
+    def camera(self, serial: int) -> CameraInfo:
+        for cam in self.cameras:
+            if cam.camera_serial == serial:
+                return cam
+        raise KeyError(f"{self.path}: no camera {serial}; cameras are {list(self.camera_serials)}")
+
+
+class SetTable(NamedTuple):
+    """Synchronised sets: ``members[i, c]`` is the frame row of camera c in set i, or -1."""
+
+    set_unix_ns: np.ndarray  # (N,) int64
+    members: np.ndarray  # (N, C) int64
+    spread_ns: np.ndarray  # (N,) int64

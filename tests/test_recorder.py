@@ -1,0 +1,169 @@
+"""The recorder's stop and receive queue, driven by hand: a real SUB socket fed by a test PUB, a
+real session file, no agents. The recorder's thread is not started, so the messages stay queued
+in ZeroMQ until the stop drains them, as they do in a recorder that fell behind."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+import zmq
+
+from capture_agent.accounting import StreamAccounting
+from capture_agent.config import AgentEndpoint, RigConfig
+from capture_agent.recorder import RECEIVE_QUEUE_S, CameraLive, Recorder, receive_hwm
+from capture_agent.recording import Recording
+from capture_agent.sync import SyncConfig, Synchroniser
+from protocol.messages import FrameMessage
+from protocol.session import CameraInfo, SessionReader, SessionWriter
+from sim.deploy import free_ports
+
+FPS = 30.0
+PERIOD_NS = int(1e9 / FPS)
+SERIALS = (11, 12)
+JPEG = b"\xff\xd8" + bytes(range(256)) * 4 + b"\xff\xd9"
+
+
+def _config(tmp_path, frames: str, cameras: tuple[int, ...] = SERIALS) -> RigConfig:
+    control, agent_control = free_ports(2)
+    return RigConfig(
+        rig_name="test",
+        fps=FPS,
+        control_bind=f"tcp://127.0.0.1:{control}",
+        output_dir=str(tmp_path / "sessions"),
+        agents=(
+            AgentEndpoint(
+                node_id="n0",
+                frames=frames,
+                control=f"tcp://127.0.0.1:{agent_control}",
+                cameras=cameras,
+            ),
+        ),
+        require_ptp_lock=False,
+        disk_reserve_gb=0.0,
+    )
+
+
+def _frame(serial: int, index: int, seq: int, capture_unix_ns: int) -> list:
+    return FrameMessage(
+        node_id="n0",
+        camera_serial=serial,
+        frame_index=index,
+        seq=seq,
+        capture_unix_ns=capture_unix_ns,
+        host_receive_unix_ns=capture_unix_ns,
+        ptp_offset_ns=0,
+        ptp_locked=True,
+        encoding="jpeg",
+        width=8,
+        height=4,
+        left=JPEG,
+        right=JPEG,
+    ).to_parts()
+
+
+@pytest.fixture
+def queued(tmp_path):
+    """A recorder whose SUB socket holds 20 frames per camera captured before now and 3 after,
+    with a recording open; yields (recorder, number of frames of the take per camera)."""
+    ctx = zmq.Context.instance()
+    pub = ctx.socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    port = pub.bind_to_random_port("tcp://127.0.0.1")
+    recorder = Recorder(_config(tmp_path, f"tcp://127.0.0.1:{port}"))
+    recorder.open_sockets()
+    try:
+        deadline = time.monotonic() + 10
+        while not recorder.sub.poll(50):  # PUB/SUB joins late: probe with a camera not recorded
+            assert time.monotonic() < deadline, "the SUB socket never connected"
+            pub.send_multipart(_frame(99, 0, 0, time.time_ns()), copy=False)
+        while recorder.sub.poll(200):
+            recorder._on_published(recorder.sub.recv_multipart(copy=False))
+        now = time.time_ns()
+        infos = [
+            CameraInfo(
+                camera_serial=s,
+                node_id="n0",
+                resolution="TINY",
+                width=8,
+                height=4,
+                fps_nominal=FPS,
+                encoding="jpeg",
+            )
+            for s in SERIALS
+        ]
+        started = now - 2_000_000_000
+        recorder.recording = Recording(
+            writer=SessionWriter(
+                tmp_path / "sessions" / "take.h5",
+                session_name="take",
+                case_metadata={},
+                cameras=infos,
+                tolerance_ns=PERIOD_NS // 2,
+                software_version="test",
+                started_unix_ns=started,
+            ),
+            sync=Synchroniser(SyncConfig(camera_serials=SERIALS, fps=FPS, max_wait_ns=500_000_000)),
+            accounting=StreamAccounting(),
+            case="take",
+            started_unix_ns=started,
+            started_monotonic=time.monotonic(),
+            serials=SERIALS,
+        )
+        for s in SERIALS:  # both cameras stream (the start checked it)
+            recorder.cameras[s] = CameraLive(
+                s, "n0", frames_rx=1, last_rx_monotonic=time.monotonic()
+            )
+        seq = 1
+        take = 20
+        for k in range(take + 3):
+            # frames k < take were captured before now, the rest 10 s after it
+            capture = started + 1_000_000_000 + k * PERIOD_NS + (10**10 if k >= take else 0)
+            for c, s in enumerate(SERIALS):
+                pub.send_multipart(_frame(s, k, seq, capture + c * 1000), copy=False)
+                seq += 1
+        time.sleep(0.5)  # into the SUB socket's queue; nobody reads it yet
+        yield recorder, take
+    finally:
+        if recorder.recording is not None:
+            recorder.recording.writer.abort()
+        recorder.sub.close(linger=0)
+        recorder.rep.close(linger=0)
+        pub.close(linger=0)
+
+
+def test_a_stop_writes_the_frames_of_the_take_still_queued(queued):
+    recorder, take = queued
+    summary = recorder._stop_recording("stopped by request")
+    assert summary["frames"] == take * len(SERIALS)
+    assert summary["frames_not_written_at_stop"] == 0
+    for s in SERIALS:
+        cam = summary["cameras"][str(s)]
+        assert cam["frames"] == take and cam["not_written_at_stop"] == 0
+        assert cam["transport_lost"] == 0 and cam["dropped"] == 0
+    with SessionReader(summary["file"]) as r:
+        assert r.info.closed_cleanly and r.verify() == []
+        for s in SERIALS:
+            assert r.frame_table(s)["frame_index"].tolist() == list(range(take))
+        assert len(r.sets().set_unix_ns) >= take - 1
+
+
+def test_a_stop_that_cannot_write_counts_what_it_leaves(queued):
+    """The disk reserve's stop writes nothing more, but every frame of the take is counted."""
+    recorder, take = queued
+    summary = recorder._stop_recording("disk", write_queued=False)
+    assert summary["frames"] == 0
+    assert summary["frames_not_written_at_stop"] == take * len(SERIALS)
+    for s in SERIALS:
+        assert summary["cameras"][str(s)]["not_written_at_stop"] == take
+    with SessionReader(summary["file"]) as r:
+        assert r.info.closed_cleanly and r.verify() == []
+
+
+def test_the_receive_queue_holds_seconds_of_the_busiest_agent(tmp_path):
+    cfg = _config(tmp_path, "tcp://127.0.0.1:1", cameras=(1, 2, 3, 4, 5, 6))
+    hwm = receive_hwm(cfg)
+    assert hwm >= RECEIVE_QUEUE_S * FPS * 6  # frames of 6 cameras for RECEIVE_QUEUE_S
+    assert hwm < 10 * RECEIVE_QUEUE_S * FPS * 6  # and not unbounded: about 2 s of 6 cameras
+    few = _config(tmp_path, "tcp://127.0.0.1:1", cameras=(1,))
+    assert receive_hwm(few) >= 100
