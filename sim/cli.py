@@ -9,6 +9,7 @@ Examples::
     egosurg sim view --out ego.png --t 3.0 --person surgeon
     egosurg sim view --out side.png --t 3.0 --eye 3,0,1.7 --look-at 0,0,1 --depth-out side_depth.png
     egosurg sim pictures --out pictures/
+    egosurg sim eval-set --out evalset/ --seed 3 --phases empty,intraoperative --sets 10
 """
 
 from __future__ import annotations
@@ -208,6 +209,34 @@ def write_pictures(world, out: Path, t_s: float, video_s: float, pictures) -> li
     return [mosaic, topdown, video]
 
 
+def cmd_eval_set(args: argparse.Namespace) -> int:
+    from sim.eval_set import EvalSetSpec, write_eval_set
+
+    try:
+        spec = EvalSetSpec(
+            seed=args.seed,
+            phases=tuple(p.strip() for p in args.phases.split(",") if p.strip()),
+            resolution=args.resolution,
+            fps=args.fps,
+            t_start_s=args.t_start,
+            sets=args.sets,
+            eval_sets=tuple(int(k) for k in args.eval_sets.split(",") if k.strip()),
+            jpeg_quality=args.jpeg_quality,
+            view_size_px=_size(args.view_size),
+            view_hfov_deg=args.view_hfov,
+        )
+    except ValueError as exc:
+        print(f"egosurg sim eval-set: {exc}", file=sys.stderr)
+        return 2
+    eval_set = write_eval_set(Path(args.out), spec)
+    views = sum(len(s.views) for s in eval_set.scenes)
+    print(
+        f"wrote {Path(args.out) / 'eval_set.toml'}: {len(eval_set.scenes)} scenes, "
+        f"{spec.sets} sets each, {views} egocentric reference views"
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="egosurg sim",
@@ -258,6 +287,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--t", type=float, default=4.0, help="sim time of the pictures")
     p.add_argument("--video-s", type=float, default=3.0, help="video length in seconds")
     p.set_defaults(func=cmd_pictures)
+
+    p = sub.add_parser(
+        "eval-set", help="scenes of each workflow phase plus egocentric truth, for evaluation"
+    )
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--seed", type=int, default=3, help="world seed (default 3)")
+    p.add_argument(
+        "--phases", default="empty,setup,intraoperative,turnover", help="comma-separated phases"
+    )
+    p.add_argument("--resolution", default="SVGA", help="HD1200, HD1080 or SVGA (default SVGA)")
+    p.add_argument("--fps", type=float, default=15.0, help="set rate (default 15)")
+    p.add_argument("--t-start", type=float, default=2.0, help="sim time of the first set")
+    p.add_argument("--sets", type=int, default=10, help="consecutive sets per phase (default 10)")
+    p.add_argument("--eval-sets", default="0", help="sets with egocentric truth, e.g. 0,9")
+    p.add_argument("--jpeg-quality", type=int, default=90, help="as the agents encode (90)")
+    p.add_argument("--view-size", default="960x600", help="egocentric view size WxH")
+    p.add_argument("--view-hfov", type=float, default=90.0, help="egocentric hfov, degrees")
+    p.set_defaults(func=cmd_eval_set)
     return parser
 
 

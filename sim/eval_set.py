@@ -1,0 +1,186 @@
+"""``egosurg sim eval-set``: an evaluation set of the simulated OR, with its exact ground truth.
+
+For each workflow phase it writes what the rig would have recorded, and what nobody can record
+on a real site: the exact view from each person's eyes at the same instant.
+
+- ``<phase>/session.h5``: ``sets`` consecutive synchronised sets at ``fps`` from ``t_start_s``,
+  every sensor's image with the sim's sensor noise, JPEG-encoded at the agents' quality, stored
+  through the session writer as the recorder stores them (skipping the agents and the network
+  saves a recording per scene; the capture tests cover that path);
+- ``<phase>/calibration.toml``: the rig's true calibration;
+- ``<phase>/views/<role>@<set>.png``: each person's egocentric view (noise-free pinhole);
+- ``eval_set.toml``: the manifest (format in ``protocol/eval_set.py``).
+
+Example::
+
+    egosurg sim eval-set --out evalset/ --seed 3 --phases empty,setup,intraoperative,turnover
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from protocol import __version__
+from protocol.camera import Resolution
+from protocol.eval_set import EvalScene, EvalSet, ReferenceView
+from protocol.images import encode_image
+from protocol.session import CameraInfo, SessionWriter
+from sim.phases import PHASES
+from sim.timing import SIM_EPOCH_UNIX_NS
+from sim.truth import true_rig_calibration
+from sim.world import World
+
+log = logging.getLogger(__name__)
+
+# the workflow phases (the wand phase is a calibration session, not a case)
+WORKFLOW_PHASES = tuple(p for p in PHASES if p != "wand")
+
+
+@dataclass(frozen=True, kw_only=True)
+class EvalSetSpec:
+    seed: int = 3
+    phases: tuple[str, ...] = WORKFLOW_PHASES
+    resolution: str = "SVGA"
+    fps: float = 15.0
+    t_start_s: float = 2.0
+    sets: int = 10  # consecutive sets per phase (the temporal protocol uses 10)
+    eval_sets: tuple[int, ...] = (0,)  # the sets the near-field and egocentric protocols use
+    jpeg_quality: int = 90  # the agents' default
+    view_size_px: tuple[int, int] = (960, 600)
+    view_hfov_deg: float = 90.0
+
+    def __post_init__(self) -> None:
+        bad = [p for p in self.phases if p not in WORKFLOW_PHASES]
+        if bad or not self.phases:
+            raise ValueError(
+                f"phases {list(self.phases)}: choose from {', '.join(WORKFLOW_PHASES)}"
+            )
+        Resolution.parse(self.resolution)
+        if self.sets < 1:
+            raise ValueError(f"sets={self.sets}: must be at least 1")
+        if any(not 0 <= k < self.sets for k in self.eval_sets) or not self.eval_sets:
+            raise ValueError(f"eval_sets {list(self.eval_sets)}: must be in 0..{self.sets - 1}")
+        if not self.fps > 0 or self.t_start_s < 0:
+            raise ValueError("fps must be > 0 and t_start_s >= 0")
+
+
+def write_eval_set(out: Path | str, spec: EvalSetSpec) -> EvalSet:
+    """Render and write the set; returns its manifest (also written to ``out``)."""
+    root = Path(out)
+    scenes = []
+    for phase in spec.phases:
+        t0 = time.perf_counter()
+        world = World.from_seed(spec.seed, phase=phase)
+        scenes.append(_write_scene(root, phase, world, spec))
+        log.info("phase %s written in %.1f s", phase, time.perf_counter() - t0)
+    eval_set = EvalSet(
+        root=root,
+        description=(
+            f"simulated OR, seed {spec.seed}, {spec.resolution} at {spec.fps:g} fps, "
+            f"{spec.sets} sets from t = {spec.t_start_s:g} s"
+        ),
+        scenes=tuple(scenes),
+    )
+    eval_set.write()
+    return eval_set
+
+
+def _write_scene(root: Path, phase: str, world: World, spec: EvalSetSpec) -> EvalScene:
+    res = Resolution.parse(spec.resolution)
+    folder = root / phase
+    (folder / "views").mkdir(parents=True, exist_ok=True)
+    true_rig_calibration(world, res).write(folder / "calibration.toml")
+    session = folder / "session.h5"
+    session.unlink(missing_ok=True)
+    cameras = [
+        CameraInfo(
+            camera_serial=u.serial,
+            node_id="sim-eval-set",
+            resolution=res.value,
+            width=res.width,
+            height=res.height,
+            fps_nominal=spec.fps,
+            encoding="jpeg",
+            factory_conf_text=u.factory.to_text(),
+        )
+        for u in world.rig
+    ]
+    period_ns = round(1e9 / spec.fps)
+    views: list[ReferenceView] = []
+    with SessionWriter(
+        session,
+        session_name=f"sim-{phase}",
+        case_metadata={"source": "egosurg sim eval-set", "phase": phase, "seed": str(spec.seed)},
+        cameras=cameras,
+        tolerance_ns=period_ns // 2,
+        software_version=__version__,
+        started_unix_ns=SIM_EPOCH_UNIX_NS,  # session time = sim time
+    ) as writer:
+        for k in range(spec.sets):
+            t_s = spec.t_start_s + k / spec.fps
+            stamp_ns = SIM_EPOCH_UNIX_NS + round(t_s * 1e9)
+            members = []
+            for unit in world.rig:
+                left, right = world.render_stereo(unit, t_s, res)
+                members.append(
+                    writer.append_frame(
+                        unit.serial,
+                        left=_jpeg(left.image_rgb, spec.jpeg_quality),
+                        right=_jpeg(right.image_rgb, spec.jpeg_quality),
+                        capture_unix_ns=stamp_ns,
+                        host_receive_unix_ns=stamp_ns,
+                        recorder_receive_unix_ns=stamp_ns,
+                        frame_index=round(t_s * spec.fps),
+                        seq=k,
+                        ptp_offset_ns=0,
+                        ptp_locked=True,
+                    )
+                )
+            writer.append_set(stamp_ns, members, 0)
+            if k in spec.eval_sets:
+                views += _egocentric_views(folder, phase, world, t_s, k, spec)
+        writer.close(SIM_EPOCH_UNIX_NS + round((spec.t_start_s + spec.sets / spec.fps) * 1e9))
+    return EvalScene(
+        name=phase,
+        phase=phase,
+        session=f"{phase}/session.h5",
+        calibration=f"{phase}/calibration.toml",
+        eval_sets=tuple(spec.eval_sets),
+        temporal_sets=tuple(range(spec.sets)),
+        views=tuple(views),
+    )
+
+
+def _egocentric_views(
+    folder: Path, phase: str, world: World, t_s: float, set_index: int, spec: EvalSetSpec
+) -> list[ReferenceView]:
+    out = []
+    for role, pose in world.head_poses(t_s).items():
+        name = f"{role}@{set_index}"
+        camera = world.virtual_camera(
+            pose, hfov_deg=spec.view_hfov_deg, size_px=spec.view_size_px, name=name
+        )
+        image = world.render(camera, t_s).image_rgb
+        rel = f"{phase}/views/{name}.png"
+        cv2.imwrite(str(folder.parent / rel), np.ascontiguousarray(image[:, :, ::-1]))
+        out.append(
+            ReferenceView(
+                name=name,
+                kind="egocentric",
+                role=role,
+                set_index=set_index,
+                image=rel,
+                camera=camera,
+            )
+        )
+    return out
+
+
+def _jpeg(image_rgb: np.ndarray, quality: int) -> bytes:
+    return encode_image(np.ascontiguousarray(image_rgb[:, :, ::-1]), "jpeg", quality)
