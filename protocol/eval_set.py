@@ -21,6 +21,7 @@ reference views' PNGs; every path is relative to the folder::
     calibration = "intraoperative/calibration.toml"
     eval_sets = [0]                   # set indices the near-field and egocentric protocols use
     temporal_sets = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9]   # consecutive sets (temporal stability)
+    room_bounds_m = [-3.5, -3.0, 0.0, 3.5, 3.0, 3.0]   # optional: the room's box, measured once
 
     [[scenes.views]]
     name = "surgeon@0"
@@ -82,6 +83,7 @@ class EvalScene:
     eval_sets: tuple[int, ...]
     temporal_sets: tuple[int, ...]
     views: tuple[ReferenceView, ...]
+    room_bounds_m: tuple[float, ...] = ()  # (xmin, ymin, zmin, xmax, ymax, zmax), or unknown
 
     def views_at(self, set_index: int) -> list[ReferenceView]:
         return [v for v in self.views if v.set_index == set_index]
@@ -130,6 +132,8 @@ class EvalSet:
                 f"eval_sets = {_v(list(s.eval_sets))}",
                 f"temporal_sets = {_v(list(s.temporal_sets))}",
             ]
+            if s.room_bounds_m:
+                lines.append(f"room_bounds_m = {_v(list(s.room_bounds_m))}")
             for v in s.views:
                 i, p = v.camera.intrinsics, v.camera.pose
                 lines += [
@@ -243,4 +247,12 @@ def _scene(t: dict[str, Any], where: str) -> EvalScene:
         eval_sets=tuple(int(x) for x in t.get("eval_sets", [])),
         temporal_sets=tuple(int(x) for x in t.get("temporal_sets", [])),
         views=tuple(views),
+        room_bounds_m=_bounds(t.get("room_bounds_m", []), where),
     )
+
+
+def _bounds(value: Any, where: str) -> tuple[float, ...]:
+    b = tuple(float(x) for x in value)
+    if b and (len(b) != 6 or not all(lo < hi for lo, hi in zip(b[:3], b[3:], strict=True))):
+        raise EvalSetError(f"{where}: room_bounds_m must be [xmin, ymin, zmin, xmax, ymax, zmax]")
+    return b
