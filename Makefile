@@ -49,10 +49,13 @@ $(BIN)/python:
 		{ echo "EgoSurg needs Python 3.11; $(PYTHON) is $$($(PYTHON) --version)."; exit 1; }
 	$(PYTHON) -m venv $(VENV)
 
+# lpips is installed without its dependencies: its small linear heads are all EgoSurg uses, and
+# its torchvision would pull another torch. EgoSurg builds the LPIPS backbone itself.
 $(STAMP): pyproject.toml | $(BIN)/python system-deps
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q "$(TORCH)"
 	$(BIN)/python -m pip install -q -e ".[dev]"
+	$(BIN)/python -m pip install -q --no-deps "lpips>=0.1.4"
 	$(BIN)/python -c "import open3d, torch, cv2, zmq, h5py; print('installed: torch', torch.__version__, '| open3d', open3d.__version__)"
 	@touch $(STAMP)
 

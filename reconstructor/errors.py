@@ -33,3 +33,11 @@ class FusionError(ReconstructError, ValueError):
 
 class SplatFormatError(ReconstructError, ValueError):
     """A file that is not a Gaussian splat PLY (or ``.splat``) this reader understands."""
+
+
+class RefinerNotFoundError(ReconstructError, LookupError):
+    """No view refiner of the requested name is built in or installed as a plug-in."""
+
+
+class RefinerWeightsError(ReconstructError, FileNotFoundError):
+    """A learned view refiner was asked for without a usable local weights directory."""
