@@ -34,6 +34,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "3D Gaussian splats of chosen timestamps of a session",
     ),
     "render": ("reconstructor.cli:main_render", "render a splat model from any viewpoint"),
+    "evaluate": (
+        "reconstructor.eval_cli:main",
+        "the paper's evaluation protocols and baselines on an evaluation set",
+    ),
     "sim": ("sim.cli:main", "the simulated operating room: frames, factory files, views"),
 }
 

@@ -5,13 +5,25 @@ Examples::
     egosurg reconstruct case.h5 --calibration calibration.toml --at 12.5 --out recon/
     egosurg reconstruct case.h5 --calibration calibration.toml --at set:120 --out recon/ \\
         --steps 300 --train-views left
+    egosurg reconstruct case.h5 --at 12.5 --out recon/ --refiner difix \\
+        --refiner-weights ~/weights/difix_ref
+    egosurg reconstruct case.h5 --at 12.5 --out ablation/ --no-refinement
+    egosurg reconstruct case.h5 --at 12.5 --out baseline/ --init random --no-refinement
     egosurg render recon/t0012.500/splats.ply --camera SN41234567-left --out view.png
     egosurg render recon/t0012.500/splats.ply --camera "eye=2.0,-1.5,1.7 target=0,0,1" \\
         --hfov 80 --size 960x600 --out view.png
 
 ``--at`` is a time in seconds since the session started or ``set:N``. Each timestamp's outputs go
 to ``OUT/t<seconds>/``: ``splats.ply`` (INRIA 3DGS layout), ``config.toml`` (the resolved
-settings), ``log.txt``, ``summary.json``, ``points.ply`` and the calibration used.
+settings), ``log.txt``, ``summary.json``, ``points.ply``, the calibration used, and
+``auxiliary_views.jpg`` (reference | render | refined for a few auxiliary views).
+
+Training is 500 warm-up steps on the input views, then 1500 steps on the input views plus 15
+auxiliary views per input camera, rendered by the model after warm-up and corrected by the
+refiner (``--refiner``: ``guided`` by default, no weights; ``difix`` with a local weights folder;
+``none``; or a plug-in). The paper's ablations: ``--no-refinement`` ("EgoSurg without
+diffusion") and ``--init random --no-refinement`` ("image-only 3DGS": Gaussians seeded at
+random instead of from stereo depth); ``--evaluate`` adds the depth-reprojection baseline.
 
 ``--camera`` is a sensor name from the calibration saved beside the model (or ``--calibration``),
 or ``"eye=X,Y,Z target=X,Y,Z"`` in metres in the calibration's world frame (z up, floor at 0),
@@ -73,7 +85,7 @@ def _progress(stage: str, k: int, n: int, stats: StepStats) -> None:
         )
 
 
-def main_reconstruct(argv: list[str]) -> int:
+def reconstruct_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="egosurg reconstruct",
         description=__doc__,
@@ -91,11 +103,31 @@ def main_reconstruct(argv: list[str]) -> int:
     parser.add_argument("--stereo-matcher", help="'sgbm' (default) or an installed plug-in")
     parser.add_argument("--stereo-weights", help="local weights path for a learned matcher")
     parser.add_argument(
+        "--refiner", metavar="NAME", help="auxiliary-view refiner: guided (default), difix, none"
+    )
+    parser.add_argument(
+        "--refiner-weights", metavar="PATH", help="local weights of the refiner (difix: a folder)"
+    )
+    parser.add_argument(
+        "--no-refinement",
+        action="store_true",
+        help="no auxiliary views: the ablation 'EgoSurg without diffusion'",
+    )
+    parser.add_argument(
+        "--init",
+        choices=("depth", "random"),
+        help="Gaussians from stereo depth (default) or random ('image-only 3DGS' baseline)",
+    )
+    parser.add_argument(
         "--evaluate",
         action="store_true",
         help="score the views against the recorded images and the depth-reprojection baseline",
     )
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main_reconstruct(argv: list[str]) -> int:
+    args = reconstruct_parser().parse_args(argv)
 
     session = Path(args.session)
     if not session.exists():
@@ -145,6 +177,22 @@ def _with_options(config: ReconstructConfig, args: argparse.Namespace) -> Recons
         changes["stereo_matcher"] = args.stereo_matcher
     if args.stereo_weights:
         changes["stereo_weights"] = args.stereo_weights
+    if args.init:
+        changes["init_method"] = args.init
+    aux: dict[str, object] = {}
+    if args.no_refinement:
+        if args.refiner or args.refiner_weights:
+            raise ReconstructArgumentError(
+                "--no-refinement turns the auxiliary views off; drop --refiner/--refiner-weights "
+                "or --no-refinement"
+            )
+        aux["enabled"] = False
+    if args.refiner:
+        aux["refiner"] = args.refiner
+    if args.refiner_weights:
+        aux["refiner_weights"] = args.refiner_weights
+    if aux:
+        changes["auxiliary"] = dataclasses.replace(config.auxiliary, **aux)  # type: ignore[arg-type]
     return dataclasses.replace(config, **changes) if changes else config  # type: ignore[arg-type]
 
 

@@ -10,11 +10,21 @@ Example ``--config`` file::
     [train]
     warmup_steps = 100
     refine_steps = 200
+
+The paper's baselines and ablation ("Baselines and Ablation") are switches of this config:
+
+- EgoSurg: the defaults (stereo-depth init, auxiliary views refined by ``auxiliary.refiner``);
+- "EgoSurg without diffusion": ``[auxiliary] enabled = false``;
+- "image-only 3DGS": ``init_method = "random"`` and ``[auxiliary] enabled = false``
+  (``random_init_count`` Gaussians uniform in ``room_bounds_m``, or in the box the cameras
+  look into; stereo still runs, for ``points.ply`` and the depth-reprojection baseline);
+- "depth reprojection": computed by ``--evaluate`` beside every run.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 import types
 import typing
@@ -22,6 +32,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from reconstructor.auxiliary import AuxiliaryConfig
 from reconstructor.depth_fill import FillConfig
 from reconstructor.errors import ReconstructConfigError
 from reconstructor.fusion import FusionConfig
@@ -32,6 +45,7 @@ from reconstructor.train import TrainConfig
 
 CONFIG_FORMAT_VERSION = 1
 TRAIN_VIEWS = ("all", "left")
+INIT_METHODS = ("depth", "random")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -46,6 +60,12 @@ class ReconstructConfig:
     raster: RasterConfig = field(default_factory=RasterConfig)
     train_views: str = "all"  # "left": the near-field protocol (right cameras held out)
     train_max_width_px: int = 960  # HD1200 images train at SVGA size, like the paper's GPU runs
+    auxiliary: AuxiliaryConfig = field(default_factory=AuxiliaryConfig)
+    init_method: str = "depth"  # "random": the image-only 3DGS baseline
+    random_init_count: int = 100_000  # Gaussians of init_method = "random"
+    # (xmin, ymin, zmin, xmax, ymax, zmax) in world metres, or empty when unknown: the random
+    # init's box, and where auxiliary cameras must stay
+    room_bounds_m: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         if self.train_views not in TRAIN_VIEWS:
@@ -56,6 +76,33 @@ class ReconstructConfig:
             raise ReconstructConfigError(
                 f"train_max_width_px={self.train_max_width_px}: must be at least 64"
             )
+        if self.init_method not in INIT_METHODS:
+            raise ReconstructConfigError(
+                f"init_method={self.init_method!r}: choose one of {', '.join(INIT_METHODS)}"
+            )
+        count = self.random_init_count
+        if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+            raise ReconstructConfigError(f"random_init_count={count!r}: must be an integer >= 1")
+        b = self.room_bounds_m
+        if b:
+            ok = len(b) == 6 and all(
+                isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+                for v in b
+            )
+            if not ok or not all(b[i] < b[i + 3] for i in range(3)):
+                raise ReconstructConfigError(
+                    f"room_bounds_m={list(b)!r}: give [xmin, ymin, zmin, xmax, ymax, zmax] in "
+                    "metres with each min below its max, or [] when unknown"
+                )
+            object.__setattr__(self, "room_bounds_m", tuple(float(v) for v in b))
+
+    @property
+    def room_box_m(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """``room_bounds_m`` as (lo (3,), hi (3,)), or None when unknown."""
+        if not self.room_bounds_m:
+            return None
+        b = np.asarray(self.room_bounds_m, dtype=np.float64)
+        return b[:3], b[3:]
 
     def resolved(self, width_px: int) -> ReconstructConfig:
         """Fill in what depends on the session (the stereo defaults for its resolution)."""

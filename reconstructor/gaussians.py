@@ -11,7 +11,8 @@ Parameters are stored raw, as 3DGS optimises and stores them (and as the INRIA P
 
 Initialisation follows 3DGS: identity rotation, opacity 0.1, isotropic scale from the distance
 to the 3 nearest neighbours (its ``distCUDA2``: scale = sqrt(mean of the 3 squared distances)),
-colour into ``sh_dc``, higher SH zero.
+colour into ``sh_dc``, higher SH zero. ``init_random`` (the "image-only 3DGS" baseline) draws
+the points and colours uniformly in a box instead, then initialises them the same way.
 """
 
 from __future__ import annotations
@@ -171,3 +172,34 @@ def nearest_neighbour_scale(points_m: np.ndarray, k: int = 3) -> np.ndarray:
     dist, _ = cKDTree(points_m).query(points_m, k=k_eff + 1, workers=-1)
     dist = np.asarray(dist).reshape(n, k_eff + 1)[:, 1:]  # column 0 is the point itself
     return np.sqrt(np.mean(dist**2, axis=1))
+
+
+def init_random(
+    count: int,
+    lo_m: np.ndarray,
+    hi_m: np.ndarray,
+    config: GaussianInitConfig | None = None,
+    *,
+    seed: int = 0,
+) -> Gaussians:
+    """``count`` Gaussians uniform in the box ``lo_m``..``hi_m`` (3,) with uniform random colours:
+    the paper's "image-only 3DGS" baseline (no stereo depth), initialised as gsplat's trainer
+    does its random start; scales, opacity and rotations as ``init_from_points``."""
+    lo = np.asarray(lo_m, dtype=np.float64).reshape(3)
+    hi = np.asarray(hi_m, dtype=np.float64).reshape(3)
+    if count < 1:
+        raise ReconstructConfigError(f"random_init_count={count}: must be at least 1")
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (hi > lo).all()):
+        raise ReconstructConfigError(
+            f"random init box {lo.tolist()}..{hi.tolist()} m: needs finite corners, lo < hi"
+        )
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(lo, hi, size=(count, 3))
+    colours = rng.uniform(0.0, 1.0, size=(count, 3))
+    log.info(
+        "random init: %d Gaussians in the box %s..%s m",
+        count,
+        np.round(lo, 2).tolist(),
+        np.round(hi, 2).tolist(),
+    )
+    return init_from_points(points, colours, config)

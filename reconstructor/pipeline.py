@@ -1,11 +1,27 @@
 """One timestamp, end to end: stereo depth -> fused points -> Gaussians -> training -> export.
 
+Training is the paper's two stages: warm-up on the input views, then refinement on the input
+views plus auxiliary views (``reconstructor/auxiliary.py``) made once after warm-up by the
+refiner ``config.auxiliary.refiner``. The refiner is loaded before stereo runs, so a missing
+plug-in or weights file fails in a second, not after minutes. A caller's ``refine`` hook, when
+given, replaces the auxiliary views.
+
+``init_method = "random"`` (the image-only 3DGS baseline) seeds the Gaussians uniformly in
+``room_bounds_m``, or when that is empty in the box the cameras look into (their centres and
+their frustums out to where their optical axes meet, above the floor when the calibration's
+world frame is the floor). Stereo still runs, unused by training: ``points.ply`` and the
+depth-reprojection baseline of ``--evaluate`` need the fused cloud, and the stereo share of a
+run is small next to training.
+
 Outputs, in the run's folder:
 - ``splats.ply``: the model in the INRIA 3DGS layout (opens in common 3DGS viewers);
 - ``points.ply``: the fused, cleaned point cloud the Gaussians started from;
 - ``config.toml``: the resolved configuration;
 - ``calibration.toml``: the calibration used, so views can be named by sensor later;
-- ``summary.json``: the set, its time, missing cameras, counts, timings and the final loss;
+- ``summary.json``: the set, its time, missing cameras, counts, timings and the final loss, the
+  init method, and the auxiliary views (refiner, count, seconds);
+- ``auxiliary_views.jpg``: reference | render | refined for a few auxiliary views (when
+  ``auxiliary.save_pictures``);
 - ``log.txt``: the run's log.
 """
 
@@ -24,11 +40,13 @@ import open3d as o3d
 
 from protocol.rig_calibration import RigCalibration
 from reconstructor import ply
+from reconstructor.auxiliary import AuxiliaryConfig, Bounds, make_auxiliary_views
 from reconstructor.config import ReconstructConfig
 from reconstructor.depth_fill import fill_points_in_world
 from reconstructor.frames import Timestamp, calibration_at, right_from_left
 from reconstructor.fusion import FusedCloud, fuse
-from reconstructor.gaussians import Gaussians, init_from_points
+from reconstructor.gaussians import Gaussians, init_from_points, init_random
+from reconstructor.refiners import Refiner, load_refiner
 from reconstructor.stereo import DepthMap, compute_depth
 from reconstructor.stereo_plugins import load_matcher
 from reconstructor.train import StepStats, Trainer, scene_extent_m
@@ -55,6 +73,7 @@ class Reconstruction:
     trainer: Trainer
     out_dir: Path | None
     timings_s: dict[str, float] = field(default_factory=dict)
+    auxiliary: dict[str, Any] = field(default_factory=dict)  # refiner, views, seconds
 
     @property
     def model_path(self) -> Path | None:
@@ -112,6 +131,56 @@ def stereo_clouds(
     return clouds, depths
 
 
+def build_refiner(config: AuxiliaryConfig) -> Refiner:
+    """The refiner ``config`` names (its weights path when given, the guided settings)."""
+    weights = Path(config.refiner_weights) if config.refiner_weights else None
+    options = config.guided if config.refiner == "guided" else None
+    return load_refiner(config.refiner, weights, config=options)
+
+
+def world_bounds(config: ReconstructConfig, calibration: RigCalibration | None) -> Bounds | None:
+    """``room_bounds_m``; else the floor alone (z >= 0) when the calibration's world frame is the
+    floor's; else None."""
+    box = config.room_box_m
+    if box is not None:
+        return box
+    if calibration is not None and calibration.world_frame == "floor":
+        return np.array([-np.inf, -np.inf, 0.0]), np.full(3, np.inf)
+    return None
+
+
+def random_init_box(
+    views: Sequence[View], bounds: Bounds | None, *, fallback_depth_m: float = 3.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) of the random init: the bounds where finite, else the box the cameras look into.
+
+    That box holds the cameras' centres and their frustums' centre and corner rays out to the
+    depth of the point closest to all optical axes (in the least-squares sense), or out to
+    ``fallback_depth_m`` when the axes do not converge (one camera, parallel axes).
+    """
+    centres = np.array([v.pose.centre_m for v in views])
+    forwards = np.array([v.pose.R[2] for v in views])
+    A = sum((np.eye(3) - np.outer(f, f) for f in forwards), np.zeros((3, 3)))
+    b = sum(((np.eye(3) - np.outer(f, f)) @ c for f, c in zip(forwards, centres, strict=True)))
+    depths = np.full(len(views), fallback_depth_m)
+    if len(views) > 1 and np.linalg.eigvalsh(A)[0] > 1e-2 * len(views):
+        meet = np.linalg.solve(A, b)
+        along = np.einsum("ij,ij->i", meet - centres, forwards)
+        depths = np.where(along > 0.5, along, fallback_depth_m)
+    points = [centres]
+    for v, d in zip(views, depths, strict=True):
+        w, h = v.width_px, v.height_px
+        px = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1], [w / 2, h / 2, 1]], float)
+        rays_cam = px @ np.linalg.inv(v.K.double().numpy()).T  # z = 1: camera-z depth d below
+        points.append(v.pose.centre_m + d * rays_cam @ v.pose.R)
+    cloud = np.concatenate(points)
+    lo, hi = cloud.min(axis=0), cloud.max(axis=0)
+    if bounds is not None:
+        lo = np.where(np.isfinite(bounds[0]), bounds[0], lo)
+        hi = np.where(np.isfinite(bounds[1]), bounds[1], hi)
+    return lo, hi
+
+
 def reconstruct(
     ts: Timestamp,
     config: ReconstructConfig,
@@ -124,6 +193,9 @@ def reconstruct(
     """Reconstruct one timestamp; write the outputs when ``out_dir`` is given."""
     cfg = config.resolved(ts.frames[0].camera.intrinsics.width_px)
     timings: dict[str, float] = {}
+    refiner = None
+    if refine is None and cfg.auxiliary.enabled and cfg.train.refine_steps > 0:
+        refiner = build_refiner(cfg.auxiliary)  # before stereo: a bad name fails at once
     handler = None
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -152,25 +224,74 @@ def reconstruct(
         clouds, depths = stereo_clouds(ts, cfg)
         timings["stereo"] = time.perf_counter() - t0
 
+        train_views, held_out = make_views(ts, cfg)
+        bounds = world_bounds(cfg, calibration)
         t0 = time.perf_counter()
         fused = fuse(clouds, cfg.fusion)
         log.info("fused points: %s", fused.stats)
-        gaussians = init_from_points(fused.points_m, fused.colours, cfg.init)
+        if cfg.init_method == "random":
+            lo, hi = random_init_box(train_views, bounds)
+            gaussians = init_random(cfg.random_init_count, lo, hi, cfg.init, seed=cfg.train.seed)
+        else:
+            gaussians = init_from_points(fused.points_m, fused.colours, cfg.init)
         timings["fusion_init"] = time.perf_counter() - t0
 
-        train_views, held_out = make_views(ts, cfg)
         trainer = Trainer(gaussians, cfg.train, cfg.raster, scene_extent_m(train_views))
         t0 = time.perf_counter()
         trainer.run(train_views, cfg.train.warmup_steps, stage="warm-up", progress=progress)
         timings["warmup"] = time.perf_counter() - t0
         refine_views: Sequence[View] = train_views
+        weights: list[float] | None = None
+        auxiliary: dict[str, Any] = {"enabled": False}
         if refine is not None and cfg.train.refine_steps > 0:
             t0 = time.perf_counter()
             refine_views = refine(trainer, train_views)
             timings["auxiliary_views"] = time.perf_counter() - t0
+            auxiliary = {"enabled": True, "refiner": "caller's refine hook"}
+            auxiliary["views"] = len(refine_views) - len(train_views)
+        elif refiner is not None:
+            t0 = time.perf_counter()
+            parts: dict[str, float] = {}
+            sheet = (
+                out_dir / "auxiliary_views.jpg"
+                if out_dir is not None and cfg.auxiliary.save_pictures
+                else None
+            )
+            aux_views = make_auxiliary_views(
+                gaussians,
+                train_views,
+                cfg.auxiliary,
+                cfg.raster,
+                refiner,
+                bounds_m=bounds,
+                sheet_path=sheet,
+                timings_s=parts,
+            )
+            timings["auxiliary_views"] = time.perf_counter() - t0
+            refine_views = [*train_views, *aux_views]
+            weights = [1.0] * len(train_views) + [cfg.auxiliary.aux_weight] * len(aux_views)
+            auxiliary = {
+                "enabled": True,
+                "refiner": refiner.describe(),
+                "views": len(aux_views),
+                "per_input_view": cfg.auxiliary.num_views,
+                "radius_m": cfg.auxiliary.radius_m,
+                "size_px": [train_views[0].width_px, train_views[0].height_px],
+                "seconds": round(timings["auxiliary_views"], 3),
+                "render_s": round(parts["render"], 3),
+                "refine_s": round(parts["refine"], 3),
+            }
+            del aux_views  # the trainer's list holds them until the stage ends
         t0 = time.perf_counter()
-        trainer.run(refine_views, cfg.train.refine_steps, stage="refinement", progress=progress)
+        trainer.run(
+            refine_views,
+            cfg.train.refine_steps,
+            stage="refinement",
+            progress=progress,
+            weights=weights,
+        )
         timings["refinement"] = time.perf_counter() - t0
+        del refine_views
         result = Reconstruction(
             timestamp=ts,
             config=cfg,
@@ -182,6 +303,7 @@ def reconstruct(
             trainer=trainer,
             out_dir=out_dir,
             timings_s=timings,
+            auxiliary=auxiliary,
         )
         if out_dir is not None:
             write_outputs(result)
@@ -211,13 +333,26 @@ def write_outputs(result: Reconstruction) -> None:
         "train_views": [v.name for v in result.train_views],
         "held_out_views": [v.name for v in result.held_out_views],
         "gaussians": result.gaussians.num,
+        "init_method": result.config.init_method,
+        "auxiliary": result.auxiliary,
         "fusion": result.fused.stats,
         "steps": result.trainer.step_index,
         "final_loss": result.trainer.log.mean_loss(),
         "timings_s": {k: round(v, 3) for k, v in result.timings_s.items()},
+        "ms_per_step": _ms_per_step(result),
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default) + "\n")
     log.info("wrote %s (%d Gaussians)", out / "splats.ply", result.gaussians.num)
+
+
+def _ms_per_step(result: Reconstruction) -> dict[str, float]:
+    steps = result.trainer.log.steps
+    warm = result.config.train.warmup_steps
+    out = {}
+    for stage, part in (("warm-up", steps[:warm]), ("refinement", steps[warm:])):
+        if part:
+            out[stage] = round(1000 * float(np.mean([s.seconds for s in part])), 1)
+    return out
 
 
 def _json_default(v: Any) -> Any:

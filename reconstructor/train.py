@@ -11,8 +11,9 @@ position rate (1.6e-4) is multiplied by the scene extent, as 3DGS does, and deca
 to 1 % of itself over the whole schedule.
 
 The schedule is stages of steps: 500 warm-up steps on the input views, then 1500 steps on the
-input views plus any auxiliary views the refinement stage adds. One ``Trainer`` keeps the
-optimiser state across stages.
+input views plus any auxiliary views the refinement stage adds, each view's image loss scaled
+by its weight (``Trainer.run(..., weights=...)``; auxiliary views: ``auxiliary.aux_weight``).
+One ``Trainer`` keeps the optimiser state across stages.
 """
 
 from __future__ import annotations
@@ -180,7 +181,8 @@ class Trainer:
         u = min(self.step_index / total, 1.0)
         return self._position_lr0 * self.config.position_lr_final_ratio**u
 
-    def step(self, view: View) -> StepStats:
+    def step(self, view: View, weight: float = 1.0) -> StepStats:
+        """One Adam step on ``view``; ``weight`` scales its image loss (not the opacity term)."""
         t0 = time.perf_counter()
         cfg = self.config
         for group in self.optimizer.param_groups:
@@ -196,7 +198,7 @@ class Trainer:
         target = view.image * mask[..., None] + bg * (1 - mask[..., None])
         l1_v = l1(out.image, target, mask)
         ssim_v = ssim(out.image, target, mask)
-        loss = (1 - cfg.ssim_weight) * l1_v + cfg.ssim_weight * (1 - ssim_v)
+        loss = weight * ((1 - cfg.ssim_weight) * l1_v + cfg.ssim_weight * (1 - ssim_v))
         if cfg.opacity_reg_weight > 0 and self.g.num > 0:
             loss = loss + cfg.opacity_reg_weight * torch.sigmoid(self.g.opacity_logits).mean()
         self.optimizer.zero_grad(set_to_none=True)
@@ -221,15 +223,22 @@ class Trainer:
         *,
         stage: str = "train",
         progress: Callable[[str, int, int, StepStats], None] | None = None,
+        weights: Sequence[float] | None = None,
     ) -> None:
-        """``steps`` steps, each on a view drawn from shuffled passes over ``views``."""
+        """``steps`` steps, each on a view drawn from shuffled passes over ``views``.
+
+        ``weights``: one loss weight per view (default 1; auxiliary views may weigh less).
+        """
         if not views:
             raise ReconstructConfigError(f"{stage}: no views to train on")
+        if weights is not None and len(weights) != len(views):
+            raise ValueError(f"{stage}: {len(weights)} weights for {len(views)} views")
         order: list[int] = []
         for k in range(steps):
             if not order:
                 order = list(self._rng.permutation(len(views)))
-            stats = self.step(views[order.pop()])
+            i = order.pop()
+            stats = self.step(views[i], 1.0 if weights is None else weights[i])
             if progress is not None:
                 progress(stage, k + 1, steps, stats)
             if cfg_log(self.config, k + 1, steps):
