@@ -10,6 +10,13 @@ it. A filled pixel is kept when enough confident disparity reached it (``min_wei
 depth is in range. Filled points are marked so callers can give them less trust.
 
 Disparity, not depth, is smoothed: a plane's disparity is linear in the image, its depth is not.
+
+What is still a hole after that (a wall or ceiling with no textured rim in view) is seen through
+to the room's shell when the room's box is known (``room_bounds_m``, measured once per site): the
+pixel's ray is cut where it leaves the box, an inset away from the walls, and a point there takes
+the pixel's colour (``room_shell``). In an OR the surfaces stereo cannot match are mostly the
+walls and ceiling themselves, so the shell is their right depth; anything else left blank sits in
+front of it and training moves those Gaussians where the other views need them.
 """
 
 from __future__ import annotations
@@ -31,6 +38,9 @@ class FillConfig:
     sigma_color: float = 6.0  # colour difference (0..255) that stops it
     min_weight: float = 0.05  # share of confident disparity that must reach a filled pixel
     stride_px: int = 2  # keep every n-th filled pixel in each direction: blank walls need few
+    room_shell: bool = True  # points on the room's box for what is still a hole (needs bounds)
+    shell_stride_px: int = 4
+    shell_inset_m: float = 0.02
 
     def __post_init__(self) -> None:
         if self.smoothness <= 0 or self.sigma_color <= 0:
@@ -42,10 +52,19 @@ class FillConfig:
             raise ReconstructConfigError(f"fill.min_weight={self.min_weight}: must be in (0, 1)")
         if self.stride_px < 1:
             raise ReconstructConfigError(f"fill.stride_px={self.stride_px}: must be >= 1")
+        if self.shell_stride_px < 1:
+            raise ReconstructConfigError(
+                f"fill.shell_stride_px={self.shell_stride_px}: must be >= 1"
+            )
+        if self.shell_inset_m < 0:
+            raise ReconstructConfigError(f"fill.shell_inset_m={self.shell_inset_m}: must be >= 0")
 
 
-def fill_disparity(depth: DepthMap, config: FillConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(filled disparity (H, W) float32, mask of the pixels filled here (H, W) bool)."""
+def fill_disparity(
+    depth: DepthMap, config: FillConfig, *, strided: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """(filled disparity (H, W) float32, mask of the pixels filled here (H, W) bool; only every
+    ``stride_px``-th pixel unless ``strided`` is False)."""
     fb = depth.intrinsics.fx_px * depth.baseline_m
     valid = depth.valid & np.isfinite(depth.depth_m)
     disp = np.where(valid, fb / np.where(valid, depth.depth_m, 1.0), 0.0).astype(np.float32)
@@ -61,6 +80,8 @@ def fill_disparity(depth: DepthMap, config: FillConfig) -> tuple[np.ndarray, np.
     with np.errstate(invalid="ignore", divide="ignore"):
         filled = np.where(den > config.min_weight, num / den, np.nan).astype(np.float32)
     mask = ~valid & np.isfinite(filled) & (filled > 0)
+    if not strided:
+        return filled, mask
     sub = np.zeros_like(mask)
     sub[:: config.stride_px, :: config.stride_px] = True
     return filled, mask & sub
@@ -73,19 +94,59 @@ def fill_points_in_world(
     *,
     min_depth_m: float,
     max_depth_m: float,
+    room_box_m: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """World points and colours of the filled pixels (none when disabled)."""
+    """World points and colours of the filled pixels, then of the room shell behind what is
+    still a hole when ``room_box_m`` (lo, hi) is given (none when disabled)."""
+    empty = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
     if not config.enabled:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
-    filled, mask = fill_disparity(depth, config)
+        return empty
+    filled, full_mask = fill_disparity(depth, config, strided=False)
     fb = depth.intrinsics.fx_px * depth.baseline_m
-    v, u = np.nonzero(mask)
+    sub = np.zeros_like(full_mask)
+    sub[:: config.stride_px, :: config.stride_px] = True
+    v, u = np.nonzero(full_mask & sub)
     z = fb / filled[v, u].astype(np.float64)
     keep = (z >= min_depth_m) & (z <= max_depth_m)
     v, u, z = v[keep], u[keep], z[keep]
+    rays = _rect_rays(depth, u, v)
+    points = [_to_world(rays * z[:, None], depth, left_pose)]
+    colours = [depth.rgb[v, u].astype(np.float32) / 255.0]
+    if config.room_shell and room_box_m is not None:
+        hole = ~(depth.valid & np.isfinite(depth.depth_m)) & ~full_mask
+        sub = np.zeros_like(hole)
+        sub[:: config.shell_stride_px, :: config.shell_stride_px] = True
+        v, u = np.nonzero(hole & sub)
+        lo = np.asarray(room_box_m[0], np.float64) + config.shell_inset_m
+        hi = np.asarray(room_box_m[1], np.float64) - config.shell_inset_m
+        centre = left_pose.centre_m
+        if len(v) and np.all(centre > lo) and np.all(centre < hi):
+            rays = _rect_rays(depth, u, v)
+            dirs = _to_world(rays, depth, left_pose) - centre  # rays as world directions
+            dist = ray_box_exit(centre, dirs, lo, hi)
+            points.append((centre + dirs * dist[:, None]).astype(np.float32))
+            colours.append(depth.rgb[v, u].astype(np.float32) / 255.0)
+    return np.concatenate(points).astype(np.float32), np.concatenate(colours)
+
+
+def ray_box_exit(
+    origin: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray
+) -> np.ndarray:
+    """(N,) ray parameter where rays ``origin + s * dirs`` (dirs (N, 3)) leave the box [lo, hi]
+    that holds ``origin``."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bound = np.where(dirs > 0, hi, lo)
+        s = np.where(dirs != 0, (bound - origin) / dirs, np.inf)
+    return s.min(axis=1)
+
+
+def _rect_rays(depth: DepthMap, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(N, 3) rays at z = 1 of rectified pixels (u, v)."""
     k = depth.intrinsics
-    rect = np.stack([(u - k.cx_px) / k.fx_px * z, (v - k.cy_px) / k.fy_px * z, z], axis=1)
-    cam = rect @ depth.rect_from_left
-    world = (cam - left_pose.t_m) @ left_pose.R
-    colours = depth.rgb[v, u].astype(np.float32) / 255.0
-    return world.astype(np.float32), colours
+    return np.stack([(u - k.cx_px) / k.fx_px, (v - k.cy_px) / k.fy_px, np.ones(len(u))], axis=1)
+
+
+def _to_world(rect_points: np.ndarray, depth: DepthMap, left_pose: Pose) -> np.ndarray:
+    """Points in the rectified left frame -> world."""
+    cam = rect_points @ depth.rect_from_left
+    return (cam - left_pose.t_m) @ left_pose.R

@@ -80,6 +80,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--refiner", default="guided", help="EgoSurg's refiner: guided, difix, none")
     p.add_argument("--refiner-weights", default="", help="local weights for the refiner")
     p.add_argument("--lpips-weights", default="", help="torchvision AlexNet/VGG16 weights (.pth)")
+    p.add_argument(
+        "--config", default="", help="reconstruction config (TOML) every method starts from"
+    )
     p.add_argument("--write-doc", help="also write this Markdown report (e.g. EVALUATION.md)")
     return p
 
@@ -102,6 +105,7 @@ def settings_from_args(args: argparse.Namespace) -> EvalSettings:
         refiner=args.refiner,
         refiner_weights=args.refiner_weights,
         lpips_weights=args.lpips_weights,
+        config=args.config,
     )
 
 
@@ -123,6 +127,10 @@ def main(argv: list[str]) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise EvaluationArgumentError(f"--out {out} is a file; give a folder")
+    if settings.config:
+        from reconstructor.config import ReconstructConfig
+
+        ReconstructConfig.read(settings.config)  # a bad file fails now, with its key named
     eval_set = EvalSet.read(args.eval_set)  # EvalSetError: one line naming what is wrong
     settings = dataclasses.replace(settings, eval_set_description=eval_set.description)
     from reconstructor.eval_doc import write_evaluation_doc

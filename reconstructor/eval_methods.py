@@ -91,6 +91,7 @@ class EvalSettings:
     refiner: str = "guided"
     refiner_weights: str = ""
     lpips_weights: str = ""
+    config: str = ""  # a reconstruction config (TOML) every method starts from; "" = defaults
 
     def __post_init__(self) -> None:
         def bad(option: str, value: object, why: str) -> EvaluationArgumentError:
@@ -139,7 +140,8 @@ class EvalSettings:
         return (
             f"steps {self.steps} ({self.warmup_steps} warm-up + {self.refine_steps} refinement), "
             f"training width {self.train_width_px} px, refiner {refiner}, "
-            f"evaluation set {self.eval_set or '?'} ({which}), LPIPS weights {lpips}"
+            f"evaluation set {self.eval_set or '?'} ({which}), LPIPS weights {lpips}, "
+            f"base config {self.config or 'the defaults'}"
         )
 
     def as_dict(self) -> dict[str, Any]:
@@ -164,7 +166,8 @@ def method_config(
             "save_pictures": False,
         },
     }
-    cfg = apply_overrides(ReconstructConfig(), base, "evaluation settings")
+    start = ReconstructConfig.read(settings.config) if settings.config else ReconstructConfig()
+    cfg = apply_overrides(start, base, "evaluation settings")
     return apply_overrides(cfg, overrides, f"method {key}")
 
 
@@ -177,5 +180,7 @@ def render_splats(recon: Reconstruction, view: View) -> np.ndarray:
 
 def render_points(fused: FusedCloud, view: View, voxel_m: float) -> np.ndarray:
     """(H, W, 3) float32 in [0, 1]: the depth-reprojection baseline seen from ``view``."""
-    image, _ = reproject_points(fused.points_m, fused.colours, view.camera, point_size_m=voxel_m)
+    image, _ = reproject_points(
+        fused.points_m, fused.colours, view.camera, point_size_m=max(voxel_m, fused.spacing_m)
+    )
     return image

@@ -52,7 +52,7 @@ def evaluate(recon: Reconstruction, out_dir: Path | None = None) -> list[ViewSco
             recon.fused.points_m,
             recon.fused.colours,
             view.camera,
-            point_size_m=recon.config.fusion.voxel_m,
+            point_size_m=max(recon.config.fusion.voxel_m, recon.fused.spacing_m),
         )
         for method, img in (("egosurg (splats)", splat), ("depth reprojection", base)):
             scores.append(

@@ -14,6 +14,7 @@ keeps isolated points isolated.
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -67,6 +68,13 @@ class FusedCloud:
     @property
     def num(self) -> int:
         return len(self.points_m)
+
+    @functools.cached_property
+    def spacing_m(self) -> float:
+        """The median nearest-neighbour distance of the points."""
+        from reconstructor.baselines import point_spacing_m
+
+        return point_spacing_m(self.points_m)
 
 
 def fuse(

@@ -120,6 +120,7 @@ def stereo_clouds(
             config.fill,
             min_depth_m=config.stereo.min_depth_m,
             max_depth_m=config.stereo.max_depth_m,
+            room_box_m=config.room_box_m,
         )
         clouds.append(filled)
         log.info(

@@ -8,7 +8,7 @@ import pytest
 
 from protocol.camera import Camera, Intrinsics, Pose
 from reconstructor.baselines import reproject_points
-from reconstructor.depth_fill import FillConfig, fill_disparity
+from reconstructor.depth_fill import FillConfig, fill_disparity, fill_points_in_world, ray_box_exit
 from reconstructor.frames import right_from_left
 from reconstructor.stereo import StereoConfig, compute_depth
 from reconstructor.views import view_from_image
@@ -100,3 +100,42 @@ def test_filling_covers_blank_walls_without_moving_confident_depth(pair):
     print(f"filled depth error: median {100 * np.median(rel):.1f} %")
     # coarse by design: a start for training, not a measurement (measured: about 13 %)
     assert np.median(rel) < 0.25
+
+
+def test_a_ray_leaves_a_box_where_its_walls_are():
+    lo, hi = np.array([-3.5, -3.0, 0.0]), np.array([3.5, 3.0, 3.0])
+    origin = np.array([1.0, 2.0, 1.5])
+    dirs = np.array([[1.0, 0, 0], [0, -2.0, 0], [0, 0, 1.0], [1.0, 1.0, 0], [0, 0, -0.5]])
+    s = ray_box_exit(origin, dirs, lo, hi)
+    # +x wall at 3.5 (2.5 away); -y wall at -3 (5 away, dir length 2); ceiling 1.5 away;
+    # diagonal meets y = 3 first (1 away); floor 1.5 below at half speed
+    np.testing.assert_allclose(s, [2.5, 2.5, 1.5, 1.0, 3.0])
+
+
+def test_what_stays_a_hole_is_seen_through_to_the_room_shell(pair):
+    """With the room's box known, every pixel still without depth gets a point on the box (the
+    sim's walls, floor and ceiling ARE the box), so blank walls are never holes."""
+    depth, cam, true_depth = pair
+    lo, hi = np.array([-3.5, -3.0, 0.0]), np.array([3.5, 3.0, 3.0])
+    cfg = FillConfig(shell_stride_px=1, shell_inset_m=0.0)
+    no_box, _ = fill_points_in_world(depth, cam.pose, cfg, min_depth_m=0.3, max_depth_m=12.0)
+    pts, cols = fill_points_in_world(
+        depth, cam.pose, cfg, min_depth_m=0.3, max_depth_m=12.0, room_box_m=(lo, hi)
+    )
+    shell = pts[len(no_box) :].astype(np.float64)
+    assert len(shell) > 1000 and len(cols) == len(pts)
+    on_a_wall = np.minimum(np.abs(shell - lo), np.abs(shell - hi)).min(axis=1)
+    assert on_a_wall.max() < 1e-3
+    # where the true surface is the room's shell, the shell point has its true depth
+    px, zz = cam.project(shell)
+    inside = (px[:, 0] >= 0) & (px[:, 0] < 959) & (px[:, 1] >= 0) & (px[:, 1] < 599)
+    truth = true_depth[px[inside, 1].astype(int), px[inside, 0].astype(int)]
+    rel = np.abs(zz[inside] / truth - 1)
+    print(f"shell points: {len(shell)}, within 2 % of the true depth: {(rel < 0.02).mean():.2f}")
+    assert (rel < 0.02).mean() > 0.5
+    disabled = FillConfig(room_shell=False)
+    off, _ = fill_points_in_world(
+        depth, cam.pose, disabled, min_depth_m=0.3, max_depth_m=12.0, room_box_m=(lo, hi)
+    )
+    n_filled, _ = fill_points_in_world(depth, cam.pose, disabled, min_depth_m=0.3, max_depth_m=12.0)
+    assert len(off) == len(n_filled)
