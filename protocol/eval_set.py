@@ -8,7 +8,7 @@ the sim's exact view from each person's eyes. Either way the reconstructor reads
 this one format, so the ground truth never depends on the code it judges.
 
 A set is a folder with ``eval_set.toml``, one session and calibration per scene, and the
-reference views' PNGs; every path is relative to the folder::
+reference views' PNGs; paths are relative to the folder (or absolute)::
 
     # EgoSurg evaluation set, format 1
     format_version = 1

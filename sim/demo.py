@@ -13,10 +13,13 @@ Stages so far:
    ``egosurg calibrate`` on it, and compare the recovered camera poses with the sim's truth;
 4. reconstruct one timestamp of the stage-2 session with that calibration (``egosurg
    reconstruct``), score it on the recorded views, and render what one of the people saw
-   (``egosurg render``) beside the simulator's ground-truth view from the same eyes.
+   (``egosurg render``) beside the simulator's ground-truth view from the same eyes;
+5. evaluate that timestamp as the paper does (``egosurg evaluate``): stage 2's session, the
+   calibration and every person's true egocentric view at that instant become an evaluation set
+   (``protocol/eval_set.py``), and the table compares depth reprojection, EgoSurg without
+   refinement and EgoSurg against those views.
 
-Later capabilities (evaluation) add their stages here, each run through the ``egosurg`` command
-as a user would run it.
+Each stage runs through the ``egosurg`` command as a user would run it.
 """
 
 from __future__ import annotations
@@ -25,12 +28,14 @@ import argparse
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from protocol.camera import Pose
+from protocol.eval_set import EvalScene, EvalSet, ReferenceView
 from protocol.rig_calibration import RigCalibration
 from protocol.session import SessionReader
 from protocol.wand import WandSpec
@@ -41,7 +46,7 @@ from sim.timing import ClockSpec
 from sim.truth import align_to_truth, calibration_errors, content_time_s, true_rig_calibration
 from sim.world import World
 
-STAGES = 4
+STAGES = 5
 
 
 def _stage(k: int, text: str) -> None:
@@ -153,9 +158,26 @@ def stage_calibration(out: Path, seed: int, record_s: float) -> Path | None:
     return calibration
 
 
+@dataclass(frozen=True)
+class DemoTimestamp:
+    """What stage 4 reconstructed, for stage 5."""
+
+    session: Path
+    calibration: Path
+    config: Path
+    set_index: int
+    t_content_s: float
+
+
+def room_bounds_m(world: World) -> tuple[float, ...]:
+    room = world.config.room
+    (x0, x1), (y0, y1) = room.x_range_m, room.y_range_m
+    return (x0, y0, 0.0, x1, y1, room.height_z_m)
+
+
 def stage_reconstruction(
     out: Path, seed: int, session: Path, files: SimRigFiles, calibration: Path | None, steps: int
-) -> None:
+) -> DemoTimestamp | None:
     _stage(4, "reconstruction: Gaussian splats of one timestamp, and a person's view of it")
     world = World.from_seed(seed, phase=files.spec.phase)
     truth = true_rig_calibration(world)
@@ -178,14 +200,18 @@ def stage_reconstruction(
     middle = np.abs((t_exposure * spec.content_fps) % 1.0 - 0.5)
     middle[: len(middle) // 3] = np.inf
     k = int(np.argmin(middle))
+    # the room's box, as a site measures it once: blank walls no stereo matcher can match are
+    # seen through to it (reconstructor/depth_fill.py)
+    config = recon / "site.toml"
+    config.write_text(f"room_bounds_m = {list(room_bounds_m(world))}\n")
     done = _egosurg(
         "reconstruct", str(session), "--calibration", str(cal_path), "--at", f"set:{k}",
-        "--out", str(recon), "--steps", str(steps), "--evaluate",
+        "--out", str(recon), "--steps", str(steps), "--evaluate", "--config", str(config),
     )  # fmt: skip
     runs = sorted(p for p in recon.iterdir() if (p / "splats.ply").exists())
     if done.returncode != 0 or not runs:
         print("      reconstruction failed; see the message above")
-        return
+        return None
     model = runs[-1] / "splats.ply"
     t_content = content_time_s(
         float(t_exposure[k]),
@@ -193,6 +219,7 @@ def stage_reconstruction(
         content_fps=spec.content_fps,
         prerender_s=spec.prerender_s,
     )
+    stamp = DemoTimestamp(session, cal_path, config, k, t_content)
     heads = world.head_poses(t_content)
     who = next((n for n in heads if "surgeon" in n), next(iter(heads)))
     eye = heads[who].centre_m
@@ -206,12 +233,12 @@ def stage_reconstruction(
         "--hfov", "90", "--size", "960x600", "--out", str(rendered_png),
     )  # fmt: skip
     if done.returncode != 0:
-        return
+        return stamp
     truth_rgb = world.render(cam, t_content).image_rgb
     bgr = cv2.imread(str(rendered_png))
     if bgr is None:
         print(f"      cannot read {rendered_png}")
-        return
+        return stamp
     rendered = bgr[:, :, ::-1]
     mse = float(np.mean((rendered.astype(np.float64) - truth_rgb.astype(np.float64)) ** 2))
     psnr_db = 10 * np.log10(255.0**2 / max(mse, 1e-9))
@@ -223,6 +250,53 @@ def stage_reconstruction(
     cv2.imwrite(str(side), pair)
     print(f"      {who}'s view, rendered vs the sim's ground truth: PSNR {psnr_db:.1f} dB")
     print(f"      wrote {side}")
+    return stamp
+
+
+def stage_evaluation(out: Path, seed: int, phase: str, stamp: DemoTimestamp, steps: int) -> None:
+    _stage(5, "evaluation: the paper's egocentric protocol on that timestamp")
+    world = World.from_seed(seed, phase=phase)
+    root = out / "evalset"
+    (root / "views").mkdir(parents=True, exist_ok=True)
+    views = []
+    for role, pose in world.head_poses(stamp.t_content_s).items():
+        name = f"{role}@{stamp.set_index}"
+        cam = world.virtual_camera(pose, hfov_deg=90.0, size_px=(960, 600), name=name)
+        image = world.render(cam, stamp.t_content_s).image_rgb
+        cv2.imwrite(str(root / "views" / f"{name}.png"), image[:, :, ::-1].copy())
+        views.append(
+            ReferenceView(
+                name=name,
+                kind="egocentric",
+                role=role,
+                set_index=stamp.set_index,
+                image=f"views/{name}.png",
+                camera=cam,
+            )
+        )
+    scene = EvalScene(
+        name="demo",
+        phase=phase,
+        session=str(stamp.session.resolve()),
+        calibration=str(stamp.calibration.resolve()),
+        eval_sets=(stamp.set_index,),
+        temporal_sets=(),
+        views=tuple(views),
+        room_bounds_m=room_bounds_m(world),
+    )
+    manifest = EvalSet(
+        root=root,
+        description=f"stage 2's session at set {stamp.set_index}, with the sim's egocentric views",
+        scenes=(scene,),
+    ).write()
+    print(f"      evaluation set: {manifest} ({len(views)} people's views)")
+    done = _egosurg(
+        "evaluate", str(root), "--out", str(out / "evaluation"), "--protocol", "egocentric",
+        "--methods", "depth-reprojection", "no-refinement", "egosurg",
+        "--steps", str(steps), "--train-width", "480",
+    )  # fmt: skip
+    if done.returncode != 0:
+        print("      evaluation failed; see the message above")
 
 
 def main(argv: list[str]) -> int:
@@ -247,6 +321,8 @@ def main(argv: list[str]) -> int:
     stage_sim(out, args.seed)
     session, files = stage_capture(out, args.seed, args.record_s)
     calibration = stage_calibration(out, args.seed, args.wand_s)
-    stage_reconstruction(out, args.seed, session, files, calibration, args.steps)
+    stamp = stage_reconstruction(out, args.seed, session, files, calibration, args.steps)
+    if stamp is not None:
+        stage_evaluation(out, args.seed, files.spec.phase, stamp, args.steps)
     print(f"demo finished in {time.perf_counter() - t0:.0f} s; everything is under {out}/")
     return 0

@@ -168,10 +168,15 @@ def test_demo_runs_every_stage(tmp_path):
         timeout=2300,
     )  # fmt: skip
     assert out.returncode == 0, out.stderr
-    assert "[3/4] calibration" in out.stdout and "[4/4] reconstruction" in out.stdout
+    assert "[3/5] calibration" in out.stdout and "[4/5] reconstruction" in out.stdout
     # stage 4 reconstructed a timestamp and put a person's view beside the truth
     assert list((tmp_path / "recon").glob("t*/splats.ply"))
     assert list((tmp_path / "recon").glob("*_view_vs_truth.png"))
+    # stage 5 printed the egocentric table of that timestamp, one row per method
+    assert "[5/5] evaluation" in out.stdout
+    for row in ("| Depth reprojection |", "| EgoSurg w/o refinement |", "| EgoSurg (guided"):
+        assert row in out.stdout, row
+    assert list((tmp_path / "evaluation" / "egocentric").glob("*.md"))
     mosaic = cv2.imread(str(tmp_path / "sim" / "rig_views.png"))
     assert mosaic.shape[0] > 4 * 200 and mosaic.shape[1] >= 2 * 480  # eight views, 4 x 2
     assert cv2.imread(str(tmp_path / "sim" / "room_topdown.png")) is not None
