@@ -17,8 +17,11 @@ After warm-up, for each input camera:
 
 The views are made once, after warm-up, and train with the input views for the rest of the
 schedule; ``aux_weight`` scales their loss relative to an input view's (the paper is silent:
-1.0). With ``save_pictures`` the run folder gets ``auxiliary_views.jpg``: reference | render |
-refined for a few auxiliary views (refined pixels outside the refiner's mask are dimmed).
+1.0), and ``input_share`` keeps half the refinement steps on the recorded views (the paper is
+silent; drawn uniformly, 4 recorded views among 60 auxiliary ones get one step in 16, and the
+model drifts toward corrected copies of its own early renders). With ``save_pictures`` the run
+folder gets ``auxiliary_views.jpg``: reference | render | refined for a few auxiliary views
+(refined pixels outside the refiner's mask are dimmed).
 """
 
 from __future__ import annotations
@@ -67,6 +70,8 @@ class AuxiliaryConfig:
     refiner: str = "guided"  # "guided", "difix", "none", or a plug-in
     refiner_weights: str = ""  # local weights path for a refiner that needs them
     aux_weight: float = 1.0  # loss weight of an auxiliary view relative to an input view
+    # share of the refinement steps on the recorded views (0: drawn like any auxiliary view)
+    input_share: float = 0.5
     seed: int = 0
     save_pictures: bool = True  # auxiliary_views.jpg in the run folder
     guided: GuidedConfig = field(default_factory=GuidedConfig)
@@ -98,6 +103,8 @@ class AuxiliaryConfig:
             raise bad("look_at_depth_m", "must be >= 0 (0: the median rendered depth)")
         if self.aux_weight < 0:
             raise bad("aux_weight", "must be >= 0")
+        if isinstance(self.input_share, bool) or not 0.0 <= self.input_share < 1.0:
+            raise bad("input_share", "must be in [0, 1)")
         if not isinstance(self.refiner, str) or not self.refiner:
             raise bad("refiner", "must name a refiner: guided, difix, none or a plug-in")
         if not isinstance(self.refiner_weights, str):

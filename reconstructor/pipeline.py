@@ -49,7 +49,7 @@ from reconstructor.gaussians import Gaussians, init_from_points, init_random
 from reconstructor.refiners import Refiner, load_refiner
 from reconstructor.stereo import DepthMap, compute_depth
 from reconstructor.stereo_plugins import load_matcher
-from reconstructor.train import StepStats, Trainer, scene_extent_m
+from reconstructor.train import StepStats, Trainer, ViewGroup, scene_extent_m
 from reconstructor.views import View, view_from_image
 
 log = logging.getLogger(__name__)
@@ -284,13 +284,26 @@ def reconstruct(
             }
             del aux_views  # the trainer's list holds them until the stage ends
         t0 = time.perf_counter()
-        trainer.run(
-            refine_views,
-            cfg.train.refine_steps,
-            stage="refinement",
-            progress=progress,
-            weights=weights,
-        )
+        share = cfg.auxiliary.input_share
+        if weights is not None and share > 0:
+            inputs, extra = refine_views[: len(train_views)], refine_views[len(train_views) :]
+            trainer.run_mixed(
+                [
+                    ViewGroup(inputs, share),
+                    ViewGroup(extra, 1.0 - share, cfg.auxiliary.aux_weight),
+                ],
+                cfg.train.refine_steps,
+                stage="refinement",
+                progress=progress,
+            )
+        else:
+            trainer.run(
+                refine_views,
+                cfg.train.refine_steps,
+                stage="refinement",
+                progress=progress,
+                weights=weights,
+            )
         timings["refinement"] = time.perf_counter() - t0
         del refine_views
         result = Reconstruction(

@@ -253,6 +253,56 @@ class Trainer:
                     1000 * stats.seconds,
                 )
 
+    def run_mixed(
+        self,
+        groups: Sequence[ViewGroup],
+        steps: int,
+        *,
+        stage: str = "train",
+        progress: Callable[[str, int, int, StepStats], None] | None = None,
+    ) -> None:
+        """``steps`` steps drawn from ``groups`` in proportion to their shares (each step goes to
+        the group furthest behind its share; within a group, shuffled passes over its views).
+
+        The refinement stage trains on the recorded views and on many more auxiliary views; a
+        share keeps the recorded views' part of the steps fixed however many auxiliary views
+        there are.
+        """
+        groups = [g for g in groups if g.views and g.share > 0]
+        if not groups:
+            raise ReconstructConfigError(f"{stage}: no views to train on")
+        total = sum(g.share for g in groups)
+        done = [0] * len(groups)
+        orders: list[list[int]] = [[] for _ in groups]
+        for k in range(steps):
+            j = max(range(len(groups)), key=lambda i: groups[i].share / total * (k + 1) - done[i])
+            done[j] += 1
+            if not orders[j]:
+                orders[j] = list(self._rng.permutation(len(groups[j].views)))
+            stats = self.step(groups[j].views[orders[j].pop()], groups[j].weight)
+            if progress is not None:
+                progress(stage, k + 1, steps, stats)
+            if cfg_log(self.config, k + 1, steps):
+                log.info(
+                    "%s step %d/%d: loss %.4f (L1 %.4f, SSIM %.4f), %.0f ms/step",
+                    stage,
+                    k + 1,
+                    steps,
+                    self.log.mean_loss(self.config.log_every_steps),
+                    stats.l1,
+                    stats.ssim,
+                    1000 * stats.seconds,
+                )
+
+
+@dataclass(frozen=True)
+class ViewGroup:
+    """Views drawn together: ``share`` of the steps, each step's loss times ``weight``."""
+
+    views: Sequence[View]
+    share: float
+    weight: float = 1.0
+
 
 def cfg_log(config: TrainConfig, k: int, steps: int) -> bool:
     every = max(config.log_every_steps, 1)

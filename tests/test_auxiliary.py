@@ -31,7 +31,7 @@ from reconstructor.pipeline import random_init_box, reconstruct
 from reconstructor.raster import RasterConfig
 from reconstructor.refiners import load_refiner
 from reconstructor.refiners.base import Refined, Refiner, RefineRequest
-from reconstructor.train import TrainConfig, Trainer, render, scene_extent_m
+from reconstructor.train import TrainConfig, Trainer, ViewGroup, render, scene_extent_m
 from reconstructor.views import View, view_from_image
 from tests.conftest import run_egosurg
 
@@ -296,6 +296,29 @@ def test_the_loss_weight_scales_a_views_image_loss(scene):
     assert moved[0.0] == 0.0 and moved[1.0] > 1e-4
     with pytest.raises(ValueError, match="1 weights for 2 views"):
         Trainer(g0.detach_clone(), cfg, raster, 3.0).run(views[:2], 1, weights=[1.0])
+
+
+def test_mixed_groups_keep_their_share_of_the_steps(scene):
+    """However many auxiliary views there are, the recorded views get their share of the steps,
+    each of them in turn (shuffled passes), and the auxiliary group's weight applies to it."""
+    views, g0 = scene
+    raster = RasterConfig()
+    cfg = TrainConfig(warmup_steps=0, refine_steps=40, random_background=False)
+    inputs = [dataclasses.replace(views[0], name=f"in{i}") for i in range(2)]
+    aux = [dataclasses.replace(views[1], name=f"aux{i}") for i in range(10)]
+    t = Trainer(g0.detach_clone(), cfg, raster, 3.0)
+    t.run_mixed([ViewGroup(inputs, 0.5), ViewGroup(aux, 0.5, 0.0)], 40)
+    names = [s.view for s in t.log.steps]
+    assert sum(n.startswith("in") for n in names) == 20
+    assert all(names.count(f"in{i}") == 10 for i in range(2))
+    assert all(names.count(f"aux{i}") == 2 for i in range(10))
+    # never more than one step off the share at any point
+    for k in range(1, 41):
+        assert abs(sum(n.startswith("in") for n in names[:k]) - k / 2) <= 1
+    with pytest.raises(ReconstructConfigError, match="no views"):
+        t.run_mixed([ViewGroup([], 1.0)], 1)
+    with pytest.raises(ReconstructConfigError, match="input_share"):
+        AuxiliaryConfig(input_share=1.0)
 
 
 # ---- the ablation switches -----------------------------------------------------------------
