@@ -70,7 +70,7 @@ PAPER_EGOCENTRIC = {  # Table 4: PSNR, SSIM, LPIPS
     "no-refinement": ((16.2, 2.0), (0.641, 0.057), (0.520, 0.054)),
     "egosurg": ((17.8, 2.0), (0.766, 0.026), (0.406, 0.062)),
 }
-REASON_TODO = "**Reason (for a human to fill in):** _not yet explained._"
+REASON_TO_FILL = "**Reason (for a human to fill in):** _not yet explained._"
 
 
 def _paper(p: P, metric: str) -> str:
@@ -121,7 +121,7 @@ def _ordering_lines(results: EvalResults, rows: list[Row], paper: dict, metrics)
         else:
             lines.append(
                 f"- **{label}: the paper's ordering does not hold.** Measured order, worst to "
-                f"best: {chain} ({paper_note}). {REASON_TODO}"
+                f"best: {chain} ({paper_note}). {REASON_TO_FILL}"
             )
     return lines
 

@@ -241,17 +241,20 @@ class Trainer:
             stats = self.step(views[i], 1.0 if weights is None else weights[i])
             if progress is not None:
                 progress(stage, k + 1, steps, stats)
-            if cfg_log(self.config, k + 1, steps):
-                log.info(
-                    "%s step %d/%d: loss %.4f (L1 %.4f, SSIM %.4f), %.0f ms/step",
-                    stage,
-                    k + 1,
-                    steps,
-                    self.log.mean_loss(self.config.log_every_steps),
-                    stats.l1,
-                    stats.ssim,
-                    1000 * stats.seconds,
-                )
+            self._log_step(stage, k + 1, steps, stats)
+
+    def _log_step(self, stage: str, k: int, steps: int, stats: StepStats) -> None:
+        if cfg_log(self.config, k, steps):
+            log.info(
+                "%s step %d/%d: loss %.4f (L1 %.4f, SSIM %.4f), %.0f ms/step",
+                stage,
+                k,
+                steps,
+                self.log.mean_loss(self.config.log_every_steps),
+                stats.l1,
+                stats.ssim,
+                1000 * stats.seconds,
+            )
 
     def run_mixed(
         self,
@@ -282,17 +285,7 @@ class Trainer:
             stats = self.step(groups[j].views[orders[j].pop()], groups[j].weight)
             if progress is not None:
                 progress(stage, k + 1, steps, stats)
-            if cfg_log(self.config, k + 1, steps):
-                log.info(
-                    "%s step %d/%d: loss %.4f (L1 %.4f, SSIM %.4f), %.0f ms/step",
-                    stage,
-                    k + 1,
-                    steps,
-                    self.log.mean_loss(self.config.log_every_steps),
-                    stats.l1,
-                    stats.ssim,
-                    1000 * stats.seconds,
-                )
+            self._log_step(stage, k + 1, steps, stats)
 
 
 @dataclass(frozen=True)
