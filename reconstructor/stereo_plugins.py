@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from reconstructor.errors import MatcherNotFoundError, MatcherWeightsError
+from reconstructor.plugins import find_factory
 
 if TYPE_CHECKING:
     from reconstructor.stereo import StereoConfig
@@ -226,31 +227,17 @@ def load_matcher(
 
 
 def _find_factory(name: str) -> Any:
-    if ":" in name:
-        module_name, _, attr = name.partition(":")
-        try:
-            return getattr(importlib.import_module(module_name), attr)
-        except (ImportError, AttributeError) as exc:
-            raise MatcherNotFoundError(
-                f"stereo matcher {name!r} cannot be imported ({exc}); give 'package.module:Class' "
-                "of an installed module, or a name from the entry-point group "
-                f"{ENTRY_POINT_GROUP!r}"
-            ) from None
-    eps = [ep for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP) if ep.name == name]
-    if not eps:
-        known = ", ".join(available_matchers())
-        raise MatcherNotFoundError(
-            f"no stereo matcher called {name!r}: installed matchers are {known}. A learned "
-            f"matcher is a plug-in package that registers an entry point in the group "
+    return find_factory(
+        name,
+        group=ENTRY_POINT_GROUP,
+        what="stereo matcher",
+        error=MatcherNotFoundError,
+        known=available_matchers(),
+        missing_hint=(
+            f"A learned matcher is a plug-in package that registers an entry point in the group "
             f"{ENTRY_POINT_GROUP!r}; install it (pip install <plug-in>) or use 'sgbm'"
-        )
-    try:
-        return eps[0].load()
-    except Exception as exc:  # a broken plug-in: say which one, keep the cause
-        raise MatcherNotFoundError(
-            f"stereo matcher {name!r} (entry point {eps[0].value!r} in group "
-            f"{ENTRY_POINT_GROUP!r}) failed to import: {exc}; reinstall the plug-in"
-        ) from exc
+        ),
+    )
 
 
 def _check_weights(name: str, weights_path: Path | None) -> None:

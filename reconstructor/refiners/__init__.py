@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from reconstructor.errors import RefinerNotFoundError, RefinerWeightsError
+from reconstructor.plugins import find_factory
 from reconstructor.refiners.base import IdentityRefiner, Refined, Refiner, RefineRequest
 from reconstructor.refiners.guided import GuidedConfig, GuidedRefiner
 
@@ -102,30 +103,17 @@ def _load_difix(weights_path: Path | None, config: object | None) -> Refiner:
 
 
 def _find_factory(name: str) -> Any:
-    if ":" in name:
-        module_name, _, attr = name.partition(":")
-        try:
-            return getattr(importlib.import_module(module_name), attr)
-        except (ImportError, AttributeError) as exc:
-            raise RefinerNotFoundError(
-                f"refiner {name!r} cannot be imported ({exc}); give 'package.module:Class' of an "
-                f"installed module, or a name from the entry-point group {ENTRY_POINT_GROUP!r}"
-            ) from None
-    eps = [ep for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP) if ep.name == name]
-    if not eps:
-        known = ", ".join(available_refiners())
-        raise RefinerNotFoundError(
-            f"no refiner called {name!r}: known refiners are {known}. Another refiner is a "
-            f"plug-in package that registers an entry point in the group {ENTRY_POINT_GROUP!r}; "
-            "install it (pip install <plug-in>) or use 'guided'"
-        )
-    try:
-        return eps[0].load()
-    except Exception as exc:  # a broken plug-in: say which one, keep the cause
-        raise RefinerNotFoundError(
-            f"refiner {name!r} (entry point {eps[0].value!r} in group {ENTRY_POINT_GROUP!r}) "
-            f"failed to import: {exc}; reinstall the plug-in"
-        ) from exc
+    return find_factory(
+        name,
+        group=ENTRY_POINT_GROUP,
+        what="refiner",
+        error=RefinerNotFoundError,
+        known=available_refiners(),
+        missing_hint=(
+            f"Another refiner is a plug-in package that registers an entry point in the group "
+            f"{ENTRY_POINT_GROUP!r}; install it (pip install <plug-in>) or use 'guided'"
+        ),
+    )
 
 
 def _check_weights(name: str, weights_path: Path | None, *, directory: bool = False) -> None:
