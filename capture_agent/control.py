@@ -46,12 +46,20 @@ def format_summary(s: dict[str, Any]) -> str:
         f"{s['frames']} frames, {s['bytes'] / 1e6:.1f} MB",
         f"file: {s['file']}",
         f"stopped: {s['reason']}",
-        "camera       frames  dropped  lost-in-transport  time-gaps  reconnects  missing-in-sets",
+        "camera       frames  dropped  lost-in-transport  time-gaps  reconnects  missing-in-sets"
+        "  not-written-at-stop",
     ]
     for serial, c in s["cameras"].items():
         lines.append(
             f"SN{serial:<10} {c['frames']:>6} {c['dropped']:>8} {c['transport_lost']:>18} "
-            f"{c['time_gaps']:>10} {c['reconnects']:>11} {c['missing_in_sets']:>16}"
+            f"{c['time_gaps']:>10} {c['reconnects']:>11} {c['missing_in_sets']:>16} "
+            f"{c.get('not_written_at_stop', 0):>20}"
+        )
+    unwritten = int(s.get("frames_not_written_at_stop", 0))
+    if unwritten:
+        lines.append(
+            f"{unwritten} frames were still queued when the recording had to stop "
+            f"({s['reason']}) and are not in the file"
         )
     if s.get("malformed_messages") or s.get("unknown_version_messages"):
         lines.append(

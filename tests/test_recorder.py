@@ -11,6 +11,7 @@ import zmq
 
 from capture_agent.accounting import StreamAccounting
 from capture_agent.config import AgentEndpoint, RigConfig
+from capture_agent.control import format_summary
 from capture_agent.recorder import RECEIVE_QUEUE_S, CameraLive, Recorder, receive_hwm
 from capture_agent.recording import Recording
 from capture_agent.sync import SyncConfig, Synchroniser
@@ -158,6 +159,12 @@ def test_a_stop_that_cannot_write_counts_what_it_leaves(queued):
         assert summary["cameras"][str(s)]["not_written_at_stop"] == take
     with SessionReader(summary["file"]) as r:
         assert r.info.closed_cleanly and r.verify() == []
+    # what 'egosurg record stop' prints: the operator sees the frames that are not in the file
+    printed = format_summary(summary)
+    assert f"{take * len(SERIALS)} frames were still queued" in printed
+    for s in SERIALS:
+        row = next(line for line in printed.splitlines() if line.startswith(f"SN{s}"))
+        assert row.split()[-1] == str(take)
 
 
 def test_the_receive_queue_holds_seconds_of_the_busiest_agent(tmp_path):
