@@ -160,6 +160,7 @@ def main(argv: list[str]) -> int:
 
     obs = extract(args.session, wand, ExtractConfig(max_sets=args.max_sets), progress=progress)
     print(file=sys.stderr)
+    t_detect = time.perf_counter() - t0
     used = obs.frames_used()
     for key in obs.sensors:
         rej = obs.rejected.get(key, {})
@@ -168,6 +169,7 @@ def main(argv: list[str]) -> int:
             + (f"; rejected: {', '.join(f'{r} {n}' for r, n in rej.items())}" if rej else "")
         )
     solution = solve(obs, SolveConfig())
+    t_solve = time.perf_counter() - t0 - t_detect
     thresholds = Thresholds(min_coverage_cells=args.min_coverage_cells, min_frames=args.min_frames)
     frames = {
         key.name: (used[key], sum(obs.rejected.get(key, {}).values()), obs.rejected.get(key, {}))
@@ -223,6 +225,11 @@ def main(argv: list[str]) -> int:
     exports.export_opencv_yaml(cal, report_dir / "calibration_opencv.yaml")
     exports.export_colmap(cal, report_dir / "colmap")
     exports.export_nerfstudio(cal, report_dir / "transforms.json")
+    t_total = time.perf_counter() - t0
+    print(
+        f"timings: detection {t_detect:.1f} s ({obs.frames_decoded} images), solve "
+        f"{t_solve:.1f} s, report {t_total - t_detect - t_solve:.1f} s, total {t_total:.1f} s"
+    )
     print(
         f"wrote {out}, the report {html} and exports in {report_dir} "
         f"({time.perf_counter() - t0:.0f} s)"

@@ -2,21 +2,32 @@
 
 Steps:
 1. read each camera's factory file from the session (intrinsics and the ZED's own stereo pose);
-2. fit a background per sensor from frames spread over the session (the wand moves, the room
-   mostly does not);
+2. fit a background per sensor, the temporal median of frames spread over the session (the
+   wand moves, the room mostly does not; ``calibration.background``);
 3. for the chosen synchronised sets, detect the spheres in every sensor's image, label them from
    the wand's unequal spacing, and keep a camera's pair only if its own stereo triangulation gives
    the wand's geometry back; every rejection is counted with its reason.
 
 Sets are taken by capture-time synchronisation (the session's set table, tolerance half a frame
-period). Decoding an HD1200 JPEG costs about 10 ms, so long sessions are subsampled evenly to at
-most ``max_sets`` sets (the first seconds, where the wand may lie on the floor, are always kept),
-and the work is spread over processes.
+period). Free-running cameras expose up to half a frame apart, so each camera's observation is
+brought to its set's time along the camera's own neighbouring frame (interpolated; or
+extrapolated by at most half a frame, see below).
+
+Cost: decoding an HD1200 JPEG takes about 18 ms, whatever else is done, and detection about as
+much again; a 2-minute session at 30 fps holds 28 800 images. So long sessions are subsampled to
+at most ``max_sets`` sets, evenly in time, in runs of ``run_length`` consecutive sets (the first
+``keep_first_s`` seconds, where the wand may lie on the floor, are always kept whole). Within a
+run the frames of one set are the time-alignment neighbours of the next, so a run of L sets costs
+L decoded frames per camera rather than 2L: the run's first or last set is extrapolated from the
+frame after or before it (by at most half a frame; at 30 fps that moves a sphere by 0.06 mm in
+the median, against 0.04 mm for interpolation, on the simulator's wand). The work is spread over
+processes.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import os
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -25,6 +36,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from calibration.background import temporal_median
 from calibration.detect import DetectorConfig, SphereDetector
 from calibration.label import label_stereo, label_wand, refit_without_rod
 from calibration.observations import SIDES, SensorKey, WandObservations
@@ -44,6 +56,7 @@ class ExtractionError(UserError, ValueError):
 @dataclass(frozen=True, kw_only=True)
 class ExtractConfig:
     max_sets: int = 600
+    run_length: int = 2  # consecutive sets taken together (see the module docstring)
     keep_first_s: float = 3.0  # always keep every set of the first seconds (wand on the floor)
     background_frames: int = 15
     workers: int = 0  # 0: one per core, at most 2 on the reference workstation
@@ -52,6 +65,15 @@ class ExtractConfig:
     def __post_init__(self) -> None:
         if self.max_sets < 10:
             raise ExtractionError(f"max_sets={self.max_sets} is too small to calibrate from")
+        if not 1 <= self.run_length <= self.max_sets // 4:
+            raise ExtractionError(
+                f"run_length={self.run_length} must be between 1 and max_sets/4 "
+                f"({self.max_sets // 4})"
+            )
+        if not 3 <= self.background_frames <= 63:
+            raise ExtractionError(
+                f"background_frames={self.background_frames} must be between 3 and 63"
+            )
 
 
 def session_stereo(reader: SessionReader) -> dict[int, StereoCalibration]:
@@ -79,14 +101,43 @@ def session_stereo(reader: SessionReader) -> dict[int, StereoCalibration]:
 
 
 def choose_sets(set_unix_ns: np.ndarray, config: ExtractConfig) -> np.ndarray:
+    """Rows of the set table to use: all of them, or ``max_sets`` of them: the first
+    ``keep_first_s`` seconds whole, then runs of ``run_length`` consecutive sets spread evenly."""
     n = len(set_unix_ns)
     if n <= config.max_sets:
         return np.arange(n)
     early = np.flatnonzero(set_unix_ns - set_unix_ns[0] <= config.keep_first_s * 1e9)
-    rest = np.setdiff1d(np.arange(n), early)
-    budget = max(config.max_sets - len(early), 1)
-    pick = rest[np.linspace(0, len(rest) - 1, min(budget, len(rest))).round().astype(int)]
-    return np.unique(np.concatenate([early, pick]))
+    early = early[: config.max_sets // 2]
+    first = int(early[-1]) + 1 if len(early) else 0
+    length = config.run_length
+    n_runs = max((config.max_sets - len(early)) // length, 1)
+    last_start = max(n - length, first)
+    starts = np.linspace(first, last_start, n_runs).round().astype(int)
+    pick = (starts[:, None] + np.arange(length)[None, :]).ravel()
+    return np.unique(np.concatenate([early, pick[pick < n]]))
+
+
+def split_runs(chosen: np.ndarray, n_chunks: int) -> list[np.ndarray]:
+    """``chosen`` (sorted rows) cut into about ``n_chunks`` pieces of similar size, never inside
+    a run of consecutive rows shorter than a piece (its frames align each other in time)."""
+    if len(chosen) == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(chosen) != 1) + 1
+    runs = np.split(chosen, breaks)
+    target = max(1, math.ceil(len(chosen) / max(n_chunks, 1)))
+    chunks: list[np.ndarray] = []
+    current: list[np.ndarray] = []
+    size = 0
+    for run in runs:
+        for piece in np.array_split(run, max(1, len(run) // target)):
+            current.append(piece)
+            size += len(piece)
+            if size >= target:
+                chunks.append(np.concatenate(current))
+                current, size = [], 0
+    if current:
+        chunks.append(np.concatenate(current))
+    return chunks
 
 
 def _decode(buf: bytes, cam: CameraInfo) -> np.ndarray:
@@ -100,9 +151,31 @@ def _decode(buf: bytes, cam: CameraInfo) -> np.ndarray:
         ) from exc
 
 
-def _work(args: tuple) -> tuple[np.ndarray, dict[str, dict[str, int]]]:
-    """Detect, label and time-align in a chunk of sets (runs in a worker process)."""
-    path, set_rows, wand_mm, detector_cfg, backgrounds = args
+_BACKGROUNDS: dict[tuple[int, str], np.ndarray] = {}  # a worker's copy, set once per process
+
+
+def _set_backgrounds(backgrounds: dict[tuple[int, str], np.ndarray]) -> None:
+    _BACKGROUNDS.clear()
+    _BACKGROUNDS.update(backgrounds)
+
+
+def _background_work(args: tuple) -> tuple[int, np.ndarray, np.ndarray]:
+    """One camera's two backgrounds: the median of its frames at ``rows`` (a worker process)."""
+    path, serial, rows = args
+    cv2.setNumThreads(1)
+    with SessionReader(path) as reader:
+        cam = reader.info.camera(serial)
+        frames: tuple[list[np.ndarray], list[np.ndarray]] = ([], [])
+        for r in rows:
+            for side_frames, buf in zip(frames, reader.frame_bytes(serial, int(r)), strict=True):
+                side_frames.append(_decode(buf, cam))
+    return serial, temporal_median(frames[0]), temporal_median(frames[1])
+
+
+def _work(args: tuple) -> tuple[np.ndarray, dict[str, dict[str, int]], int]:
+    """Detect, label and time-align in a chunk of sets (runs in a worker process); the points,
+    the rejections and the number of frames decoded."""
+    path, set_rows, wand_mm, detector_cfg = args
     wand = WandSpec(sphere_diameter_mm=wand_mm[0], sphere_positions_mm=tuple(wand_mm[1]))
     cv2.setNumThreads(1)
     with SessionReader(path) as reader:
@@ -116,9 +189,13 @@ def _work(args: tuple) -> tuple[np.ndarray, dict[str, dict[str, int]]]:
             for side in SIDES:
                 intr = stereo[serial].left if side == "left" else stereo[serial].right
                 det = SphereDetector(intr, wand.radius_m, detector_cfg)
-                # the median was taken in the parent; the median of copies of it is itself
-                det.fit_background([backgrounds[(serial, side)]] * 3)
+                det.set_background(_BACKGROUNDS[(serial, side)])
                 detectors[(serial, side)] = det
+        # the frames this chunk decodes anyway: each other's neighbours for the time alignment
+        planned = {
+            serial: {int(r) for r in sets.members[set_rows, c] if r >= 0}
+            for c, serial in enumerate(serials)
+        }
         cache: dict[tuple[int, int], tuple[np.ndarray | None, str]] = {}
 
         def observe(serial: int, row: int) -> tuple[np.ndarray | None, str]:
@@ -158,25 +235,36 @@ def _work(args: tuple) -> tuple[np.ndarray, dict[str, dict[str, int]]]:
                     reject(serial, reason)
                     continue
                 # Free-running cameras expose up to half a frame apart; bring every camera's
-                # observation to the set's reference time by interpolating along its own
-                # neighbouring frame, so a moving wand is seen at one instant by all cameras.
+                # observation to the set's reference time along its own neighbouring frame, so
+                # a moving wand is seen at one instant by all cameras.
                 t_here = int(stamps[serial][row])
                 if abs(t_ref - t_here) < ALIGN_EXACT_NS:
                     points[i, 2 * c : 2 * c + 2] = here
                     continue
-                other = row + 1 if t_ref > t_here else row - 1
-                if not 0 <= other < len(stamps[serial]) or (
-                    abs(int(stamps[serial][other]) - t_here) > 1.5 * period[serial]
-                ):  # the neighbour was dropped: nothing to interpolate with
-                    reject(serial, "no neighbouring frame to align in time")
+                step = 1 if t_ref > t_here else -1
+                # interpolate with the frame on the far side of the set's time; where only the
+                # frame on the near side is decoded anyway (the end of a run), extrapolate
+                neighbours = [row + step, row - step]
+                if row + step not in planned[serial] and row - step in planned[serial]:
+                    neighbours.reverse()
+                aligned, why = None, "no neighbouring frame to align in time"
+                for other in neighbours:
+                    if not 0 <= other < len(stamps[serial]) or (
+                        abs(int(stamps[serial][other]) - t_here) > 1.5 * period[serial]
+                    ):  # the neighbour was dropped: nothing to align with
+                        continue
+                    there, reason = observe(serial, other)
+                    if there is None:
+                        why = f"neighbour frame: {reason}"
+                        continue
+                    w = (t_ref - t_here) / (int(stamps[serial][other]) - t_here)
+                    aligned = here + w * (there - here)
+                    break
+                if aligned is None:
+                    reject(serial, why)
                     continue
-                there, reason = observe(serial, other)
-                if there is None:
-                    reject(serial, f"neighbour frame: {reason}")
-                    continue
-                w = (t_ref - t_here) / (int(stamps[serial][other]) - t_here)
-                points[i, 2 * c : 2 * c + 2] = here + w * (there - here)
-    return points, rejected
+                points[i, 2 * c : 2 * c + 2] = aligned
+    return points, rejected, len(cache)
 
 
 ALIGN_EXACT_NS = 200_000  # closer than this to the set's time: use the frame as it is
@@ -196,14 +284,16 @@ def extract(
         if len(sets.set_unix_ns) == 0:
             raise ExtractionError(f"{session_path} holds no synchronised sets to calibrate from")
         chosen = choose_sets(sets.set_unix_ns, cfg)
-        backgrounds = {}
+        background_rows = {}
         for serial in serials:
             n = reader.frame_count(serial)
             rows = np.linspace(0, n - 1, min(cfg.background_frames, n)).round().astype(int)
-            for s, side in enumerate(SIDES):
-                cam = reader.info.camera(serial)
-                frames = [_decode(reader.frame_bytes(serial, int(r))[s], cam) for r in rows]
-                backgrounds[(serial, side)] = np.median(np.stack(frames), axis=0).astype(np.uint8)
+            background_rows[serial] = np.unique(rows)
+            if len(background_rows[serial]) < 3:
+                raise ExtractionError(
+                    f"camera SN{serial} recorded only {n} frames in {session_path}: too few to "
+                    "calibrate from; record the wand for a minute or two"
+                )
         frames_seen = {
             SensorKey(serial, side): int((sets.members[chosen, c] >= 0).sum())
             for c, serial in enumerate(serials)
@@ -215,24 +305,36 @@ def extract(
             for side in SIDES
         }
     workers = cfg.workers or min(2, os.cpu_count() or 1)
-    chunks = [c for c in np.array_split(chosen, max(1, workers * 4)) if len(c)]
     wand_mm = (wand.sphere_diameter_mm, list(wand.sphere_positions_mm))
-    jobs = [(session_path, chunk, wand_mm, cfg.detector, backgrounds) for chunk in chunks]
+    bg_jobs = [(session_path, serial, background_rows[serial]) for serial in serials]
+    chunks = split_runs(chosen, max(1, workers * 4))
+    jobs = [(session_path, chunk, wand_mm, cfg.detector) for chunk in chunks]
+    backgrounds: dict[tuple[int, str], np.ndarray] = {}
     results = []
     if workers == 1:
+        for serial, left, right in map(_background_work, bg_jobs):
+            backgrounds[(serial, "left")], backgrounds[(serial, "right")] = left, right
+        _set_backgrounds(backgrounds)
         for k, job in enumerate(jobs):
             results.append(_work(job))
             if progress:
                 progress(k + 1, len(jobs))
     else:
         with ProcessPoolExecutor(max_workers=workers) as pool:
+            for serial, left, right in pool.map(_background_work, bg_jobs):
+                backgrounds[(serial, "left")], backgrounds[(serial, "right")] = left, right
+        # a second pool, so each worker receives the backgrounds once rather than with every job
+        with ProcessPoolExecutor(
+            max_workers=workers, initializer=_set_backgrounds, initargs=(backgrounds,)
+        ) as pool:
             for k, res in enumerate(pool.map(_work, jobs)):
                 results.append(res)
                 if progress:
                     progress(k + 1, len(jobs))
     points = np.concatenate([r[0] for r in results])
+    decoded = sum(r[2] for r in results)
     rejected: dict[SensorKey, dict[str, int]] = {}
-    for _, rej in results:
+    for _, rej, _ in results:
         for name, reasons in rej.items():
             serial = int(name[2:])
             for side in SIDES:
@@ -248,8 +350,10 @@ def extract(
         rejected=rejected,
         frames_seen=frames_seen,
         image_size=sizes,
+        frames_decoded=2 * decoded,
     )
     used = obs.frames_used()
     for key in obs.sensors:
         log.info("%s: wand found in %d of %d sets", key.name, used[key], frames_seen[key])
+    log.info("%d sets from %d decoded images", len(chosen), 2 * decoded)
     return obs

@@ -49,6 +49,7 @@ class WandObservations:
     rejected: dict[SensorKey, dict[str, int]] = field(default_factory=dict)
     frames_seen: dict[SensorKey, int] = field(default_factory=dict)
     image_size: dict[SensorKey, tuple[int, int]] = field(default_factory=dict)
+    frames_decoded: int = 0  # images decoded to find the wand (for timing reports)
 
     def __post_init__(self) -> None:
         n, s = len(self.set_unix_ns), len(self.sensors)

@@ -7,15 +7,13 @@ time allocating temporaries (about 4x slower at HD1200, see BENCHMARKS.md).
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
-# TBB in some images is too old for Numba and warns on first use; OpenMP is thread-safe and present
-# wherever gcc's runtime is. Users can still override with NUMBA_THREADING_LAYER.
-os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
+from protocol.numba_threads import use_openmp_threads
 
-from numba import njit, prange
+use_openmp_threads()
+
+from numba import njit, prange  # noqa: E402
 
 
 @njit(parallel=True, cache=True, fastmath=True)

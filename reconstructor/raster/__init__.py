@@ -8,17 +8,11 @@ conventions and the maths.
 
 from __future__ import annotations
 
-import os
+from protocol.numba_threads import use_openmp_threads
 
-import numba
+use_openmp_threads()  # before any kernel of this package is compiled or launched
 
-# Numba's default layer picks TBB when present, which clashes with the TBB torch/open3d load;
-# OpenMP is safe next to them. Select it before any kernel of this package is compiled or
-# launched; NUMBA_THREADING_LAYER still overrides.
-if "NUMBA_THREADING_LAYER" not in os.environ:
-    numba.config.THREADING_LAYER = "omp"  # type: ignore[attr-defined]
-
-from reconstructor.raster.config import RasterConfig, RenderOutput
-from reconstructor.raster.function import rasterize
+from reconstructor.raster.config import RasterConfig, RenderOutput  # noqa: E402
+from reconstructor.raster.function import rasterize  # noqa: E402
 
 __all__ = ["RasterConfig", "RenderOutput", "rasterize"]
