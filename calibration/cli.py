@@ -129,8 +129,9 @@ def main(argv: list[str]) -> int:
     parser.add_argument(
         "--max-sets",
         type=int,
-        default=600,
-        help="synchronised sets to use, spread over the session (default 600)",
+        default=ExtractConfig().max_sets,
+        help="synchronised sets to use, spread over the session (default %(default)s; more "
+        "costs time for little accuracy, see BENCHMARKS.md 'Wand calibration')",
     )
     parser.add_argument(
         "--min-coverage-cells",
