@@ -19,7 +19,7 @@ turn, best of ``--repeat`` runs each. Prints a Markdown table: ms per image, lab
 centre error against the truth (labelled spheres that are whole in the image, and all labelled
 spheres) and how far the default path's final centres lie from the reference path's; and the
 default path's first call in the process (numba compiling its kernels, about 10 s, or loading
-them from the cache next to calibration/detect.py, well under a second).
+them from the cache next to calibration/detect_kernels.py, well under a second).
 """
 
 from __future__ import annotations

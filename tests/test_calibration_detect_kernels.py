@@ -1,10 +1,11 @@
 """The wand detector's numba kernels against their slow, obvious numpy twins.
 
-Each fast kernel in ``calibration.detect`` has a reference (the numpy code it replaced, or
-numpy/cv2 itself) that ``DetectorConfig(kernels="numpy")`` runs; here each pair is fed the same
-synthetic inputs (anti-aliased discs of the spheres' colour over a textured room, a lens with
-distortion, outliers like the wand's rod) and must agree within the stated tolerances. The
-detector on simulator frames, both ways, is compared in tests/test_calibration_detect.py.
+Each fast kernel in ``calibration.detect_kernels`` has a reference (the numpy code it replaced,
+in ``calibration.detect``, or numpy/cv2 itself) that ``DetectorConfig(kernels="numpy")`` runs;
+here each pair is fed the same synthetic inputs (anti-aliased discs of the spheres' colour over a
+textured room, a lens with distortion, outliers like the wand's rod) and must agree within the
+stated tolerances. The detector on simulator frames, both ways, is compared in
+tests/test_calibration_detect.py.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 import pytest
 
 from calibration import detect as D
+from calibration import detect_kernels as K
 from calibration.detect import DetectorConfig, SphereDetector, project_directions
 from protocol.camera import Intrinsics
 
@@ -70,7 +72,7 @@ def test_bilinear_kernel_matches_numpy():
     img = rng.random((23, 31, 4)).astype(np.float32)
     pts = np.column_stack([rng.uniform(-2, 33, 500), rng.uniform(-2, 25, 500)])
     pts[:5] = np.array([[0, 0], [30, 22], [29.9999, 21.9999], [15, 11], [-0.0, 22]])  # corners
-    fast, inside_fast = D._bilinear_nb(img, pts)
+    fast, inside_fast = K._bilinear_nb(img, pts)
     slow, inside_slow = D._bilinear(img, pts)
     assert (inside_fast == inside_slow).all()
     # the reference interpolates in float32
@@ -83,13 +85,13 @@ def test_least_squares_median_and_null_vector_helpers_match_numpy():
         M = rng.normal(size=(n, 3)) * [0.01, 0.01, 1.0] + [0.3, -0.2, 0.0]
         b = rng.normal(size=n)
         ref = np.linalg.lstsq(M, b, rcond=None)[0]
-        assert np.allclose(D._lstsq_nb(M, b), ref, rtol=1e-9, atol=1e-12)
+        assert np.allclose(K._lstsq_nb(M, b), ref, rtol=1e-9, atol=1e-12)
         v = rng.normal(size=n)
-        assert D._median_nb(v) == np.median(v)  # the same value, odd or even n
+        assert K._median_nb(v) == np.median(v)  # the same value, odd or even n
         M6 = rng.normal(size=(n, 6))
         M6[:, 5] = M6[:, :5] @ rng.normal(size=5) + 1e-3 * rng.normal(size=n)  # nearly singular
         ref6 = np.linalg.svd(M6, full_matrices=False)[2][-1]
-        got = D._smallest_right_singular_vector_nb(M6)
+        got = K._smallest_right_singular_vector_nb(M6)
         assert abs(abs(float(got @ ref6)) - 1.0) < 1e-10
 
 
@@ -205,7 +207,7 @@ def test_colour_table_is_exactly_cv2s_colour_test():
     rng = np.random.default_rng(5)
     colours = rng.integers(0, 256, (200_000, 1, 3), dtype=np.uint8)
     colours[:4096, 0] = np.array(SPHERE_BGR) + rng.integers(-40, 40, (4096, 3))  # near orange
-    table = D._colour_table(det._hsv_bounds())
+    table = K._colour_table(det._hsv_bounds())
     idx = (colours[:, 0, 0].astype(np.int64) << 16) | (colours[:, 0, 1].astype(np.int64) << 8)
     idx |= colours[:, 0, 2]
     looked_up = (table[idx >> 3] >> (idx & 7)) & 1

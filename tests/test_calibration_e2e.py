@@ -4,11 +4,13 @@ processes, calibrated by the real `egosurg calibrate`, checked against the simul
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from protocol.camera import Pose
 from protocol.rig_calibration import RigCalibration
 from protocol.session import CameraInfo, SessionReader, SessionWriter
 from protocol.wand import WandSpec
@@ -52,13 +54,19 @@ def wand_file(tmp_path_factory) -> Path:
     return path
 
 
-def test_calibration_recovers_the_true_rig(wand_session, wand_file, tmp_path):
-    out = tmp_path / "calibration.toml"
+@pytest.fixture(scope="module")
+def calibrated(wand_session, wand_file, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("calibrated") / "calibration.toml"
     done = run_egosurg(
         "calibrate", str(wand_session), "--wand", str(wand_file), "--out", str(out), timeout=900
-    )
+    )  # fmt: skip
     assert done.returncode == 0, done.stderr + done.stdout
-    cal = RigCalibration.read(out)
+    assert "timings: detection" in done.stdout
+    return out
+
+
+def test_calibration_recovers_the_true_rig(calibrated, wand_session, wand_file):
+    cal = RigCalibration.read(calibrated)
     truth = true_rig_calibration(World.from_seed(SEED, phase="wand"))
     errors = calibration_errors(cal, truth)
     for e in errors:
@@ -74,17 +82,74 @@ def test_calibration_recovers_the_true_rig(wand_session, wand_file, tmp_path):
     # the wand lay on the floor first: z = 0 is the floor, so camera heights are the truth's
     assert cal.world_frame == "floor"
     assert max(abs(e.height_mm) for e in errors) < 5.0
-    report = tmp_path / "calibration_report"
+    report = calibrated.with_name("calibration_report")
     assert (report / "report.html").exists() and (report / "colmap" / "cameras.txt").exists()
     assert (report / "transforms.json").exists() and (report / "calibration_opencv.yaml").exists()
 
     # the same session checked against its own calibration: no drift
-    done = run_egosurg(
-        "calibrate", str(wand_session), "--wand", str(wand_file), "--check", str(out),
-        "--max-sets", "120", timeout=900,
-    )  # fmt: skip
+    done = _check(wand_session, wand_file, calibrated)
     assert done.returncode == 0, done.stdout + done.stderr
     assert "drift check: OK" in done.stdout
+
+
+def _check(session: Path, wand_file: Path, old: Path):
+    """``egosurg calibrate --check OLD`` on 120 of the session's sets."""
+    return run_egosurg(
+        "calibrate", str(session), "--wand", str(wand_file), "--check", str(old),
+        "--max-sets", "120", timeout=900,
+    )  # fmt: skip
+
+
+def _moved(cal: RigCalibration, serial: int, shift_m: np.ndarray) -> RigCalibration:
+    """``cal`` with camera ``serial`` (both sensors) moved by ``shift_m`` in the world."""
+    sensors = []
+    for s in cal.sensors:
+        if s.camera_serial == serial:
+            s = replace(s, pose=Pose(R=s.pose.R, t_m=s.pose.t_m - s.pose.R @ shift_m))
+        sensors.append(s)
+    return replace(cal, sensors=tuple(sensors))
+
+
+def test_the_drift_check_names_a_camera_that_moved(calibrated, wand_session, wand_file, tmp_path):
+    """An old calibration in which one camera stood 12 mm away: a new wand session shows it."""
+    cal = RigCalibration.read(calibrated)
+    serial = cal.sensors[4].camera_serial
+    old = tmp_path / "old.toml"
+    _moved(cal, serial, np.array([0.012, 0.0, 0.0])).write(old)
+    done = _check(wand_session, wand_file, old)
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "RECALIBRATE" in done.stdout
+    moved = [line for line in done.stdout.splitlines() if line.rstrip().endswith("MOVED")]
+    assert moved and all(f"SN{serial}" in line for line in moved), done.stdout
+
+
+def test_refine_keeps_the_old_world_frame(calibrated, wand_session, wand_file, tmp_path):
+    """--refine solves a new (here: shorter) wand session and writes it in the old calibration's
+    world frame, with the heading the old one chose, so everything placed with it stays put."""
+    cal = RigCalibration.read(calibrated)
+    # the old calibration's world turned by 30 degrees about the vertical and shifted
+    c, s30 = np.cos(np.radians(30.0)), np.sin(np.radians(30.0))
+    turn = Pose(
+        R=np.array([[c, -s30, 0.0], [s30, c, 0.0], [0.0, 0.0, 1.0]]), t_m=np.array([0.4, -0.2, 0.0])
+    )
+    turned = replace(
+        cal,
+        sensors=tuple(replace(s, pose=s.pose.compose(turn.inverse())) for s in cal.sensors),
+    )
+    old = tmp_path / "old.toml"
+    turned.write(old)
+    new = tmp_path / "refined.toml"
+    done = run_egosurg(
+        "calibrate", str(wand_session), "--wand", str(wand_file), "--refine", str(old),
+        "--out", str(new), "--max-sets", "120", timeout=900,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "camera drift against the old calibration" in done.stdout
+    refined = RigCalibration.read(new)
+    for s in refined.sensors:
+        before = turned.sensor(s.camera_serial, s.side).pose
+        assert np.linalg.norm(s.pose.centre_m - before.centre_m) < 0.002, s.name
+        assert np.degrees(np.arccos(min(1.0, (np.trace(s.pose.R @ before.R.T) - 1) / 2))) < 0.05
 
 
 def test_a_wand_that_does_not_match_the_detections_is_named(wand_session, tmp_path):
