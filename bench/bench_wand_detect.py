@@ -47,31 +47,6 @@ JPEG_PARAMS = [
 ]
 
 
-def _whole(render, k: int, centre_px: np.ndarray, z_m: float, radius_m: float, rod: int) -> bool:
-    """Sphere k is whole in the image and nothing but the wand's rod lies in front of it (as
-    ``tests/test_calibration_detect.py`` decides it)."""
-    from sim.render import SPHERE_OBJECT_BASE
-
-    oi = render.object_index
-    H, W = oi.shape
-    r = render.camera.intrinsics.fx_px * radius_m / z_m
-    u, v = centre_px
-    m = int(r) + 4
-    if not (m <= u < W - m and m <= v < H - m):
-        return False
-    y0, x0 = int(v) - m, int(u) - m
-    ys, xs = np.mgrid[y0 : y0 + 2 * m + 1, x0 : x0 + 2 * m + 1]
-    d = np.hypot(xs - u, ys - v)
-    win = oi[y0 : y0 + 2 * m + 1, x0 : x0 + 2 * m + 1]
-    ours = (win == SPHERE_OBJECT_BASE + k) | (win == rod)
-    if (win == SPHERE_OBJECT_BASE + k).sum() < 0.6 * math.pi * r * r:
-        return False
-    if not ours[d <= r - 0.8].all():
-        return False
-    near = win[d <= r + 2.5]
-    return not ((near >= SPHERE_OBJECT_BASE) & (near != SPHERE_OBJECT_BASE + k)).any()
-
-
 def _encode(image_rgb: np.ndarray) -> np.ndarray:
     ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(image_rgb[:, :, ::-1]), JPEG_PARAMS)
     assert ok
@@ -81,9 +56,9 @@ def _encode(image_rgb: np.ndarray) -> np.ndarray:
 def build_cache(cache: Path) -> None:
     """Render the frames and store them (JPEG) with the truth, one .npz per sensor."""
     from sim import World
+    from sim.truth import wand_sphere_whole
 
     world = World.from_seed(5, phase="wand")
-    radius = world.config.wand.radius_m
     cache.mkdir(parents=True, exist_ok=True)
     for unit in UNITS:
         for side in SIDES:
@@ -98,12 +73,10 @@ def build_cache(cache: Path) -> None:
                 r = world.render_sensor(unit, side, t)
                 centres = world.wand_centres(t)
                 assert centres is not None
-                px, z = cam.project(centres)
-                objects = world.scene_at(t).objects
-                rod = next(i for i, o in enumerate(objects) if o.name == "wand_rod")
+                px, _ = cam.project(centres)
                 jpegs.append(_encode(r.image_rgb))
                 truth.append(px)
-                whole.append([_whole(r, k, px[k], z[k], radius, rod) for k in range(3)])
+                whole.append([wand_sphere_whole(world, r, t, k) for k in range(3)])
             arrays: dict[str, np.ndarray] = {f"bg{i}": b for i, b in enumerate(bg)}
             arrays.update({f"frame{i}": j for i, j in enumerate(jpegs)})
             arrays.update(

@@ -9,13 +9,15 @@ be scored against it.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from protocol.camera import Pose, Resolution
 from protocol.rig_calibration import RigCalibration, SensorCalibration
-from sim.world import World
+from sim.render import SPHERE_OBJECT_BASE
+from sim.world import Render, World
 
 
 def true_rig_calibration(
@@ -119,3 +121,33 @@ def content_time_s(t_sim_s: float, *, fps: float, content_fps: float, prerender_
         return float(t_sim_s % loop_s)
     count = int(np.ceil(prerender_s * content_fps))
     return float((int(np.floor(t_sim_s * content_fps)) % count) / content_fps)
+
+
+def wand_sphere_whole(world: World, render: Render, t_s: float, k: int) -> bool:
+    """Wand sphere ``k`` is whole in ``render`` (a view of ``world`` at ``t_s``): not cut by the
+    image border, nothing in front of it but the wand's own rod (it runs through the spheres and,
+    where it leaves one towards the camera, crosses a little of its outline on every real wand
+    too), no other sphere next to it: where a detector's centre can be held to the truth."""
+    centres = world.wand_centres(t_s)
+    if centres is None:
+        return False
+    px, z = render.camera.project(centres[k : k + 1])
+    rod = next(i for i, o in enumerate(world.scene_at(t_s).objects) if o.name == "wand_rod")
+    oi = render.object_index
+    H, W = oi.shape
+    r = render.camera.intrinsics.fx_px * world.config.wand.radius_m / z[0]  # ~ the semi-minor axis
+    u, v = px[0]
+    m = int(r) + 4
+    if not (m <= u < W - m and m <= v < H - m):
+        return False
+    y0, x0 = int(v) - m, int(u) - m
+    ys, xs = np.mgrid[y0 : y0 + 2 * m + 1, x0 : x0 + 2 * m + 1]
+    d = np.hypot(xs - u, ys - v)
+    win = oi[y0 : y0 + 2 * m + 1, x0 : x0 + 2 * m + 1]
+    ours = (win == SPHERE_OBJECT_BASE + k) | (win == rod)
+    if (win == SPHERE_OBJECT_BASE + k).sum() < 0.6 * math.pi * r * r:
+        return False
+    if not ours[d <= r - 0.8].all():
+        return False
+    near = win[d <= r + 2.5]
+    return not ((near >= SPHERE_OBJECT_BASE) & (near != SPHERE_OBJECT_BASE + k)).any()

@@ -44,6 +44,7 @@ from protocol.camera import Camera, Intrinsics, Pose
 from protocol.wand import WandSpec
 from sim.render import SPHERE_OBJECT_BASE, FrameScene, Spheres, render_view
 from sim.sensor import SensorSpec, expose
+from sim.truth import wand_sphere_whole
 from sim.world import WAND_SPHERE_ALBEDO
 
 UNIT = 2
@@ -56,37 +57,6 @@ WAND = WandSpec()
 
 def _bgr(render) -> np.ndarray:
     return np.ascontiguousarray(render.image_rgb[:, :, ::-1])
-
-
-def _fully_visible(render, k: int, centre_px: np.ndarray, z_m: float, rod: int) -> bool:
-    """Sphere k is whole in the image: not cut by the border, nothing in front of it but the
-    wand's own rod (object ``rod``; it runs through the spheres and, where it leaves one towards
-    the camera, crosses a little of its outline on every real wand too), no other sphere next to
-    it. ``z_m`` is the depth of its centre along the optical axis.
-    """
-    oi = render.object_index
-    H, W = oi.shape
-    r = render.camera.intrinsics.fx_px * WAND.radius_m / z_m  # about the semi-minor axis
-    u, v = centre_px
-    m = int(r) + 4
-    if not (m <= u < W - m and m <= v < H - m):
-        return False
-    y0, x0 = int(v) - m, int(u) - m
-    ys, xs = np.mgrid[y0 : y0 + 2 * m + 1, x0 : x0 + 2 * m + 1]
-    d = np.hypot(xs - u, ys - v)
-    win = oi[y0 : y0 + 2 * m + 1, x0 : x0 + 2 * m + 1]
-    ours = (win == SPHERE_OBJECT_BASE + k) | (win == rod)
-    if (win == SPHERE_OBJECT_BASE + k).sum() < 0.6 * math.pi * r * r:
-        return False
-    if not ours[d <= r - 0.8].all():
-        return False
-    near = win[d <= r + 2.5]
-    return not ((near >= SPHERE_OBJECT_BASE) & (near != SPHERE_OBJECT_BASE + k)).any()
-
-
-def _rod_index(world, t: float) -> int:
-    objects = world.scene_at(t).objects
-    return next(i for i, o in enumerate(objects) if o.name == "wand_rod")
 
 
 @pytest.fixture(scope="module")
@@ -240,10 +210,9 @@ def test_detected_centres_match_the_projected_true_centres(sim):
     errors, ellipse_errors, dist_errors = [], [], []
     floor_checked = 0
     for (side, t), render in sim.frames.items():
-        truth, z, dist = _truth(sim, side, t)
-        rod = _rod_index(sim.world, t)
+        truth, _, dist = _truth(sim, side, t)
         for k in range(3):
-            if not _fully_visible(render, k, truth[k], z[k], rod):
+            if not wand_sphere_whole(sim.world, render, t, k):
                 continue
             blob, err = _nearest(sim.blobs[(side, t)], truth[k])
             assert blob is not None and err < 1.0, f"missed sphere {k} ({side}, t={t})"
@@ -335,11 +304,10 @@ def test_jpeg_frames_keep_sub_pixel_accuracy_with_full_chroma(sim):
         errors, missed = [], 0
         for t in (FLOOR_T, *WAVED_T):
             render = sim.frames[(side, t)]
-            truth, z, _ = _truth(sim, side, t)
+            truth, _, _ = _truth(sim, side, t)
             blobs = det.detect(_jpeg(_bgr(render), sampling))
-            rod = _rod_index(sim.world, t)
             for k in range(3):
-                if _fully_visible(render, k, truth[k], z[k], rod):
+                if wand_sphere_whole(sim.world, render, t, k):
                     _, err = _nearest(blobs, truth[k])
                     if err < 2.0:
                         errors.append(err)
