@@ -15,7 +15,6 @@ apart from the steps. Prints a Markdown table; BENCHMARKS.md records a run of it
 from __future__ import annotations
 
 import argparse
-import ctypes
 import os
 import statistics
 import sys
@@ -29,6 +28,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
 import torch
+
+from bench.malloc_tuning import tune_malloc
 
 STAGES = ("project_fwd", "bin_sort", "raster_fwd", "raster_bwd", "project_bwd")
 
@@ -116,22 +117,6 @@ def _render(scene: dict, config) -> float:
     return 1e3 * (time.perf_counter() - t0)
 
 
-def _tune_malloc() -> bool:
-    """Keep freed memory in glibc's heap instead of returning it to the kernel.
-
-    On this VM every page handed back and touched again costs a page fault of several
-    microseconds, which dominates the twin (many large short-lived tensors: 2-7x slower with the
-    default settings) and barely moves the numba path. A long-running trainer would set
-    MALLOC_MMAP_THRESHOLD_/MALLOC_TRIM_THRESHOLD_ the same way.
-    """
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:
-        return False
-    m_trim_threshold, m_mmap_threshold = -1, -3
-    return bool(libc.mallopt(m_mmap_threshold, 1 << 30) and libc.mallopt(m_trim_threshold, 1 << 31))
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--quick", action="store_true", help="480x300, 20k Gaussians")
@@ -152,7 +137,7 @@ def main() -> None:
     from reconstructor.raster import RasterConfig, rasterize
     from reconstructor.raster.function import stage_times_ms
 
-    tuned = False if args.default_malloc else _tune_malloc()
+    tuned = False if args.default_malloc else tune_malloc()
     width, height, sizes = (480, 300, [20_000]) if args.quick else (960, 600, [50_000, 200_000])
     steps = 3 if args.quick else args.steps
     fast, twin = RasterConfig(), RasterConfig(backend="torch")

@@ -29,7 +29,7 @@ import torch
 
 from reconstructor.errors import ReconstructConfigError
 from reconstructor.gaussians import Gaussians
-from reconstructor.metrics import l1, ssim
+from reconstructor.image_loss import image_loss
 from reconstructor.raster import RasterConfig, RenderOutput, rasterize
 from reconstructor.views import View
 
@@ -195,10 +195,8 @@ class Trainer:
         out = render(self.g, view, self.raster, bg)
         mask = view.mask
         # where the recorded image has no content, compare against the background itself
-        target = view.image * mask[..., None] + bg * (1 - mask[..., None])
-        l1_v = l1(out.image, target, mask)
-        ssim_v = ssim(out.image, target, mask)
-        loss = weight * ((1 - cfg.ssim_weight) * l1_v + cfg.ssim_weight * (1 - ssim_v))
+        image_term, l1_v, ssim_v = image_loss(out.image, view.image, mask, cfg.ssim_weight, bg)
+        loss = weight * image_term
         if cfg.opacity_reg_weight > 0 and self.g.num > 0:
             loss = loss + cfg.opacity_reg_weight * torch.sigmoid(self.g.opacity_logits).mean()
         self.optimizer.zero_grad(set_to_none=True)

@@ -375,3 +375,86 @@ def test_projection_agrees_with_gsplat() -> None:
     torch.testing.assert_close(conics, conics_gs[0][inside], atol=1e-5, rtol=1e-4)
     torch.testing.assert_close(twin[0][inside], m2d[inside], atol=1e-3, rtol=1e-5)
     torch.testing.assert_close(twin[1][inside], conics_gs[0][inside], atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.parametrize(("name", "tile"), [(name, 16) for name in SCENES] + [("ragged", 5)])
+def test_render_only_path_matches_training_path_bit_for_bit(name: str, tile: int) -> None:
+    """Without a gradient to follow, rasterize takes kernels.raster_render (no backward
+    bookkeeping); its outputs must be the training forward's exactly, whichever way the
+    gradient is ruled out."""
+    scene = make_scene(**SCENES[name])
+    config = RasterConfig(tile_px=tile)
+    train, _ = render(scene, config, grad=True)
+    with torch.no_grad():
+        no_grad = rasterize(
+            **{k: (v.clone().requires_grad_(True) if k in PARAMS else v) for k, v in scene.items()},
+            config=config,
+        )
+    plain, _ = render(scene, config, grad=False)  # grad mode on, no input requires grad
+    for out in (no_grad, plain):
+        assert not out.image.requires_grad and not out.alpha.requires_grad
+        for field in ("image", "alpha", "depth_m", "radii_px"):
+            a, b = getattr(train, field).detach(), getattr(out, field)
+            assert a.dtype == b.dtype and torch.equal(a, b), field
+
+
+def _binning_inputs(n: int, seed: int, ties: bool) -> tuple[np.ndarray, ...]:
+    rng = np.random.default_rng(seed)
+    depth = rng.uniform(0.05, 100.0, n).astype(np.float32)
+    if ties:
+        depth = np.round(depth, 0).astype(np.float32)  # many equal keys
+    radii = np.where(rng.random(n) < 0.7, rng.integers(1, 40, n), 0).astype(np.int32)
+    x0, y0 = rng.integers(0, 8, n), rng.integers(0, 5, n)
+    x1, y1 = np.minimum(x0 + rng.integers(0, 3, n), 7), np.minimum(y0 + rng.integers(0, 3, n), 4)
+    rect = np.stack([x0, x1, y0, y1], axis=1).astype(np.int32)
+    return depth.view(np.uint32), radii, rect
+
+
+@pytest.mark.parametrize(("n", "ties"), [(0, False), (1, False), (3000, False), (3000, True)])
+def test_binning_matches_a_stable_argsort(n: int, ties: bool) -> None:
+    """bin_gaussians (radix sort on the key range, chunked fill) against the obvious version:
+    a stable argsort of the depths and a loop over the tiles."""
+    from reconstructor.raster import kernels
+
+    depth_bits, radii, rect = _binning_inputs(n, seed=n + ties, ties=ties)
+    ntx, n_tiles = 8, 40
+    for chunks in (1, 3):
+        pairs, offsets, slots, goffsets = kernels.bin_gaussians(
+            depth_bits, radii, rect, ntx, n_tiles, chunks
+        )
+        order = [int(i) for i in np.argsort(depth_bits, kind="stable") if radii[i] > 0]
+        covered = np.where(
+            radii > 0, (rect[:, 1] - rect[:, 0] + 1) * (rect[:, 3] - rect[:, 2] + 1), 0
+        )
+        assert np.array_equal(goffsets, np.concatenate([[0], np.cumsum(covered)]))
+        numbers: dict[tuple[int, int], int] = {}
+        for g in range(n):  # pair (tile, g) is number goffsets[g] + its rank in g's rectangle
+            if radii[g] > 0:
+                tiles = [ty * ntx + tx for ty in range(rect[g, 2], rect[g, 3] + 1)
+                         for tx in range(rect[g, 0], rect[g, 1] + 1)]  # fmt: skip
+                numbers.update({(t, g): int(goffsets[g]) + r for r, t in enumerate(tiles)})
+        for t in range(n_tiles):
+            want = [g for g in order if (t, g) in numbers]
+            got = pairs[offsets[t] : offsets[t + 1]]
+            assert got.tolist() == want, t
+            assert slots[offsets[t] : offsets[t + 1]].tolist() == [numbers[t, g] for g in want]
+        render_only = kernels.bin_gaussians(depth_bits, radii, rect, ntx, n_tiles, chunks, False)
+        assert np.array_equal(render_only[0], pairs) and np.array_equal(render_only[1], offsets)
+        assert render_only[2].shape == (0,)
+
+
+@pytest.mark.parametrize(
+    ("key", "bad"),
+    [("means_m", float("nan")), ("colors", float("inf")), ("log_scales", float("-inf"))],
+)
+def test_bad_values_in_large_inputs_name_the_argument(key: str, bad: float) -> None:
+    """Large inputs take validate_inputs' parallel checks; they must catch what the small do."""
+    scene = make_scene(n=40_000, seed=11)
+    scene[key] = scene[key].clone()
+    scene[key][12_345, 1] = bad
+    with pytest.raises(ValueError, match=f"{key} has non-finite"):
+        rasterize(**scene)
+    scene = make_scene(n=40_000, seed=11)
+    scene["quats_wxyz"][39_999] = 0.0
+    with pytest.raises(ValueError, match="quats_wxyz has a zero quaternion"):
+        rasterize(**scene)

@@ -52,7 +52,7 @@ from reconstructor.raster.projection import (
 )  # fmt: skip
 
 N_RECORD = 9  # dL/d(mean2d x, y, conic a, b, c, opacity, r, g, b) per (tile, Gaussian) pair
-_RADIX_BITS = 11
+_RADIX_BITS = 13  # at most 8192 buckets: 64 KB of counts per pass, in L2
 _ALPHA_DEPTH_MIN = 1e-3  # below this pixel alpha the depth output is 0
 MAX_TILE_PX = 32
 _LANES = 8  # columns per lane block: one AVX2 vector of float32
@@ -62,51 +62,84 @@ _FIELD = MAX_TILE_PX * MAX_TILE_PX
 
 
 @njit(cache=True)
-def _visible_by_depth(depth_bits, radii):
-    """Indices (int32) of the Gaussians with radii > 0, front to back, ties by index."""
+def _compact_visible(depth_bits, radii, rect):
+    """One pass over the Gaussians: goffsets (see ``bin_gaussians``) and the visible ones'
+    indices (int32) and depth keys (uint32), in index order, plus the smallest and largest
+    key (0, 0 if none is visible)."""
     n = radii.shape[0]
-    nvis = 0
-    for i in range(n):
-        nvis += radii[i] > 0
-    idx = np.empty(nvis, np.int32)
-    keys = np.empty(nvis, np.uint32)
+    goffsets = np.empty(n + 1, np.int64)
+    idx = np.empty(n, np.int32)
+    keys = np.empty(n, np.uint32)
+    kmin, kmax = np.uint32(0xFFFFFFFF), np.uint32(0)
+    goffsets[0] = 0
     k = 0
     for i in range(n):
+        covered = 0
         if radii[i] > 0:
+            covered = (rect[i, 1] - rect[i, 0] + 1) * (rect[i, 3] - rect[i, 2] + 1)
+            key = depth_bits[i]
             idx[k] = i
-            keys[k] = depth_bits[i]
+            keys[k] = key
+            kmin, kmax = min(kmin, key), max(kmax, key)
             k += 1
-    # Stable LSD radix sort on the depth bits: ties keep index order, like a stable argsort.
+        goffsets[i + 1] = goffsets[i] + covered
+    if k == 0:
+        kmin = kmax
+    return goffsets, idx[:k], keys[:k], kmin, kmax
+
+
+@njit(cache=True)
+def _sort_by_key(idx, keys, kmin, kmax):
+    """idx reordered by keys (all in [kmin, kmax]), stably: ties keep their order, like a
+    stable argsort.
+
+    LSD radix sort of key - kmin: the depths of one scene span a few octaves, so their keys
+    differ in about 25 low bits, which two passes of <= _RADIX_BITS bits cover where the full
+    32 bits took three. The histograms of all passes come from one read of the keys."""
+    nvis = idx.shape[0]
+    bits = 0
+    while bits < 32 and (kmax - kmin) >> np.uint32(bits) != 0:
+        bits += 1
+    if bits == 0:
+        return idx
+    n_pass = (bits + _RADIX_BITS - 1) // _RADIX_BITS
+    width = (bits + n_pass - 1) // n_pass
+    n_buckets = 1 << width
+    mask = np.uint32(n_buckets - 1)
+    counts = np.zeros((n_pass, n_buckets), np.int64)
+    for k in range(nvis):
+        key = keys[k] - kmin
+        for ps in range(n_pass):
+            counts[ps, (key >> np.uint32(ps * width)) & mask] += 1
+    for ps in range(n_pass):  # counts -> first position of each bucket
+        total = 0
+        for b in range(n_buckets):
+            total, counts[ps, b] = total + counts[ps, b], total
     idx2 = np.empty_like(idx)
     keys2 = np.empty_like(keys)
-    n_buckets = 1 << _RADIX_BITS
-    mask = np.uint32(n_buckets - 1)
-    counts = np.empty(n_buckets + 1, np.int64)
-    for shift in range(0, 32, _RADIX_BITS):
-        counts[:] = 0
+    for ps in range(n_pass):
+        shift = np.uint32(ps * width)
         for k in range(nvis):
-            counts[((keys[k] >> np.uint32(shift)) & mask) + 1] += 1
-        for b in range(n_buckets):
-            counts[b + 1] += counts[b]
-        for k in range(nvis):
-            d = (keys[k] >> np.uint32(shift)) & mask
-            pos = counts[d]
-            counts[d] = pos + 1
+            key = keys[k]
+            d = ((key - kmin) >> shift) & mask
+            pos = counts[ps, d]
+            counts[ps, d] = pos + 1
             idx2[pos] = idx[k]
-            keys2[pos] = keys[k]
+            keys2[pos] = key
         idx, idx2 = idx2, idx
         keys, keys2 = keys2, keys
     return idx
 
 
 @njit(cache=True)
-def bin_gaussians(depth_bits, radii, rect, ntx, n_tiles, n_chunks):
+def bin_gaussians(depth_bits, radii, rect, ntx, n_tiles, n_chunks, with_slots=True):
     """Sort the visible Gaussians by depth and list them per tile.
 
     Args: depth_bits (N,) uint32, the bits of the positive float32 camera depths (monotone in
     the depth); radii (N,) int32 (0 = culled); rect (N, 4) int32 inclusive tile rectangles
     (x0, x1, y0, y1); ntx tiles per row; n_tiles in total; n_chunks pieces of the depth order
-    to list in parallel.
+    to list in parallel; with_slots False for a render no backward pass follows (slots is then
+    empty).
 
     Returns: pairs (M,) int32 Gaussian index of every (tile, Gaussian) pair, grouped by tile
     and front to back within a tile (ties by index); offsets (n_tiles + 1,) int64 so that tile
@@ -115,34 +148,43 @@ def bin_gaussians(depth_bits, radii, rect, ntx, n_tiles, n_chunks):
     numbers goffsets[i]..goffsets[i + 1] - 1 (none if culled). The backward pass stores each
     pair's gradient under its slot so that a Gaussian's gradients are adjacent in memory.
     """
-    n = radii.shape[0]
-    goffsets = np.empty(n + 1, np.int64)
-    goffsets[0] = 0
-    for i in range(n):
-        covered = 0
-        if radii[i] > 0:
-            covered = (rect[i, 1] - rect[i, 0] + 1) * (rect[i, 3] - rect[i, 2] + 1)
-        goffsets[i + 1] = goffsets[i] + covered
-    idx = _visible_by_depth(depth_bits, radii)
-    pairs, offsets, slots = _fill_tiles(idx, rect, goffsets, ntx, n_tiles, n_chunks)
+    goffsets, idx, keys, kmin, kmax = _compact_visible(depth_bits, radii, rect)
+    idx = _sort_by_key(idx, keys, kmin, kmax)
+    pairs, offsets, slots = _fill_tiles(idx, rect, goffsets, ntx, n_tiles, n_chunks, with_slots)
     return pairs, offsets, slots, goffsets
 
 
 @njit(parallel=True, cache=True)
-def _fill_tiles(idx, rect, goffsets, ntx, n_tiles, n_chunks):
+def _gather_rects(idx, rect, goffsets):
+    """rect and goffsets rows of the Gaussians idx, in that order, for ``_fill_tiles``: its
+    two passes then read them in sequence, where reading rect[idx[k]] in depth order missed
+    the cache for nearly every Gaussian, twice; here the misses are independent and overlap."""
+    nvis = idx.shape[0]
+    srect = np.empty((nvis, 4), np.int32)  # np.empty: see project_forward
+    sgoff = np.empty(nvis, np.int64)
+    for k in prange(nvis):
+        g = idx[k]
+        srect[k, 0], srect[k, 1] = rect[g, 0], rect[g, 1]
+        srect[k, 2], srect[k, 3] = rect[g, 2], rect[g, 3]
+        sgoff[k] = goffsets[g]
+    return srect, sgoff
+
+
+@njit(parallel=True, cache=True)
+def _fill_tiles(idx, rect, goffsets, ntx, n_tiles, n_chunks, with_slots):
     """Counting sort of the (tile, Gaussian) pairs by tile, for ``bin_gaussians``: each chunk
     of the depth order fills its own slots of every tile's list, chunk 0 first, so the lists
     stay depth-sorted and the chunks need no locks."""
     nvis = idx.shape[0]
+    srect, sgoff = _gather_rects(idx, rect, goffsets)
     size = (nvis + n_chunks - 1) // n_chunks
     counts = np.empty((n_chunks, n_tiles), np.int64)  # np.empty: see project_forward
     for ch in prange(n_chunks):
         for t in range(n_tiles):
             counts[ch, t] = 0
         for k in range(ch * size, min(nvis, (ch + 1) * size)):
-            g = idx[k]
-            for ty in range(rect[g, 2], rect[g, 3] + 1):
-                for tx in range(rect[g, 0], rect[g, 1] + 1):
+            for ty in range(srect[k, 2], srect[k, 3] + 1):
+                for tx in range(srect[k, 0], srect[k, 1] + 1):
                     counts[ch, ty * ntx + tx] += 1
     offsets = np.empty(n_tiles + 1, np.int64)
     total = 0
@@ -152,18 +194,19 @@ def _fill_tiles(idx, rect, goffsets, ntx, n_tiles, n_chunks):
             total, counts[ch, t] = total + counts[ch, t], total  # counts -> chunk cursors
     offsets[n_tiles] = total
     pairs = np.empty(total, np.int32)
-    slots = np.empty(total, np.int32)
+    slots = np.empty(total if with_slots else 0, np.int32)
     for ch in prange(n_chunks):
         for k in range(ch * size, min(nvis, (ch + 1) * size)):
             g = idx[k]
-            m = goffsets[g]
-            for ty in range(rect[g, 2], rect[g, 3] + 1):
-                for tx in range(rect[g, 0], rect[g, 1] + 1):
+            m = sgoff[k]
+            for ty in range(srect[k, 2], srect[k, 3] + 1):
+                for tx in range(srect[k, 0], srect[k, 1] + 1):
                     pos = counts[ch, ty * ntx + tx]
                     counts[ch, ty * ntx + tx] = pos + 1
                     pairs[pos] = g
-                    slots[pos] = m
-                    m += 1
+                    if with_slots:
+                        slots[pos] = m
+                        m += 1
     return pairs, offsets, slots
 
 
@@ -277,9 +320,10 @@ _T, _R, _G, _B, _D, _LAST, _X, _Y = (np.uint64(k * _FIELD) for k in range(8))
 
 
 @njit(cache=True, fastmath=True, error_model="numpy", inline="always")
-def _draw_block(st, p0, p1, mx, my, a, b, c, o, cr, cg, cb, z, j_used, amin, amax, tmin):
+def _draw_block(st, p0, p1, mx, my, a, b, c, o, cr, cg, cb, z, j_used, amin, amax, tmin, record):
     """Composite one Gaussian over the pixels p0..p1-1 of a tile's state (one vector loop).
-    Returns how many of them stopped and how many it drew (float32)."""
+    Returns how many of them stopped and how many it drew (float32). ``record`` (a constant
+    once inlined) keeps the last list entry each pixel drew, for the backward pass."""
     one, zero, half = np.float32(1.0), np.float32(0.0), np.float32(-0.5)
     n_stop = n_draw = zero
     for p in range(np.uint64(p0), np.uint64(p1)):
@@ -297,15 +341,96 @@ def _draw_block(st, p0, p1, mx, my, a, b, c, o, cr, cg, cb, z, j_used, amin, ama
         st[_B + p] += w * cb
         st[_D + p] += w * z
         st[_T + p] = test_t if draw else (-tr if stop else tr)
-        st[_LAST + p] = j_used if draw else st[_LAST + p]
+        if record:
+            st[_LAST + p] = j_used if draw else st[_LAST + p]
         n_stop += one if stop else zero
         n_draw += one if draw else zero
     return n_stop, n_draw
 
 
+@njit(cache=True, fastmath=True, error_model="numpy", inline="always")
+def _composite_tile(
+    t, proj, pairs, offsets, width, height, tile, ntx, bg, amin, amax, tmin, image, t_final,
+    depth, n_used, drawn, record,
+):  # fmt: skip
+    """Composite tile t front to back into image, t_final and depth; with ``record``, also
+    n_used and drawn (see ``raster_forward``). The one copy of the forward compositing: it is
+    inlined into ``raster_forward`` (record=True) and ``raster_render`` (record=False), where
+    ``record`` is a constant, so the render-only kernel compiles without the bookkeeping."""
+    one, zero = np.float32(1.0), np.float32(0.0)
+    n_blocks = (tile + _LANES - 1) // _LANES
+    bs = tile * _LANES
+    x0, y0, x1, y1 = _tile_box(t, ntx, tile, width, height)
+    if record:
+        for j in range(offsets[t], offsets[t + 1]):
+            for blk in range(n_blocks):
+                drawn[j, blk, 0], drawn[j, blk, 1] = 1, 0
+    st = np.empty(8 * _FIELD, np.float32)
+    blk_active = np.empty(n_blocks, np.int64)  # explicit loops, no array expressions:
+    for blk in range(n_blocks):  # numba would compile those as nested parallel loops
+        blk_active[blk] = 0
+    for blk in range(n_blocks):  # nested loops, no division per pixel
+        for row in range(tile):
+            for lane in range(_LANES):
+                q = np.uint64((blk * tile + row) * _LANES + lane)
+                col = blk * _LANES + lane
+                inside = col < tile and x0 + col <= x1 and y0 + row <= y1
+                blk_active[blk] += inside
+                st[_T + q] = one if inside else -one  # lanes past the image edge never draw
+                st[_R + q], st[_G + q], st[_B + q] = zero, zero, zero
+                st[_D + q], st[_LAST + q] = zero, zero
+                st[_X + q], st[_Y + q] = x0 + col, y0 + row
+    active = 0
+    for blk in range(n_blocks):
+        active += blk_active[blk]
+    # gathered a chunk at a time: most tiles stop long before the end of their list
+    for c0 in range(offsets[t], offsets[t + 1], _GATHER_CHUNK):
+        c1 = min(c0 + _GATHER_CHUNK, offsets[t + 1])
+        loc, fp = _gather_tile(proj, pairs, c0, c1, x0, y0, x1, y1)
+        for k in range(loc.shape[0]):
+            r0, r1, b0, b1 = fp[k, 0], fp[k, 1], fp[k, 2], fp[k, 3]
+            mx, my, o = loc[k, MX], loc[k, MY], loc[k, OPA]
+            a, b, c = loc[k, CA], loc[k, CB], loc[k, CC]
+            cr, cg, cb, z = loc[k, CR], loc[k, CG], loc[k, CB_], loc[k, DEPTH]
+            j = fp[k, 4]
+            j_used = np.float32(j - offsets[t] + 1)
+            for blk in range(b0, b1 + 1):
+                if blk_active[blk] == 0:
+                    continue
+                n_stop, n_draw = _draw_block(
+                    st, blk * bs + r0 * _LANES, blk * bs + (r1 + 1) * _LANES,
+                    mx, my, a, b, c, o, cr, cg, cb, z, j_used, amin, amax, tmin, record,
+                )  # fmt: skip
+                if record and n_draw > zero:
+                    drawn[j, blk, 0], drawn[j, blk, 1] = r0, r1
+                blk_active[blk] -= int(n_stop)
+                active -= int(n_stop)
+            if active == 0:
+                break
+        if active == 0:
+            break
+    for blk in range(n_blocks):  # nested loops, no division per pixel
+        for row in range(tile):
+            for lane in range(_LANES):
+                q = np.uint64((blk * tile + row) * _LANES + lane)
+                col = blk * _LANES + lane
+                u, v = x0 + col, y0 + row
+                if col >= tile or u > x1 or v > y1:
+                    continue
+                tr = abs(st[_T + q])
+                image[v, u, 0] = st[_R + q] + tr * bg[0]
+                image[v, u, 1] = st[_G + q] + tr * bg[1]
+                image[v, u, 2] = st[_B + q] + tr * bg[2]
+                t_final[v, u] = tr
+                a_px = one - tr
+                depth[v, u] = st[_D + q] / a_px if a_px >= _ALPHA_DEPTH_MIN else zero
+                if record:
+                    n_used[v, u] = np.int32(st[_LAST + q])
+
+
 @njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
 def raster_forward(proj, pairs, offsets, width, height, tile, ntx, bg, alpha_min, alpha_max, t_min):
-    """Composite every tile front to back.
+    """Composite every tile front to back, keeping what the backward pass needs.
 
     Args: proj (N, PROJ_COLS) float32 from ``project_forward``; pairs, offsets from
     ``bin_gaussians``; bg (3,) float32; alpha_min, alpha_max, t_min floats; tile <= 32.
@@ -320,77 +445,33 @@ def raster_forward(proj, pairs, offsets, width, height, tile, ntx, bg, alpha_min
     t_final = np.empty((height, width), np.float32)
     depth = np.empty((height, width), np.float32)
     n_used = np.empty((height, width), np.int32)
+    drawn = np.empty((pairs.shape[0], (tile + _LANES - 1) // _LANES, 2), np.int8)
     amin, amax, tmin = np.float32(alpha_min), np.float32(alpha_max), np.float32(t_min)
-    one, zero = np.float32(1.0), np.float32(0.0)
-    n_blocks = (tile + _LANES - 1) // _LANES
-    bs = tile * _LANES
-    drawn = np.empty((pairs.shape[0], n_blocks, 2), np.int8)
     for t in prange(offsets.shape[0] - 1):
-        x0, y0, x1, y1 = _tile_box(t, ntx, tile, width, height)
-        for j in range(offsets[t], offsets[t + 1]):
-            for blk in range(n_blocks):
-                drawn[j, blk, 0], drawn[j, blk, 1] = 1, 0
-        st = np.empty(8 * _FIELD, np.float32)
-        blk_active = np.empty(n_blocks, np.int64)  # explicit loops, no array expressions:
-        for blk in range(n_blocks):  # numba would compile those as nested parallel loops
-            blk_active[blk] = 0
-        for blk in range(n_blocks):  # nested loops, no division per pixel
-            for row in range(tile):
-                for lane in range(_LANES):
-                    q = np.uint64((blk * tile + row) * _LANES + lane)
-                    col = blk * _LANES + lane
-                    inside = col < tile and x0 + col <= x1 and y0 + row <= y1
-                    blk_active[blk] += inside
-                    st[_T + q] = one if inside else -one  # lanes past the image edge never draw
-                    st[_R + q], st[_G + q], st[_B + q] = zero, zero, zero
-                    st[_D + q], st[_LAST + q] = zero, zero
-                    st[_X + q], st[_Y + q] = x0 + col, y0 + row
-        active = 0
-        for blk in range(n_blocks):
-            active += blk_active[blk]
-        # gathered a chunk at a time: most tiles stop long before the end of their list
-        for c0 in range(offsets[t], offsets[t + 1], _GATHER_CHUNK):
-            c1 = min(c0 + _GATHER_CHUNK, offsets[t + 1])
-            loc, fp = _gather_tile(proj, pairs, c0, c1, x0, y0, x1, y1)
-            for k in range(loc.shape[0]):
-                r0, r1, b0, b1 = fp[k, 0], fp[k, 1], fp[k, 2], fp[k, 3]
-                mx, my, o = loc[k, MX], loc[k, MY], loc[k, OPA]
-                a, b, c = loc[k, CA], loc[k, CB], loc[k, CC]
-                cr, cg, cb, z = loc[k, CR], loc[k, CG], loc[k, CB_], loc[k, DEPTH]
-                j = fp[k, 4]
-                j_used = np.float32(j - offsets[t] + 1)
-                for blk in range(b0, b1 + 1):
-                    if blk_active[blk] == 0:
-                        continue
-                    n_stop, n_draw = _draw_block(
-                        st, blk * bs + r0 * _LANES, blk * bs + (r1 + 1) * _LANES,
-                        mx, my, a, b, c, o, cr, cg, cb, z, j_used, amin, amax, tmin,
-                    )  # fmt: skip
-                    if n_draw > zero:
-                        drawn[j, blk, 0], drawn[j, blk, 1] = r0, r1
-                    blk_active[blk] -= int(n_stop)
-                    active -= int(n_stop)
-                if active == 0:
-                    break
-            if active == 0:
-                break
-        for blk in range(n_blocks):  # nested loops, no division per pixel
-            for row in range(tile):
-                for lane in range(_LANES):
-                    q = np.uint64((blk * tile + row) * _LANES + lane)
-                    col = blk * _LANES + lane
-                    u, v = x0 + col, y0 + row
-                    if col >= tile or u > x1 or v > y1:
-                        continue
-                    tr = abs(st[_T + q])
-                    image[v, u, 0] = st[_R + q] + tr * bg[0]
-                    image[v, u, 1] = st[_G + q] + tr * bg[1]
-                    image[v, u, 2] = st[_B + q] + tr * bg[2]
-                    t_final[v, u] = tr
-                    a_px = one - tr
-                    depth[v, u] = st[_D + q] / a_px if a_px >= _ALPHA_DEPTH_MIN else zero
-                    n_used[v, u] = np.int32(st[_LAST + q])
+        _composite_tile(
+            t, proj, pairs, offsets, width, height, tile, ntx, bg, amin, amax, tmin, image,
+            t_final, depth, n_used, drawn, True,
+        )  # fmt: skip
     return image, t_final, depth, n_used, drawn
+
+
+@njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
+def raster_render(proj, pairs, offsets, width, height, tile, ntx, bg, alpha_min, alpha_max, t_min):
+    """``raster_forward`` for a render no gradient will follow: the same image, t_final and
+    depth bits, without n_used, drawn (4 bytes per pair to allocate and fill) and the per-pixel
+    last-entry bookkeeping in the compositing loop."""
+    image = np.empty((height, width, 3), np.float32)
+    t_final = np.empty((height, width), np.float32)
+    depth = np.empty((height, width), np.float32)
+    unused_n = np.empty((0, 0), np.int32)
+    unused_drawn = np.empty((0, 1, 2), np.int8)
+    amin, amax, tmin = np.float32(alpha_min), np.float32(alpha_max), np.float32(t_min)
+    for t in prange(offsets.shape[0] - 1):
+        _composite_tile(
+            t, proj, pairs, offsets, width, height, tile, ntx, bg, amin, amax, tmin, image,
+            t_final, depth, unused_n, unused_drawn, False,
+        )  # fmt: skip
+    return image, t_final, depth
 
 
 # backward state fields: transmittance, (colour seen behind) · dL/dC, dL/dC (3),
