@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -30,7 +31,7 @@ from protocol.camera import Resolution
 from reconstructor.config import ReconstructConfig
 from reconstructor.frames import SensorFrame, Timestamp
 from reconstructor.pipeline import reconstruct
-from reconstructor.train import TrainConfig
+from reconstructor.train import TrainConfig, Trainer
 from sim import World
 
 PAPER_STEPS = 2000
@@ -68,6 +69,9 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=PAPER_STEPS, help="training steps to run")
     parser.add_argument("--seed", type=int, default=2)
     parser.add_argument("--out", default="out/bench_reconstruct")
+    parser.add_argument(
+        "--part-steps", type=int, default=12, help="extra steps timed part by part after the run"
+    )
     args = parser.parse_args()
     ts = sim_timestamp(args.seed, 1.0)
     warm = min(500, args.steps)
@@ -99,7 +103,47 @@ def main() -> int:
         f"({full_s / GOAL_S:.2f}x the goal; the paper's GPU: about 120 s)"
     )
     print(f"final training loss {rec.trainer.log.mean_loss():.4f}")
+    parts = step_parts_ms(rec.trainer, rec.train_views, args.part_steps)
+    print(f"\nwhere a step's time goes (median of {args.part_steps} extra steps, after the run):")
+    for name, ms in parts.items():
+        print(f"  {name:<40}{ms:>8.1f} ms")
     return 0
+
+
+def step_parts_ms(trainer: Trainer, views: list, steps: int) -> dict[str, float]:
+    """A training step taken apart (the same calls as ``Trainer.step``), timed part by part."""
+    from reconstructor.image_loss import image_loss
+    from reconstructor.raster.function import stage_times_ms
+    from reconstructor.train import render
+
+    cfg = trainer.config
+    rows: dict[str, list[float]] = {}
+    for k in range(steps):
+        view = views[k % len(views)]
+        bg = torch.rand(3)
+        t0 = time.perf_counter()
+        out = render(trainer.g, view, trainer.raster, bg)
+        t1 = time.perf_counter()
+        term, _, _ = image_loss(out.image, view.image, view.mask, cfg.ssim_weight, bg)
+        loss = term + cfg.opacity_reg_weight * torch.sigmoid(trainer.g.opacity_logits).mean()
+        t2 = time.perf_counter()
+        trainer.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        t3 = time.perf_counter()
+        trainer.optimizer.step()
+        t4 = time.perf_counter()
+        stages = stage_times_ms()
+        for name, ms in (
+            ("rasterizer forward (all stages)", 1e3 * (t1 - t0)),
+            ("  of which compositing, forward", stages["raster_fwd"]),
+            ("image loss + opacity term, forward", 1e3 * (t2 - t1)),
+            ("backward (loss, rasterizer, projection)", 1e3 * (t3 - t2)),
+            ("  of which compositing, backward", stages["raster_bwd"]),
+            ("Adam", 1e3 * (t4 - t3)),
+            ("whole step", 1e3 * (t4 - t0)),
+        ):
+            rows.setdefault(name, []).append(ms)
+    return {name: float(np.median(v)) for name, v in rows.items()}
 
 
 if __name__ == "__main__":

@@ -2,8 +2,8 @@
 
 Same maths as ``metrics.l1`` and ``metrics.ssim`` under autograd (the slow, obvious twin,
 ``backend="torch"``), but each step's loss costs two blurs and three passes over the image
-instead of about forty torch operations forward and back (195 -> about 60 ms at 960x600 on
-2 cores, ``bench/bench_image_loss.py``).
+instead of about forty torch operations forward and back, each allocating a full-size tensor
+(``bench/bench_image_loss.py`` times both in one run).
 
 SSIM per pixel and channel, with μ, E the Gaussian-windowed means (``metrics.blur``) of the
 render x and target y::

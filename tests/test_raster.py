@@ -95,6 +95,9 @@ SCENES = {
     "extreme": dict(
         n=200, seed=21, scale_m=(0.002, 0.5), opacity_logit=(-3.0, 9.0), spread=1.5, needles=50
     ),
+    # a trained model's faint Gaussians: many below alpha_min (binned in no tile), the rest
+    # listed only in the tiles their alpha_min region reaches, not their whole 3-sigma square
+    "faint": dict(n=300, seed=4, opacity_logit=(-8.0, -1.0), scale_m=(0.03, 0.3)),
 }
 
 
@@ -458,3 +461,37 @@ def test_bad_values_in_large_inputs_name_the_argument(key: str, bad: float) -> N
     scene["quats_wxyz"][39_999] = 0.0
     with pytest.raises(ValueError, match="quats_wxyz has a zero quaternion"):
         rasterize(**scene)
+
+
+def test_tile_lists_hold_a_gaussian_only_where_its_alpha_can_reach() -> None:
+    """Binning by the alpha_min region instead of the 3-sigma square: a faint Gaussian is
+    listed in fewer tiles, one below alpha_min in none, and both keep their radius."""
+    from reconstructor.raster import projection
+
+    tile, width, height = 4, 128, 96
+    scene = make_scene(2, seed=0, width=width, height=height)
+    means = np.array([[0.0, 0.0, 2.0], [0.1, 0.05, 2.0]], np.float32)
+    log_scales = np.log(np.full((2, 3), 0.3, np.float32))  # sigma = 9 px: 3-sigma = 27 px
+    logits = np.array([math.log(0.02 / 0.98), math.log(0.002 / 0.998)], np.float32)
+    quats = np.array([[1, 0, 0, 0]] * 2, np.float32)
+    p = projection.project(
+        means, quats, log_scales, logits, np.ones((2, 3), np.float32),
+        scene["viewmat"].double().numpy(), scene["K"].double().numpy(), width, height, tile,
+        0.05, 100.0, 0.3, 3.0, 1 / 255,
+    )  # fmt: skip
+    assert (p.radii > 0).all()
+    x0, x1, y0, y1 = p.rect[0]
+    r = int(p.radii[0])
+    mx, my = p.proj[0, projection.MX], p.proj[0, projection.MY]
+    square_tiles = (math.floor(mx + r) // tile - math.ceil(mx - r) // tile + 1) * (
+        math.floor(my + r) // tile - math.ceil(my - r) // tile + 1
+    )
+    faint_tiles = (x1 - x0 + 1) * (y1 - y0 + 1)
+    assert 0 < faint_tiles < 0.6 * square_tiles
+    # alpha = 0.02 exp(-d²/2σ²) reaches 1/255 within 2.0 sigma: every tile that holds such a
+    # pixel is listed
+    reach = 9.0 * math.sqrt(2 * math.log(0.02 * 255)) * 0.99
+    assert x0 * tile <= mx - reach and (x1 + 1) * tile > mx + reach
+    assert y0 * tile <= my - reach * 1.05 and (y1 + 1) * tile > my + reach * 1.05
+    bx0, bx1, by0, by1 = p.rect[1]
+    assert bx1 < bx0 and by1 < by0  # below alpha_min: an empty rectangle

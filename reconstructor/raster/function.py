@@ -11,7 +11,9 @@ Maths (standard 3DGS, Kerbl et al. 2023). Projection (``projection.py``): each G
 mean2d, conic = (Σ2D + eps2d I)⁻¹, its camera depth z and radius = ceil(sigma_extent ·
 sqrt(λ_max)); it is culled (radius 0) if z ∉ [near_m, far_m] or its square mean2d ± radius
 holds no pixel centre. Binning: it is listed in every tile holding a pixel centre of that
-square; each tile's list is sorted front to back by z (ties by index). Compositing, per pixel
+square where its alpha can reach alpha_min (none if its opacity is below alpha_min: leaving
+out tiles it cannot draw in changes no output and halves a trained model's tile lists); each
+tile's list is sorted front to back by z (ties by index). Compositing, per pixel
 p, over its tile's list in order:
 
     α_i = min(alpha_max, opacity_i · exp(-½ dᵢᵀ conic_i dᵢ)),  dᵢ = p - mean2d_i

@@ -16,7 +16,8 @@ conventions):
     radius = ceil(sigma_extent · sqrt(λ_max(Σ2D)))   (culled if 0)
     mean2d = (fx t_x / t_z + cx, fy t_y / t_z + cy)
     the Gaussian covers the tiles holding a pixel centre inside the square mean2d ± radius
-    (culled if that square holds no pixel centre of the image)
+    (culled if that square holds no pixel centre of the image) and inside the box where its
+    alpha can reach alpha_min (HX, HY below; no tile if opacity < alpha_min)
     opacity = sigmoid(logit)
 
 The backward applies the chain rule through the same steps: conic → Σ2D (−C G C) → J and
@@ -203,10 +204,6 @@ def project_forward(
         if u0 > u1 or v0 > v1:
             continue
         radii[i] = r
-        rect[i, 0] = u0 // tile
-        rect[i, 1] = u1 // tile
-        rect[i, 2] = v0 // tile
-        rect[i, 3] = v1 // tile
         proj[i, MX] = mx
         proj[i, MY] = my
         proj[i, CA] = s11 / det
@@ -222,8 +219,25 @@ def project_forward(
             span = 2.0 * np.float64(log_ratio[i]) * (1.0 + SPAN_SLACK) + SPAN_SLACK
             proj[i, HX] = math.sqrt(span * s00)
             proj[i, HY] = math.sqrt(span * s11)
+            # Tiles: only those the alpha_min region can reach (a trained model's faint
+            # Gaussians reach a small part of their 3-sigma square, many reach nothing). One
+            # pixel wider than the region as stored in float32, which is what the raster
+            # kernels test each tile against: the lists lose only entries that draw nothing.
+            hx, hy = proj[i, HX], proj[i, HY]
+            u0 = max(u0, math.ceil(proj[i, MX] - hx) - 1)
+            u1 = min(u1, math.floor(proj[i, MX] + hx) + 1)
+            v0 = max(v0, math.ceil(proj[i, MY] - hy) - 1)
+            v1 = min(v1, math.floor(proj[i, MY] + hy) + 1)
         else:
             proj[i, HY] = -1.0
+            u1 = v1 = -1  # draws nowhere: in no tile's list
+        if u0 <= u1 and v0 <= v1:
+            rect[i, 0] = u0 // tile
+            rect[i, 1] = u1 // tile
+            rect[i, 2] = v0 // tile
+            rect[i, 3] = v1 // tile
+        else:  # an empty rectangle (x1 < x0, y1 < y0): binned nowhere
+            rect[i, 0], rect[i, 1], rect[i, 2], rect[i, 3] = 0, -1, 0, -1
     return proj, radii, rect
 
 
