@@ -495,3 +495,66 @@ def test_tile_lists_hold_a_gaussian_only_where_its_alpha_can_reach() -> None:
     assert y0 * tile <= my - reach * 1.05 and (y1 + 1) * tile > my + reach * 1.05
     bx0, bx1, by0, by1 = p.rect[1]
     assert bx1 < bx0 and by1 < by0  # below alpha_min: an empty rectangle
+
+
+def test_lane_block_rows_hold_every_pixel_the_alpha_region_reaches() -> None:
+    """The rows a Gaussian visits in one 8-column lane block: every pixel of the block where
+    its alpha can reach alpha_min lies in them, and they are no taller than that region's
+    extent over the block's columns (checked by brute force on random rotated ellipses)."""
+    from reconstructor.raster import kernels
+
+    rng = np.random.default_rng(5)
+    narrowed = 0
+    for _ in range(400):
+        sx, sy = rng.uniform(0.5, 12.0, size=2)
+        theta = rng.uniform(0, math.pi)
+        rot = np.array([[math.cos(theta), -math.sin(theta)], [math.sin(theta), math.cos(theta)]])
+        cov = rot @ np.diag([sx * sx, sy * sy]) @ rot.T
+        conic = np.linalg.inv(cov).astype(np.float32)
+        a, b, c = (float(v) for v in (conic[0, 0], conic[0, 1], conic[1, 1]))
+        span = 2.0 * math.log(rng.uniform(0.01, 0.99) * 255)  # q <= span: alpha >= 1/255
+        hx = np.float32(math.sqrt(span * 1.001 * cov[0, 0]))  # as the projection widens it
+        hy = np.float32(math.sqrt(span * 1.001 * cov[1, 1]))
+        mx, my = (np.float32(v) for v in rng.uniform(0, 32, size=2))
+        y0, r0, r1 = 0, 0, 31  # a 32-row tile at row 0, all rows allowed
+        u_first = int(rng.integers(-8, 40))
+        q0, q1 = kernels._strip_rows(
+            np.float32(a), np.float32(b), np.float32(c), mx, my, hx, hy, u_first,
+            u_first + 7, y0, r0, r1,
+        )  # fmt: skip
+        cols = np.arange(u_first, u_first + 8, dtype=np.float64)
+        rows = np.arange(0, 32, dtype=np.float64)
+        dx = cols[None, :] - float(mx)
+        dy = rows[:, None] - float(my)
+        q = a * dx * dx + 2 * b * dx * dy + c * dy * dy
+        reached = np.nonzero((q <= span).any(axis=1))[0]
+        if len(reached):
+            assert q0 <= reached.min() and reached.max() <= q1, (q0, q1, reached)
+        # not taller than the region over the block's continuous columns, plus a row
+        fine = np.linspace(u_first, u_first + 7, 281) - float(mx)
+        ys = np.linspace(-40, 72, 4481) - float(my)
+        qf = a * fine[None, :] ** 2 + 2 * b * fine[None, :] * ys[:, None] + c * ys[:, None] ** 2
+        inside = np.nonzero((qf <= span * 1.002).any(axis=1))[0]
+        if q0 <= q1:
+            assert len(inside), (q0, q1)
+            lo, hi = ys[inside].min() + float(my), ys[inside].max() + float(my)
+            assert q0 >= math.floor(lo) - 1 and q1 <= math.ceil(hi) + 1, (q0, q1, lo, hi)
+            full = (math.ceil(my - hy), math.floor(my + hy))
+            narrowed += (q1 - q0) < min(31, full[1]) - max(0, full[0])
+    assert narrowed > 50  # the case this exists for: rotated Gaussians over several blocks
+
+
+def test_elongated_rotated_gaussians_over_many_lane_blocks_match_the_twin() -> None:
+    """Long thin Gaussians at all angles, each spanning several lane blocks of 32-pixel tiles
+    (where a block visits only the rows the Gaussian reaches there): values and gradients
+    match the twin."""
+    scene = make_scene(
+        80, seed=11, width=96, height=64, scale_m=(0.002, 0.25), opacity_logit=(-4.0, 2.0),
+        needles=12,
+    )  # fmt: skip
+    config = RasterConfig(tile_px=32)
+    fast, g_fast = render(scene, config, grad=True)
+    twin, g_twin = render(scene, replace(config, backend="torch"), grad=True)
+    torch.testing.assert_close(fast.image, twin.image, atol=1e-4, rtol=0)
+    torch.testing.assert_close(fast.alpha, twin.alpha, atol=1e-4, rtol=0)
+    assert_grads_close(g_fast, g_twin)

@@ -1,20 +1,23 @@
 """Tile binning and the per-tile compositing kernels, forward and backward (numba).
 
-Both raster kernels run one tile per iteration of a ``prange`` (one thread owns a tile, so
-per-pixel state needs no locks; tiles are handed out a few at a time, see ``function.py``) and
-walk the tile's Gaussians in depth order. A Gaussian visits only the rows and 8-column lane
-blocks of the tile inside the bounding box of the region where its alpha can reach
-``alpha_min`` (``dᵀ conic d <= 2 ln(opacity / alpha_min)``, widened a little; the exact
-per-pixel test decides inside). Pixel state is stored block by block, rows inside a block, so
-the rows of one block are one contiguous run that LLVM vectorises (8 float32 lanes of AVX2).
-Vectorising needs: branch-free loop bodies (selects, not ``continue``), an ``exp`` that inlines
-(``exp_neg``), 32-bit lanes only (a float counter, not an int), unsigned indices (numba adds a
-wraparound select for signed ones), ``error_model="numpy"`` (no zero-division check), and all
-per-tile pixel state in ONE float32 buffer whose fields sit at compile-time-constant offsets,
-so LLVM can prove they do not overlap without runtime checks. Each pixel still sees its
-fragments front to back in list order, so its sums are those of the obvious per-pixel loop.
+Both raster kernels run one tile per iteration of a ``prange`` (one thread owns a tile, so per-
+pixel state needs no locks; tiles are handed out a few at a time, see ``function.py``) and walk
+the tile's Gaussians in depth order. A Gaussian visits only the rows and 8-column lane blocks
+of the tile inside the bounding box of the region where its alpha can reach ``alpha_min`` (``dᵀ
+conic d <= 2 ln(opacity / alpha_min)``, widened a little; the exact per-pixel test decides
+inside); in each lane block of a Gaussian that spans several, only the rows where that region
+meets the block's columns (``_strip_rows``: on a trained model, whose visible Gaussians are few
+and large, this halves the forward pass). Pixel state is stored block by block, rows inside a
+block, so the rows of one block are one contiguous run that LLVM vectorises (8 float32 lanes of
+AVX2). Vectorising needs: branch-free loop bodies (selects, not ``continue``), an ``exp`` that
+inlines (``exp_neg``), 32-bit lanes only (a float counter, not an int), unsigned indices (numba
+adds a wraparound select for signed ones), ``error_model="numpy"`` (no zero-division check),
+and all per-tile pixel state in ONE float32 buffer whose fields sit at compile-time-constant
+offsets, so LLVM can prove they do not overlap without runtime checks. Each pixel still sees
+its fragments front to back in list order, so its sums are those of the obvious per-pixel loop.
 Before compositing a tile, its Gaussians are copied into a local array: the copies' cache
-misses overlap, while in the compositing loop each one stalled it (15%, measured).
+misses overlap, while in the compositing loop each one stalled it (15%, measured), and the rows
+a little further down the list are prefetched (another 1.1-1.2x, measured).
 
 The backward pass walks each tile's list back to front over the (Gaussian, lane block)s that
 drew something in the forward pass (the forward records them; the rest is skipped), recovering
@@ -32,7 +35,7 @@ import math
 import numpy as np
 from llvmlite import ir
 from numba import njit, prange
-from numba.core import types
+from numba.core import cgutils, types
 from numba.extending import intrinsic
 
 from reconstructor.raster.projection import (
@@ -57,6 +60,8 @@ _ALPHA_DEPTH_MIN = 1e-3  # below this pixel alpha the depth output is 0
 MAX_TILE_PX = 32
 _LANES = 8  # columns per lane block: one AVX2 vector of float32
 _GATHER_CHUNK = 64
+# pairs ahead whose proj row the gathers prefetch: enough to cover an L3 miss at a few ns per pair
+_PREFETCH_AHEAD = 64
 # Per-tile pixel state: field k of buffer index i at buffer[k * _FIELD + i]
 _FIELD = MAX_TILE_PX * MAX_TILE_PX
 
@@ -257,6 +262,38 @@ def _tile_box(t, ntx, tile, width, height):
 
 
 @njit(cache=True, fastmath=True)
+def _strip_rows(a, b, c, mx, my, hx, hy, u_first, u_last, y0, r0, r1):
+    """Tile-relative rows r0..r1 narrowed to those where the Gaussian's alpha_min region meets
+    the image columns u_first..u_last (one lane block); r0 > r1 if it meets none of them.
+
+    The region is the ellipse q(d) = a dx² + 2b dx dy + c dy² <= S, with S = HY² det / a
+    (det = ac - b²) the span HX and HY were made from. Over a strip of columns its top edge,
+    dy = (-b dx - sqrt(c S - det dx²)) / c, is convex in dx with its minimum -HY at
+    dx = b HY / a, so the strip's highest point is the top edge at that dx clamped into the
+    strip; likewise its lowest. A Gaussian spanning two lane blocks then visits, in each,
+    only the rows it reaches there, not the rows of its whole bounding box."""
+    a64, b64, c64 = np.float64(a), np.float64(b), np.float64(c)
+    det = a64 * c64 - b64 * b64
+    if not (a64 > 0.0 and c64 > 0.0 and det > 0.0):
+        return r0, r1
+    hx64, hy64 = np.float64(hx), np.float64(hy)
+    xa = max(u_first - np.float64(mx), -hx64)
+    xb = min(u_last - np.float64(mx), hx64)
+    if xa > xb:
+        return 1, 0
+    span = hy64 * hy64 * det / a64
+    x_top = b64 * hy64 / a64
+    xt = min(max(x_top, xa), xb)
+    xl = min(max(-x_top, xa), xb)
+    y_min = (-b64 * xt - math.sqrt(max(c64 * span - det * xt * xt, 0.0))) / c64
+    y_max = (-b64 * xl + math.sqrt(max(c64 * span - det * xl * xl, 0.0))) / c64
+    margin = 1e-3 * hy64 + 1e-3  # float32 inputs: never lose a row the region reaches
+    v0 = math.ceil(np.float64(my) + y_min - margin) - y0
+    v1 = math.floor(np.float64(my) + y_max + margin) - y0
+    return max(r0, v0), min(r1, v1)
+
+
+@njit(cache=True, fastmath=True)
 def _footprint(proj, g, x0, y0, x1, y1):
     """Tile-relative rows r0..r1 and lane blocks b0..b1 (inclusive) where Gaussian g may
     reach alpha_min; r0 > r1 if nowhere."""
@@ -273,23 +310,63 @@ def _footprint(proj, g, x0, y0, x1, y1):
     return v0 - y0, v1 - y0, (u0 - x0) // _LANES, (u1 - x0) // _LANES
 
 
+@intrinsic
+def _prefetch_row(typingctx, arr, row):
+    """Hint the CPU to load row ``row`` of a C-contiguous 2-D array into all cache levels
+    (``llvm.prefetch``; a prefetch never faults, but callers keep ``row`` in range)."""
+    if not (isinstance(arr, types.Array) and arr.ndim == 2 and isinstance(row, types.Integer)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        aryty, rowty = signature.args
+        ary = context.make_array(aryty)(context, builder, args[0])
+        i64 = ir.IntType(64)
+        row64 = context.cast(builder, args[1], rowty, types.int64)
+        ptr = cgutils.get_item_pointer2(
+            context, builder, ary.data, cgutils.unpack_tuple(builder, ary.shape),
+            cgutils.unpack_tuple(builder, ary.strides), aryty.layout,
+            [row64, ir.Constant(i64, 0)], wraparound=False, boundscheck=False,
+        )  # fmt: skip
+        i8p, i32 = ir.IntType(8).as_pointer(), ir.IntType(32)
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0")
+        # read (0), highest locality (3), data cache (1)
+        builder.call(fn, [builder.bitcast(ptr, i8p), *(ir.Constant(i32, v) for v in (0, 3, 1))])
+        return context.get_dummy_value()
+
+    return types.void(arr, row), codegen
+
+
 @njit(cache=True, fastmath=True)
 def _gather_tile(proj, pairs, start, stop, x0, y0, x1, y1):
     """Copy the Gaussians of pairs[start:stop] that can reach a pixel of the tile into a local
     array, in list order: proj rows (K, PROJ_COLS) and (K, 5) int64 (r0, r1, b0, b1, list
-    index j). The gather's loads are independent, so their cache misses overlap instead of
-    stalling the compositing loop one Gaussian at a time."""
-    loc = np.empty((stop - start, PROJ_COLS), np.float32)
-    fp = np.empty((stop - start, 5), np.int64)
+    index j).
+
+    A tile's list is in depth order, so its proj rows are scattered over memory and nearly
+    every one misses the cache. The rows of pairs _PREFETCH_AHEAD further on are prefetched,
+    and all rows are copied first in a branch-free loop, whose loads are independent, before
+    the footprints are tested on the local copies; testing them on ``proj`` directly stalled on
+    each miss in turn (the render took 1.2x as long, measured)."""
+    n = stop - start
+    loc = np.empty((n, PROJ_COLS), np.float32)
+    fp = np.empty((n, 5), np.int64)
+    ahead = min(stop + _PREFETCH_AHEAD, pairs.shape[0])
+    for i in range(n):
+        if start + i + _PREFETCH_AHEAD < ahead:
+            _prefetch_row(proj, pairs[start + i + _PREFETCH_AHEAD])  # type: ignore[call-arg]
+        g = pairs[start + i]
+        for c in range(PROJ_COLS):
+            loc[i, c] = proj[g, c]
     k = 0
-    for j in range(start, stop):
-        g = pairs[j]
-        r0, r1, b0, b1 = _footprint(proj, g, x0, y0, x1, y1)
+    for i in range(n):
+        r0, r1, b0, b1 = _footprint(loc, i, x0, y0, x1, y1)
         if r0 > r1:
             continue
-        for c in range(PROJ_COLS):
-            loc[k, c] = proj[g, c]
-        fp[k, 0], fp[k, 1], fp[k, 2], fp[k, 3], fp[k, 4] = r0, r1, b0, b1, j
+        if k != i:
+            for c in range(PROJ_COLS):
+                loc[k, c] = loc[i, c]
+        fp[k, 0], fp[k, 1], fp[k, 2], fp[k, 3], fp[k, 4] = r0, r1, b0, b1, start + i
         k += 1
     return loc[:k], fp[:k]
 
@@ -302,6 +379,8 @@ def _gather_drawn(proj, pairs, drawn, start, stop):
     idx = np.empty(stop - start, np.int64)
     k = 0
     for j in range(start, stop):
+        if j + _PREFETCH_AHEAD < stop:
+            _prefetch_row(proj, pairs[j + _PREFETCH_AHEAD])  # type: ignore[call-arg]
         any_drawn = False
         for blk in range(drawn.shape[1]):
             any_drawn |= drawn[j, blk, 0] <= drawn[j, blk, 1]
@@ -394,15 +473,24 @@ def _composite_tile(
             cr, cg, cb, z = loc[k, CR], loc[k, CG], loc[k, CB_], loc[k, DEPTH]
             j = fp[k, 4]
             j_used = np.float32(j - offsets[t] + 1)
+            hx, hy = loc[k, HX], loc[k, HY]
             for blk in range(b0, b1 + 1):
                 if blk_active[blk] == 0:
                     continue
+                q0, q1 = r0, r1
+                if b0 < b1:  # one block holds the whole footprint: its rows are r0..r1
+                    u_first = x0 + blk * _LANES
+                    q0, q1 = _strip_rows(
+                        a, b, c, mx, my, hx, hy, u_first, u_first + _LANES - 1, y0, r0, r1
+                    )
+                    if q0 > q1:
+                        continue
                 n_stop, n_draw = _draw_block(
-                    st, blk * bs + r0 * _LANES, blk * bs + (r1 + 1) * _LANES,
+                    st, blk * bs + q0 * _LANES, blk * bs + (q1 + 1) * _LANES,
                     mx, my, a, b, c, o, cr, cg, cb, z, j_used, amin, amax, tmin, record,
                 )  # fmt: skip
                 if record and n_draw > zero:
-                    drawn[j, blk, 0], drawn[j, blk, 1] = r0, r1
+                    drawn[j, blk, 0], drawn[j, blk, 1] = q0, q1
                 blk_active[blk] -= int(n_stop)
                 active -= int(n_stop)
             if active == 0:
