@@ -135,10 +135,13 @@ def step_parts_ms(trainer: Trainer, views: list, steps: int) -> dict[str, float]
         stages = stage_times_ms()
         for name, ms in (
             ("rasterizer forward (all stages)", 1e3 * (t1 - t0)),
+            ("  of which projection", stages["project_fwd"]),
+            ("  of which binning and depth sort", stages["bin_sort"]),
             ("  of which compositing, forward", stages["raster_fwd"]),
             ("image loss + opacity term, forward", 1e3 * (t2 - t1)),
             ("backward (loss, rasterizer, projection)", 1e3 * (t3 - t2)),
             ("  of which compositing, backward", stages["raster_bwd"]),
+            ("  of which projection, backward", stages["project_bwd"]),
             ("Adam", 1e3 * (t4 - t3)),
             ("whole step", 1e3 * (t4 - t0)),
         ):
