@@ -352,7 +352,7 @@ class _RasterizeFn(torch.autograd.Function):
             records, goffsets,
         )  # fmt: skip
         t2 = time.perf_counter()
-        g_bg = t_final.reshape(-1) @ g_img.reshape(-1, 3)  # dL/dbg = Σ_px T_final dL/dC
+        g_bg = kernels.background_grad(t_final, g_img)  # dL/dbg = Σ_px T_final dL/dC
         _stage_ms.update(raster_bwd=1e3 * (t1 - t0), project_bwd=1e3 * (t2 - t1))
         return (
             torch.from_numpy(g_means),
@@ -360,7 +360,7 @@ class _RasterizeFn(torch.autograd.Function):
             torch.from_numpy(g_log_scales),
             torch.from_numpy(g_logits),
             torch.from_numpy(g_colors),
-            torch.from_numpy(np.asarray(g_bg, np.float32)),
+            torch.from_numpy(g_bg),
             None,
             None,
             None,
