@@ -9,6 +9,11 @@ or, with ``--steps N``, extrapolated from N steps (the table says which).
 
     .venv/bin/python bench/bench_reconstruct.py              # the full 2000 steps
     .venv/bin/python bench/bench_reconstruct.py --steps 100  # quicker, extrapolated
+    .venv/bin/python bench/bench_reconstruct.py --model out/bench_reconstruct/splats.ply
+        # no reconstruction: a trained model's step, taken apart, and its render fps
+
+After a run it also times a few more steps part by part (``--part-steps``), and renders of
+the model from the input views without gradients (the novel-view render path).
 
 Goal (issue 5): at most 10 minutes per timestamp on 2 cores; the paper's RTX 4090 takes about 2.
 """
@@ -72,8 +77,16 @@ def main() -> int:
     parser.add_argument(
         "--part-steps", type=int, default=12, help="extra steps timed part by part after the run"
     )
+    parser.add_argument(
+        "--model",
+        type=Path,
+        help="a splat PLY of this seed's timestamp: skip the reconstruction, time only its "
+        "steps part by part and its renders",
+    )
     args = parser.parse_args()
     ts = sim_timestamp(args.seed, 1.0)
+    if args.model is not None:
+        return time_model(ts, args.model, args.part_steps)
     warm = min(500, args.steps)
     cfg = ReconstructConfig(
         train=TrainConfig(warmup_steps=warm, refine_steps=args.steps - warm, log_every_steps=100)
@@ -103,11 +116,51 @@ def main() -> int:
         f"({full_s / GOAL_S:.2f}x the goal; the paper's GPU: about 120 s)"
     )
     print(f"final training loss {rec.trainer.log.mean_loss():.4f}")
-    parts = step_parts_ms(rec.trainer, rec.train_views, args.part_steps)
-    print(f"\nwhere a step's time goes (median of {args.part_steps} extra steps, after the run):")
+    print_parts_and_renders(rec.trainer, rec.train_views, args.part_steps, "after the run")
+    return 0
+
+
+def time_model(ts: Timestamp, model: Path, part_steps: int) -> int:
+    """A trained model's training step, part by part, and its render fps."""
+    from reconstructor.pipeline import make_views
+    from reconstructor.ply import read_ply
+    from reconstructor.train import scene_extent_m
+
+    cfg = ReconstructConfig().resolved(ts.frames[0].camera.intrinsics.width_px)
+    views, _ = make_views(ts, cfg)
+    gaussians = read_ply(model)
+    trainer = Trainer(gaussians, cfg.train, cfg.raster, scene_extent_m(views))
+    for view in views[:3]:  # compile and warm up
+        trainer.step(view)
+    print(f"model {model}: {gaussians.num} Gaussians, {len(views)} views")
+    print_parts_and_renders(trainer, views, part_steps, "on this model")
+    return 0
+
+
+def print_parts_and_renders(trainer: Trainer, views: list, steps: int, when: str) -> None:
+    parts = step_parts_ms(trainer, views, steps)
+    print(f"\nwhere a step's time goes (median of {steps} extra steps, {when}):")
     for name, ms in parts.items():
         print(f"  {name:<40}{ms:>8.1f} ms")
-    return 0
+    render_ms = render_times_ms(trainer, views, 2 * len(views))
+    print(
+        f"render without gradients, {views[0].width_px}x{views[0].height_px} (the input views, "
+        f"median of {len(render_ms)}): {np.median(render_ms):.1f} ms, "
+        f"{1000 / np.median(render_ms):.1f} fps"
+    )
+
+
+def render_times_ms(trainer: Trainer, views: list, n: int) -> list[float]:
+    """Wall ms of ``n`` renders of the model from ``views`` under ``torch.no_grad()``."""
+    from reconstructor.train import render
+
+    times = []
+    with torch.no_grad():
+        for k in range(n):
+            t0 = time.perf_counter()
+            render(trainer.g, views[k % len(views)], trainer.raster, torch.rand(3))
+            times.append(1e3 * (time.perf_counter() - t0))
+    return times
 
 
 def step_parts_ms(trainer: Trainer, views: list, steps: int) -> dict[str, float]:
