@@ -167,39 +167,38 @@ def step_parts_ms(trainer: Trainer, views: list, steps: int) -> dict[str, float]
     """A training step taken apart (the same calls as ``Trainer.step``), timed part by part."""
     from reconstructor.image_loss import image_loss
     from reconstructor.raster.function import stage_times_ms
-    from reconstructor.train import opencv_single_threaded, render
+    from reconstructor.train import render
 
     cfg = trainer.config
     rows: dict[str, list[float]] = {}
-    with opencv_single_threaded():  # as in Trainer.step
-        for k in range(steps):
-            view = views[k % len(views)]
-            bg = torch.rand(3)
-            t0 = time.perf_counter()
-            out = render(trainer.g, view, trainer.raster, bg)
-            t1 = time.perf_counter()
-            term, _, _ = image_loss(out.image, view.image, view.mask, cfg.ssim_weight, bg)
-            loss = term + cfg.opacity_reg_weight * torch.sigmoid(trainer.g.opacity_logits).mean()
-            t2 = time.perf_counter()
-            trainer.optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            t3 = time.perf_counter()
-            trainer.optimizer.step()
-            t4 = time.perf_counter()
-            stages = stage_times_ms()
-            for name, ms in (
-                ("rasterizer forward (all stages)", 1e3 * (t1 - t0)),
-                ("  of which projection", stages["project_fwd"]),
-                ("  of which binning and depth sort", stages["bin_sort"]),
-                ("  of which compositing, forward", stages["raster_fwd"]),
-                ("image loss + opacity term, forward", 1e3 * (t2 - t1)),
-                ("backward (loss, rasterizer, projection)", 1e3 * (t3 - t2)),
-                ("  of which compositing, backward", stages["raster_bwd"]),
-                ("  of which projection, backward", stages["project_bwd"]),
-                ("Adam", 1e3 * (t4 - t3)),
-                ("whole step", 1e3 * (t4 - t0)),
-            ):
-                rows.setdefault(name, []).append(ms)
+    for k in range(steps):
+        view = views[k % len(views)]
+        bg = torch.rand(3)
+        t0 = time.perf_counter()
+        out = render(trainer.g, view, trainer.raster, bg)
+        t1 = time.perf_counter()
+        term, _, _ = image_loss(out.image, view.image, view.mask, cfg.ssim_weight, bg)
+        loss = term + cfg.opacity_reg_weight * torch.sigmoid(trainer.g.opacity_logits).mean()
+        t2 = time.perf_counter()
+        trainer.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        t3 = time.perf_counter()
+        trainer.optimizer.step()
+        t4 = time.perf_counter()
+        stages = stage_times_ms()
+        for name, ms in (
+            ("rasterizer forward (all stages)", 1e3 * (t1 - t0)),
+            ("  of which projection", stages["project_fwd"]),
+            ("  of which binning and depth sort", stages["bin_sort"]),
+            ("  of which compositing, forward", stages["raster_fwd"]),
+            ("image loss + opacity term, forward", 1e3 * (t2 - t1)),
+            ("backward (loss, rasterizer, projection)", 1e3 * (t3 - t2)),
+            ("  of which compositing, backward", stages["raster_bwd"]),
+            ("  of which projection, backward", stages["project_bwd"]),
+            ("Adam", 1e3 * (t4 - t3)),
+            ("whole step", 1e3 * (t4 - t0)),
+        ):
+            rows.setdefault(name, []).append(ms)
     return {name: float(np.median(v)) for name, v in rows.items()}
 
 

@@ -21,11 +21,9 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 import torch
 
@@ -143,22 +141,6 @@ def render(
     )
 
 
-@contextmanager
-def opencv_single_threaded() -> Iterator[None]:
-    """OpenCV's own thread pool off for the duration (restored after).
-
-    In a training step the rasterizer's numba threads do the parallel work. The image loss's
-    OpenCV blurs gain nothing from OpenCV's pool there (their time is the same on one thread),
-    while its threads, spinning after each blur, took a core from the rasterizer that followed
-    (a step 1.05-1.1x faster without them, measured on a trained model)."""
-    before = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        yield
-    finally:
-        cv2.setNumThreads(before)
-
-
 class Trainer:
     """Adam over the Gaussians' parameters, kept across the stages of a schedule."""
 
@@ -201,10 +183,6 @@ class Trainer:
 
     def step(self, view: View, weight: float = 1.0) -> StepStats:
         """One Adam step on ``view``; ``weight`` scales its image loss (not the opacity term)."""
-        with opencv_single_threaded():
-            return self._step(view, weight)
-
-    def _step(self, view: View, weight: float) -> StepStats:
         t0 = time.perf_counter()
         cfg = self.config
         for group in self.optimizer.param_groups:

@@ -7,6 +7,7 @@ fractional mask and the random-background fill, and to finite differences.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 import torch
@@ -50,6 +51,8 @@ def _loss_and_grad(rendered, target, mask, fill, weight, backend):
         (33, 47, False, False, 0.7),
         (200, 320, True, True, 0.0),
         (45, 64, False, True, 1.0),
+        (7, 5, False, True, 0.2),  # smaller than the 11x11 window
+        (333, 21, True, True, 0.2),  # tall: many strips of rows, each with its borders
     ],
 )
 def test_fused_loss_matches_twin_values_and_gradients(h, w, fractional, use_fill, weight):
@@ -84,6 +87,22 @@ def test_fused_gradient_matches_finite_differences():
         numeric = (float(plus) - float(minus)) / (2 * eps)
         analytic = float((grad.double() * direction.double()).sum())
         assert analytic == pytest.approx(numeric, rel=1e-3, abs=1e-8)
+
+
+def test_loss_and_gradient_do_not_depend_on_the_number_of_threads():
+    """A reconstruction must not change with the machine's core count: the kernels split the
+    rows into strips by thread count, and every row must come out bit for bit the same."""
+    rendered, target, mask, fill = _case(300, 90, seed=4, fractional=True)  # 4 vs 8 strips
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = _loss_and_grad(rendered, target, mask, fill, 0.2, "numba")
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+        many = _loss_and_grad(rendered, target, mask, fill, 0.2, "numba")
+    finally:
+        numba.set_num_threads(before)
+    assert one[:3] == many[:3]
+    assert torch.equal(one[3], many[3])
 
 
 def test_backward_scales_with_the_weight_given_to_the_loss():
