@@ -37,8 +37,8 @@ from numba import njit, prange
 # (a, b, c) of [[a, b], [b, c]], opacity, camera depth, colour, and HX, HY: the half-width and
 # half-height in pixels of the region where alpha can reach alpha_min,
 # dᵀ conic d <= 2 ln(opacity / alpha_min) (widened by SPAN_SLACK; HY < 0 if the opacity is
-# below alpha_min).
-MX, MY, CA, CB, CC, OPA, DEPTH, CR, CG, CB_, HX, HY = range(12)
+# below alpha_min), and LOG2O = log2(opacity) (only where HY >= 0).
+MX, MY, CA, CB, CC, OPA, DEPTH, CR, CG, CB_, HX, HY, LOG2O = range(13)
 PROJ_COLS = 16  # one 64-byte cache line
 SPAN_SLACK = 1e-3  # relative widening: the exact per-pixel test decides inside the region
 
@@ -219,6 +219,7 @@ def project_forward(
             span = 2.0 * np.float64(log_ratio[i]) * (1.0 + SPAN_SLACK) + SPAN_SLACK
             proj[i, HX] = math.sqrt(span * s00)
             proj[i, HY] = math.sqrt(span * s11)
+            proj[i, LOG2O] = math.log2(opacity[i])
             # Tiles: only those the alpha_min region can reach (a trained model's faint
             # Gaussians reach a small part of their 3-sigma square, many reach nothing). One
             # pixel wider than the region as stored in float32, which is what the raster
