@@ -175,6 +175,13 @@ class Trainer:
         self._position_lr0 = config.position_lr * extent_m
         # fused: one kernel over all tensors, 5x faster than the default loop on a CPU
         self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
+        # Flush float32 denormals to zero (this thread, and threads it starts later). The
+        # Gaussians that fade below alpha_min get no more gradient, and their Adam moments
+        # decay by beta each step into the denormal range, where x86 arithmetic is 10-20x
+        # slower: Adam over 193k Gaussians with most first moments denormal took 75 ms
+        # against 4 ms flushed (measured), and late in a 2000-step schedule it took 49 ms a
+        # step. A denormal moment moves a parameter by nothing either way.
+        torch.set_flush_denormal(True)
 
     def _position_lr(self) -> float:
         total = max(self.config.total_steps, 1)
