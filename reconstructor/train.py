@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from reconstructor.denormals import denormals_flushed_on_all_threads, flush_denormals
 from reconstructor.errors import ReconstructConfigError
 from reconstructor.gaussians import Gaussians
 from reconstructor.image_loss import image_loss
@@ -175,13 +176,15 @@ class Trainer:
         self._position_lr0 = config.position_lr * extent_m
         # fused: one kernel over all tensors, 5x faster than the default loop on a CPU
         self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
-        # Flush float32 denormals to zero (this thread, and threads it starts later). The
-        # Gaussians that fade below alpha_min get no more gradient, and their Adam moments
-        # decay by beta each step into the denormal range, where x86 arithmetic is 10-20x
-        # slower: Adam over 193k Gaussians with most first moments denormal took 75 ms
-        # against 4 ms flushed (measured), and late in a 2000-step schedule it took 49 ms a
-        # step. A denormal moment moves a parameter by nothing either way.
-        torch.set_flush_denormal(True)
+        # Adam's moments of faded Gaussians decay into float32 denormals, 10x slower to
+        # compute with: they must be flushed on every thread (reconstructor/denormals.py).
+        flush_denormals()
+        if not denormals_flushed_on_all_threads():
+            log.warning(
+                "float32 denormals are not flushed on torch's worker threads, so training slows "
+                "down late in a long schedule (Adam up to 8x): torch started its threads before "
+                "reconstructor was imported; import reconstructor before running torch operations"
+            )
 
     def _position_lr(self) -> float:
         total = max(self.config.total_steps, 1)
