@@ -21,23 +21,26 @@ from tests.conftest import run_egosurg
 from tests.sessions import copy_sets, record_sim_session
 
 SEED = 5
-# recording prerenders about 3 minutes of HD1200 frames; calibrating takes under a minute more
+# recording prerenders about 2 minutes of HD1200 frames; calibrating takes under a minute more
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(1800)]
 
 
 @pytest.fixture(scope="module")
 def wand_session(tmp_path_factory) -> Path:
-    """17 s of the wand phase at HD1200, 15 fps, free-running cameras with drops.
+    """17 s of the wand phase at HD1200, 10 fps, free-running cameras with drops.
 
     Every frame shows the scene at its own exposure time (content_fps = fps). The agents loop
     14 s of prerendered content, so 17 s of recording holds the first 2 s of the loop, where the
-    wand lies on the floor, whole."""
+    wand lies on the floor, whole. 10 fps, not the rig's 15: prerendering is most of this test's
+    time (HD1200 pairs at about 175 ms each on two cores), and the wand's path matters more
+    than the samples along it. Measured: 10 s of content at 15 fps missed the translation limit
+    (2.7 mm), 14 s at 10 fps is within half of both limits."""
     spec = SimRigSpec(
         seed=SEED,
         phase="wand",
         resolution="HD1200",
-        fps=15.0,
-        content_fps=15.0,
+        fps=10.0,
+        content_fps=10.0,
         prerender_s=14.0,
         drop_probability=0.01,
         jpeg_quality=92,
@@ -72,7 +75,7 @@ def test_calibration_recovers_the_true_rig(calibrated, wand_session, wand_file):
     for e in errors:
         print(f"{e.name}: rotation {e.rotation_deg:.4f} deg, translation {e.translation_mm:.2f} mm")
     # after the best rigid fit of the rig onto the truth: issue 4's limits (measured on this
-    # session: 0.012 deg and 0.8 mm)
+    # session: 0.023 deg and 1.2 mm; 0.012 deg and 0.8 mm with 15 fps)
     assert max(e.rotation_deg for e in errors) <= 0.05
     assert max(e.translation_mm for e in errors) <= 2.0
     q = cal.quality
