@@ -151,8 +151,10 @@ def test_refine_keeps_the_old_world_frame(calibrated, wand_session, wand_file, t
     refined = RigCalibration.read(new)
     for s in refined.sensors:
         before = turned.sensor(s.camera_serial, s.side).pose
+        # two solves from different sets of the session, each within 0.05 deg of the truth, may
+        # differ by twice that; the frame it must keep is 30 degrees and 0.45 m away
         assert np.linalg.norm(s.pose.centre_m - before.centre_m) < 0.002, s.name
-        assert np.degrees(np.arccos(min(1.0, (np.trace(s.pose.R @ before.R.T) - 1) / 2))) < 0.05
+        assert np.degrees(np.arccos(min(1.0, (np.trace(s.pose.R @ before.R.T) - 1) / 2))) < 0.1
 
 
 def test_a_wand_that_does_not_match_the_detections_is_named(wand_session, tmp_path):
