@@ -12,8 +12,9 @@ The flush is a per-thread CPU mode (MXCSR's flush-to-zero and denormals-are-zero
 ``torch.set_flush_denormal`` sets it on the calling thread only. A thread copies the mode of the
 thread that starts it, so the mode must be set before torch (or Numba) starts its worker
 threads, at their first parallel operation: importing ``reconstructor`` does that
-(``reconstructor/__init__.py``). Set later, it reached only the main thread, and Adam still
-slowed to 20-30 ms a step late in the schedule (measured: the "after the fix" run of session 7).
+(``reconstructor/__init__.py``). Set later, in the trainer, it reached only the main thread, and
+Adam still took 29.9 ms a step after the 2000-step schedule (BENCHMARKS.md, "Reconstruction
+schedule").
 """
 
 from __future__ import annotations
