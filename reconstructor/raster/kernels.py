@@ -265,6 +265,13 @@ def _alpha_exponent(a, b, c):
     return np.float32(-0.5) * _LOG2E * a, -_LOG2E * b, np.float32(-0.5) * _LOG2E * c
 
 
+@njit(cache=True, fastmath=True, inline="always")
+def _raw_alpha(dx, dy, qa, qb, qc, lo):
+    """opacity · gauss at the pixel offset (dx, dy), before the clamp to alpha_max: the one
+    expression both compositing passes use, so that the backward's alpha is the forward's."""
+    return exp2_neg((qb * dx + qc * dy) * dy + (qa * dx * dx + lo))
+
+
 @njit(cache=True, fastmath=True)
 def _tile_box(t, ntx, tile, width, height):
     """Pixel box (x0, y0, x1, y1), inclusive, of tile t."""
@@ -427,7 +434,7 @@ def _draw_block(
     for p in range(np.uint64(p0), np.uint64(p1)):
         dx = st[_X + p] - mx
         dy = st[_Y + p] - my
-        alpha = min(amax, exp2_neg((qb * dx + qc * dy) * dy + (qa * dx * dx + lo)))
+        alpha = min(amax, _raw_alpha(dx, dy, qa, qb, qc, lo))
         tr = st[_T + p]
         test_t = tr * (one - alpha)
         ok = (alpha >= amin) & (tr > zero)
@@ -591,13 +598,13 @@ _BT, _BD, _GR, _GG, _GB, _GA, _BLAST, _BX, _BY = (np.uint64(k * _FIELD) for k in
 def _grad_block(st, p0, p1, mx, my, qa, qb, qc, lo, cr, cg, cb, jf, amin, amax, sums):
     """Walk one Gaussian back over the pixels p0..p1-1 of a tile's backward state (one vector
     loop), updating the state and adding to sums: dL/dc (3), and g_pow = dL/dpower times 1,
-    dx, dy, dx², dx dy, dy². Its alpha is the forward's (``_draw_block``), term for term."""
+    dx, dy, dx², dx dy, dy². Its alpha is the forward's (``_raw_alpha``)."""
     one, zero = np.float32(1.0), np.float32(0.0)
     s_r = s_g = s_b = s_0 = s_x = s_y = s_xx = s_xy = s_yy = zero
     for p in range(np.uint64(p0), np.uint64(p1)):
         dx = st[_BX + p] - mx
         dy = st[_BY + p] - my
-        raw = exp2_neg((qb * dx + qc * dy) * dy + (qa * dx * dx + lo))  # opacity · gauss
+        raw = _raw_alpha(dx, dy, qa, qb, qc, lo)
         alpha = min(amax, raw)
         hit = (alpha >= amin) & (jf < st[_BLAST + p])  # drawn in the forward
         alpha = alpha if hit else zero
