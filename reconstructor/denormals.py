@@ -25,9 +25,10 @@ _PROBE_ELEMENTS = 1 << 20  # many times torch's parallel grain: every worker thr
 _DENORMAL_BITS = 1 << 20  # float32 bits 0x00100000: 1.5e-39, a denormal
 
 
-def flush_denormals() -> None:
-    """Set flush-to-zero on the calling thread and on the threads it starts from now on."""
-    torch.set_flush_denormal(True)
+def flush_denormals() -> bool:
+    """Set flush-to-zero on the calling thread and on the threads it starts from now on; False
+    on a CPU without the mode (torch supports it on x86 only), where nothing changes."""
+    return bool(torch.set_flush_denormal(True))
 
 
 def denormals_flushed_on_all_threads() -> bool:

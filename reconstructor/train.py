@@ -178,8 +178,7 @@ class Trainer:
         self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
         # Adam's moments of faded Gaussians decay into float32 denormals, 10x slower to
         # compute with: they must be flushed on every thread (reconstructor/denormals.py).
-        flush_denormals()
-        if not denormals_flushed_on_all_threads():
+        if flush_denormals() and not denormals_flushed_on_all_threads():
             log.warning(
                 "float32 denormals are not flushed on torch's worker threads, so training slows "
                 "down late in a long schedule (Adam up to 8x): torch started its threads before "
