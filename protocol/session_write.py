@@ -4,12 +4,13 @@ See ``protocol.session`` for the overview and crash-safety rules, ``docs/session
 layout.
 
 Speed. The image bytes are the load (about 70 MB/s on the reference rig, many times that when a
-recorder catches up): each camera side's bytes go to the file in whole chunks with
-``write_direct_chunk``, without the chunk cache (the file is opened with ``rdcc_nbytes=0``).
-On the 2-core development machine that made the writer about 1.6x faster than chunk-aligned
-``ds[a:b] = ...`` through an 8 MiB cache, and flushes 2-3x shorter. The byte datasets grow
-geometrically (their extent is a capacity; the logical end is the last offset + length) and are
-trimmed at a clean close. The small tables are written once per flush.
+recorder catches up): each camera side's bytes are gathered into whole chunks, which a
+``ChunkSink`` writes at their place in the file from a thread of its own, with direct I/O where
+the file system allows it (``protocol.chunk_sink`` says why and what it measured). HDF5 keeps
+the layout: the byte datasets allocate their chunks as they grow (their extent is a capacity;
+the logical end is the last offset + length) and are trimmed at a clean close. The file is
+opened without a chunk cache (``rdcc_nbytes=0``): the tables' chunks are only appended to, so a
+cache would only add a copy. The small tables are written once per flush.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from protocol.chunk_sink import DIRECT_ALIGN_BYTES, ChunkSink
 from protocol.session_format import (
     BLOB_CHUNK_BYTES,
     FORMAT,
@@ -41,8 +43,8 @@ from protocol.session_format import (
 
 logger = logging.getLogger(__name__)
 
-_MIN_BLOB_CAPACITY = 16 << 20
-_MAX_BLOB_GROWTH = 1 << 30
+_MIN_BLOB_GROWTH = 4 << 20
+_MAX_BLOB_GROWTH = 64 << 20
 _MAX_BLOB_CHUNK = 1 << 30
 _MAX_PENDING_ROWS = 4096  # a memory bound if the caller forgets to flush()
 _MAX_LENGTH = int(np.iinfo(np.uint32).max)
@@ -51,21 +53,22 @@ _MAX_LENGTH = int(np.iinfo(np.uint32).max)
 class _Blob:
     """An append-only byte dataset, written one whole chunk at a time; its extent is a capacity.
 
-    A chunk is assembled in a reused buffer (fresh memory for every frame costs more in page
-    faults than the copy) and goes to the file with ``write_direct_chunk``: one write call that
-    skips HDF5's chunk cache, selections and type conversion. Parts of a frame that fill whole
-    chunks go straight from the caller's buffer. ``flush`` writes the unfinished last chunk whole
-    (zeros past the data); it is written again when it fills, with the same leading bytes, so
-    what a reader may already see never changes.
+    A chunk is assembled in a buffer lent by the file's ``ChunkSink``; when it is full, the
+    sink writes it at the chunk's place in the file from its own thread. The dataset allocates
+    its chunks when it grows (``H5D_ALLOC_TIME_EARLY``), so HDF5 knows that place before the
+    bytes exist. ``flush`` writes the unfinished last chunk whole (zeros past the data); it is
+    written again when it fills, with the same leading bytes, so what a reader may already see
+    never changes.
     """
 
-    def __init__(self, ds: h5py.Dataset) -> None:
+    def __init__(self, ds: h5py.Dataset, sink: ChunkSink) -> None:
         self.ds = ds
+        self.sink = sink
         self.chunk = int(ds.chunks[0])
         self.capacity = 0  # the dataset's extent
         self.logical_end = 0  # bytes appended
         self.chunk_start = 0  # where the buffer's chunk starts in the dataset
-        self.buffer = np.zeros(self.chunk, dtype=np.uint8)
+        self.buffer: np.ndarray | None = None  # the unfinished chunk, lent by the sink
         self.fill = 0  # bytes of data in the buffer
         self.zero_from = 0  # buffer[max(fill, zero_from):] is all zeros
 
@@ -77,55 +80,57 @@ class _Blob:
         offset = self.logical_end
         chunk, pos = self.chunk, 0
         while pos < n:
-            if self.fill == chunk:  # a full chunk whose write failed (disk full): again
-                self._next_chunk()
-            if self.fill == 0 and n - pos >= chunk:  # a whole chunk: no copy
-                self._write_chunk(src[pos : pos + chunk])
-                self.chunk_start += chunk
-                step = chunk
-            else:
-                step = min(n - pos, chunk - self.fill)
-                self.buffer[self.fill : self.fill + step] = src[pos : pos + step]
-                self.fill += step
+            if self.buffer is None:
+                self.buffer = self.sink.take_buffer()
+                self.zero_from = chunk  # old contents
+            step = min(n - pos, chunk - self.fill)
+            self.buffer[self.fill : self.fill + step] = src[pos : pos + step]
+            self.fill += step
             pos += step
-            # kept exact at every step: after a failed write, later offsets stay right
             self.logical_end += step
             if self.fill == chunk:
-                self._next_chunk()
+                self.sink.submit(self.buffer, self._file_offset())
+                self.buffer = None
+                self.chunk_start += chunk
+                self.fill = 0
         return offset, n
 
-    def flush(self) -> None:
-        """Put every byte appended so far in the file, then flush the dataset."""
-        if self.fill:
+    def flush_partial(self) -> None:
+        """Write the unfinished chunk (call after ``sink.drain()``), then flush the dataset."""
+        if self.fill and self.buffer is not None:
             if self.zero_from > self.fill:  # no stale bytes of an earlier chunk in the file
                 self.buffer[self.fill : self.zero_from] = 0
             self.zero_from = self.fill
-            self._write_chunk(self.buffer)
+            self.sink.write_now(self.buffer, self._file_offset())
         self.ds.flush()
 
-    def _next_chunk(self) -> None:
-        self._write_chunk(self.buffer)
-        self.chunk_start += self.chunk
-        self.fill = 0
-        self.zero_from = self.chunk
-
-    def _write_chunk(self, data: np.ndarray) -> None:
+    def _file_offset(self) -> int:
+        """Where the current chunk lives in the file, growing the dataset if it must."""
         end = self.chunk_start + self.chunk
         if end > self.capacity:
-            grown = self.capacity + min(max(self.capacity, _MIN_BLOB_CAPACITY), _MAX_BLOB_GROWTH)
-            self.capacity = _round_up(max(end, grown), self.chunk)
+            # Growth allocates the chunks in the file at once (on disk only once written), so it
+            # is bounded: at most _MAX_BLOB_GROWTH stays unused past the end of a recording.
+            step = min(max(self.capacity // 8, _MIN_BLOB_GROWTH), _MAX_BLOB_GROWTH)
+            self.capacity = _round_up(max(end, self.capacity + step), self.chunk)
             self.ds.resize((self.capacity,))
-        self.ds.id.write_direct_chunk((self.chunk_start,), data)
+        info = self.ds.id.get_chunk_info_by_coord((self.chunk_start,))
+        if info.byte_offset is None:
+            raise SessionWriteError(
+                f"{self.ds.name}: HDF5 did not allocate the chunk at {self.chunk_start}"
+            )
+        return int(info.byte_offset)
 
 
 class _CameraWriter:
-    def __init__(self, group: h5py.Group, info: CameraInfo, blob_chunk_bytes: int) -> None:
+    def __init__(
+        self, group: h5py.Group, info: CameraInfo, blob_chunk_bytes: int, sink: ChunkSink
+    ) -> None:
         self.info = info
         self.tables = {
             name: _create_table(group, name, dtype) for name, dtype in FRAME_COLUMNS.items()
         }
-        self.left = _Blob(_create_blob(group, "left_bytes", blob_chunk_bytes))
-        self.right = _Blob(_create_blob(group, "right_bytes", blob_chunk_bytes))
+        self.left = _Blob(_create_blob(group, "left_bytes", blob_chunk_bytes), sink)
+        self.right = _Blob(_create_blob(group, "right_bytes", blob_chunk_bytes), sink)
         self.pending: list[tuple[int, ...]] = []
         self.rows = 0  # appended
         self.rows_in_file = 0
@@ -152,7 +157,10 @@ class SessionWriter:
         software_version: str,
         started_unix_ns: int,
         blob_chunk_bytes: int = BLOB_CHUNK_BYTES,
+        direct_io: bool | None = None,
     ) -> None:
+        """``direct_io``: write the image chunks past the page cache (``O_DIRECT``); None does
+        where the file system allows it (see ``protocol.chunk_sink``)."""
         self._path = Path(path)
         serials = [c.camera_serial for c in cameras]
         if not serials:
@@ -190,9 +198,26 @@ class SessionWriter:
             # keeps the file readable by the HDF5 1.10 tools (h5dump) of Debian and JetPack.
             # No chunk cache: image chunks are written whole, past it, and the tables' chunks
             # are only appended to, so a cache would only add a copy (and slow flushes).
-            self._f = h5py.File(self._path, "x", libver=("v110", "v110"), rdcc_nbytes=0)
+            # Allocations of a whole image chunk start on a disk block, as direct I/O needs.
+            aligned = blob_chunk_bytes % DIRECT_ALIGN_BYTES == 0
+            self._f = h5py.File(
+                self._path,
+                "x",
+                libver=("v110", "v110"),
+                rdcc_nbytes=0,
+                alignment_threshold=blob_chunk_bytes if aligned else 1,
+                alignment_interval=DIRECT_ALIGN_BYTES if aligned else 1,
+            )
         except OSError as exc:
             raise SessionWriteError(f"{self._path}: cannot create the session file: {exc}") from exc
+        try:
+            self._sink = ChunkSink(
+                self._path, blob_chunk_bytes, direct_io=direct_io, buffers_held=2 * len(serials)
+            )
+        except BaseException:
+            self._f.close()
+            self._path.unlink(missing_ok=True)
+            raise
         try:
             self._cams = self._create_layout(
                 session_name=session_name,
@@ -206,6 +231,7 @@ class SessionWriter:
             )
             self._f.swmr_mode = True
         except BaseException:
+            self._sink.close()
             self._f.close()
             self._path.unlink(missing_ok=True)
             raise
@@ -247,7 +273,7 @@ class SessionWriter:
             g.attrs["fps_nominal"] = np.float64(info.fps_nominal)
             g.attrs["encoding"] = info.encoding
             g.attrs["factory_conf"] = info.factory_conf_text
-            cams[info.camera_serial] = _CameraWriter(g, info, blob_chunk_bytes)
+            cams[info.camera_serial] = _CameraWriter(g, info, blob_chunk_bytes, self._sink)
         n_cams = len(self._serials)
         sets = f.create_group("sets")
         self._set_time = _create_table(sets, "set_unix_ns", np.int64)
@@ -307,6 +333,12 @@ class SessionWriter:
         Returns the frame's row in ``/cameras/<serial>``, the index that sets refer to.
         """
         cam = self._camera(camera_serial)
+        try:
+            self._sink.check()  # an earlier chunk that could not be written: not past it
+        except OSError as exc:
+            raise SessionWriteError(
+                f"{self._path}: writing failed ({exc}); check free disk space and the disk"
+            ) from exc
         lo, ll = cam.left.append(left)
         ro, rl = cam.right.append(right)
         cam.pending.append(
@@ -404,9 +436,10 @@ class SessionWriter:
 
     def _flush(self) -> None:
         cams = self._cams.values()
+        self._sink.drain()
         for cam in cams:
             for blob in (cam.left, cam.right):
-                blob.flush()
+                blob.flush_partial()
         for cam in cams:
             if cam.pending:
                 columns = list(zip(*cam.pending, strict=True))
@@ -468,6 +501,7 @@ class SessionWriter:
             ) from exc
         finally:
             self._closed = True
+            self._sink.close()
             self._f.close()
         logger.info("session file %s closed cleanly", self._path)
 
@@ -481,6 +515,7 @@ class SessionWriter:
             logger.exception("session file %s: final flush failed", self._path)
         finally:
             self._closed = True
+            self._sink.close()
             self._f.close()
 
     def __enter__(self) -> SessionWriter:
@@ -524,9 +559,15 @@ def _create_table(group: h5py.Group, name: str, dtype: type[np.generic]) -> h5py
 
 
 def _create_blob(group: h5py.Group, name: str, chunk_bytes: int) -> h5py.Dataset:
-    return group.create_dataset(
-        name, shape=(0,), maxshape=(None,), chunks=(chunk_bytes,), dtype=np.uint8
-    )
+    """An extendable byte dataset whose chunks are allocated in the file as it grows (so their
+    place is known before they are written) and never filled by HDF5 (the writer fills them)."""
+    dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+    dcpl.set_chunk((chunk_bytes,))
+    dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)
+    dcpl.set_fill_time(h5py.h5d.FILL_TIME_NEVER)
+    space = h5py.h5s.create_simple((0,), (h5py.h5s.UNLIMITED,))
+    h5py.h5d.create(group.id, name.encode(), h5py.h5t.NATIVE_UINT8, space, dcpl=dcpl)
+    return group[name]
 
 
 def _append_rows(ds: h5py.Dataset, start: int, end: int, values: np.ndarray) -> None:

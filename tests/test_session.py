@@ -210,9 +210,9 @@ def test_any_bytes_like_image_is_stored_as_is(tmp_path):
 
 
 def test_images_across_chunks_and_flushes_mid_chunk(tmp_path):
-    """Small chunks, so images span several of them (whole ones go straight from the caller's
-    buffer) and flushes land mid-chunk: every flush shows exactly the bytes appended, the tail of
-    the capacity is zeros, and a clean close trims it."""
+    """Small chunks, so images span several of them and flushes land mid-chunk: every flush
+    shows exactly the bytes appended, the tail of the capacity is zeros, and a clean close
+    trims it."""
     path = tmp_path / "chunks.h5"
     chunk = 4096
     sizes = [1, 4095, 4096, 4097, 3 * 4096 + 17, 12, 2 * 4096, 9_000, 5, 4096 * 7 - 3]
@@ -246,30 +246,62 @@ def test_images_across_chunks_and_flushes_mid_chunk(tmp_path):
         assert f["cameras/1/left_bytes"][:].tobytes() == b"".join(images)
 
 
-def test_a_failed_chunk_write_keeps_later_frames_right(tmp_path, monkeypatch):
-    """A write that fails (disk full) loses its frame's row, and nothing else."""
-    from protocol import session_write
+def test_a_failed_write_loses_nothing_and_is_reported_before_more_is_recorded(
+    tmp_path, monkeypatch
+):
+    """Disk full while chunks are queued: the flush says so, the next append is refused before
+    it changes anything, and once there is room again every frame is in the file, the frames
+    whose chunks failed included."""
+    from protocol import chunk_sink
 
     path = tmp_path / "s.h5"
-    real = session_write._Blob._write_chunk
-    failures = iter([True])
+    real = chunk_sink._pwrite
+    full = threading.Event()
 
-    def fail_once(blob: Any, data: Any) -> None:
-        if next(failures, False):
+    def pwrite(fd: int, data: Any, offset: int) -> int:
+        if full.is_set():
             raise OSError(28, "No space left on device")
-        real(blob, data)
+        return real(fd, data, offset)
 
+    monkeypatch.setattr(chunk_sink, "_pwrite", pwrite)
     frames = [(_image(1, row, 0), _image(1, row, 1)) for row in range(8)]
     with _writer(path, _cameras(1), blob_chunk_bytes=4096) as w:
-        _append(w, 1, 0, frames[0])
-        monkeypatch.setattr(session_write._Blob, "_write_chunk", fail_once)
-        with pytest.raises(OSError):
-            _append(w, 1, 1, frames[1])
-        for row in range(1, 8):
+        for row in range(3):
+            assert _append(w, 1, row, frames[row]) == row
+        w.flush()
+        full.set()
+        assert _append(w, 1, 3, frames[3]) == 3  # its chunks fail in the writer's thread
+        with pytest.raises(SessionWriteError, match="No space left"):
+            w.flush()
+        with pytest.raises(SessionWriteError, match="check free disk space"):
+            _append(w, 1, 4, frames[4])
+        with SessionReader(path) as r:  # the file as a crash now would leave it
+            assert r.frame_count(1) == 3
+            assert [r.frame_bytes(1, row) for row in range(3)] == frames[:3]
+        full.clear()
+        for row in range(4, 8):
             assert _append(w, 1, row, frames[row]) == row
     with SessionReader(path) as r:
         assert r.verify() == []
         assert [r.frame_bytes(1, row) for row in range(8)] == frames
+
+
+@pytest.mark.parametrize("direct_io", [None, False])
+def test_the_bytes_are_the_same_with_and_without_direct_io(tmp_path, direct_io):
+    """Direct I/O (where the file system takes it) and writes through the page cache store the
+    same bytes, read back through the cache by a live reader and after close."""
+    path = tmp_path / "s.h5"
+    frames = [(_image(5, row, 0), _image(5, row, 1)) for row in range(40)]
+    with _writer(path, _cameras(5), direct_io=direct_io) as w:
+        for row, data in enumerate(frames):
+            _append(w, 5, row, data)
+            if row % 9 == 4:
+                w.flush()
+                with SessionReader(path) as r:
+                    assert [r.frame_bytes(5, k) for k in range(row + 1)] == frames[: row + 1]
+    with SessionReader(path) as r:
+        assert r.verify() == []
+        assert [r.frame_bytes(5, k) for k in range(40)] == frames
 
 
 def test_blob_chunk_size_is_checked(tmp_path):
