@@ -54,7 +54,7 @@ $(BIN)/python:
 $(STAMP): pyproject.toml | $(BIN)/python system-deps
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q "$(TORCH)"
-	$(BIN)/python -m pip install -q -e ".[dev]"
+	$(BIN)/python -m pip install -q -e ".[dev,bench]"
 	$(BIN)/python -m pip install -q --no-deps "lpips>=0.1.4"
 	$(BIN)/python -c "import open3d, torch, cv2, zmq, h5py; print('installed: torch', torch.__version__, '| open3d', open3d.__version__)"
 	@touch $(STAMP)

@@ -111,6 +111,26 @@ def thread_schedstat(pid: int) -> dict[int, tuple[int, int]]:
     return out
 
 
+def thread_names(pid: int) -> dict[int, str]:
+    """Per thread: its OS name (``comm``: libzmq names its threads, EgoSurg its writer)."""
+    out = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/comm") as f:
+                out[int(tid)] = f.read().strip()
+        except OSError:
+            continue
+    return out
+
+
+def threads_running(before: dict, after: dict, names: dict, wall_s: float) -> str:
+    """The threads that ran more than 1% of the time, busiest first: "name 45%, ..."."""
+    # a thread started since ``before`` (the session's writer) ran from 0
+    run = {t: 100.0 * (after[t][0] - before.get(t, (0, 0))[0]) / 1e9 / wall_s for t in after}
+    busy = sorted((pct, names.get(t, str(t))) for t, pct in run.items() if pct >= 1.0)
+    return ", ".join(f"{name} {pct:.0f}%" for pct, name in reversed(busy))
+
+
 def busiest_thread(before: dict, after: dict, wall_s: float) -> tuple[float, float]:
     """(% running, % waiting for a CPU) of the thread that ran most between two snapshots:
     the recorder's I/O thread. The rest of the wall time it slept (idle, or blocked in I/O)."""
@@ -157,6 +177,7 @@ class RunResult:
     steady_rate: float  # stereo frames/s stored between two status polls inside the recording
     io_thread_run: float  # % of wall time the recorder's busiest thread ran on a CPU
     io_thread_wait: float  # % of wall time it was runnable but waited for a CPU
+    threads: str  # the recorder's threads and the % of wall time each ran
     other_cpu: float  # % of one core used by every other process of the machine
     feeder_lag_ms: float | None = None  # replay only: how late the feeders sent, at worst
     profile: str = ""
@@ -497,6 +518,7 @@ def run_recording(
             time.sleep(max(0.0, min(1.0, deadline - now, (poll_at or [deadline])[0] - now)))
         cpu1 = cpu_seconds(rec.pid), sum(cpu_seconds(p) for p in pubs)
         sched1, busy1 = thread_schedstat(rec.pid), machine_busy_seconds()
+        names1 = thread_names(rec.pid)
         wall = time.monotonic() - t0
         summary = rig.control("stop", timeout_s=180.0)
         stop_event.set()
@@ -540,6 +562,7 @@ def run_recording(
         feeders_cpu=100.0 * (cpu1[1] - cpu0[1]) / wall,
         io_thread_run=busiest_thread(sched0, sched1, wall)[0],
         io_thread_wait=busiest_thread(sched0, sched1, wall)[1],
+        threads=threads_running(sched0, sched1, names1, wall),
         other_cpu=100.0 * ((busy1 - busy0) - (cpu1[0] - cpu0[0]) - (cpu1[1] - cpu0[1])) / wall,
         steady_rate=(fb - fa) / (tb - ta),
         feeder_lag_ms=max((r["max_lag_ms"] for r in feeder_reports), default=None),
@@ -555,7 +578,7 @@ def run_recording(
         f"{result.offered_rate:g} offered, lost {result.lost}, recorder CPU "
         f"{result.recorder_cpu:.0f}% (I/O thread runs {result.io_thread_run:.0f}%, waits "
         f"{result.io_thread_wait:.0f}%), publishers {result.feeders_cpu:.0f}%, others "
-        f"{result.other_cpu:.0f}%, p99 "
+        f"{result.other_cpu:.0f}%, recorder threads: {result.threads}, p99 "
         f"{result.latency_ms.get('p99')} ms"
         + (f", feeder lag {result.feeder_lag_ms:.1f} ms" if feed == "replay" else "")
     )
@@ -1048,6 +1071,13 @@ def main() -> None:
     parser.add_argument("--workdir", type=Path, default=_ROOT / "out" / "bench_capture")
     args = parser.parse_args()
     QUIET_WAIT_S[0] = args.quiet_wait_s
+    try:
+        import imagezmq  # noqa: F401  (the reference; imported here only to fail early)
+    except ImportError:
+        raise SystemExit(
+            "bench_capture.py compares against imagezmq, which is not installed: "
+            "run `make test` (it installs the bench extra) or `pip install -e '.[bench]'`"
+        ) from None
     if args.quick:
         args.duration_s, args.step_s, args.raw_s, args.raw_repeats = 8.0, 6.0, 1.5, 1
         args.steps, args.replay_steps = "4x30,8x60", "8x120,20x120"

@@ -46,6 +46,7 @@ from protocol.messages import (
     MalformedMessageError,
     PtpState,
 )
+from protocol.os_thread import NamedThread
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +104,7 @@ class CameraWorker:
     def start(self) -> None:
         self._generation += 1
         gen = self._generation
-        self._thread = threading.Thread(
+        self._thread = NamedThread(
             target=self._run, args=(gen,), name=f"camera-{self.serial}-{gen}", daemon=True
         )
         self.last_progress = time.monotonic()
@@ -335,9 +336,9 @@ class Agent:
         for w in self.workers:
             w.start()
         self._threads = [
-            threading.Thread(target=self._publish, args=(pub,), name="publisher", daemon=True),
-            threading.Thread(target=self._control, args=(rep,), name="control", daemon=True),
-            threading.Thread(target=self._watchdog, name="watchdog", daemon=True),
+            NamedThread(target=self._publish, args=(pub,), name="publisher", daemon=True),
+            NamedThread(target=self._control, args=(rep,), name="control", daemon=True),
+            NamedThread(target=self._watchdog, name="watchdog", daemon=True),
         ]
         for t in self._threads:
             t.start()

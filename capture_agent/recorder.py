@@ -61,6 +61,7 @@ from protocol.messages import (
     UnknownVersionError,
     decode_published,
 )
+from protocol.os_thread import NamedThread
 from protocol.session import CameraInfo, SessionWriter
 
 log = logging.getLogger(__name__)
@@ -127,7 +128,7 @@ class Recorder:
     # -- lifecycle ------------------------------------------------------------------------------
     def start(self) -> None:
         self.open_sockets()
-        self._thread = threading.Thread(target=self._loop, name="recorder-io", daemon=True)
+        self._thread = NamedThread(target=self._loop, name="recorder-io", daemon=True)
         self._thread.start()
         log.info(
             "recorder %s: %d agent(s), control on %s, sessions in %s",

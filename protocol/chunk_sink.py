@@ -36,6 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
+from protocol.os_thread import NamedThread
+
 logger = logging.getLogger(__name__)
 
 DIRECT_ALIGN_BYTES = 4096
@@ -100,7 +102,7 @@ class ChunkSink:
         self._closing = False
         self._cv = threading.Condition()
         self.chunks_written = 0
-        self._thread = threading.Thread(target=self._run, name="session-writer", daemon=True)
+        self._thread = NamedThread(target=self._run, name="session-writer", daemon=True)
         self._thread.start()
 
     @property
