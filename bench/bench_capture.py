@@ -12,7 +12,9 @@ What it runs, in order, on loopback only:
    ``/proc/<pid>/stat`` (utime + stime) over the recording, in % of one core.
 2. Raw limits on real HD1200 JPEG pairs read back from the session that run wrote: ZeroMQ
    PUSH/PULL and PUB/SUB (``copy=False``, one sender process, one receiver process),
-   ``SessionWriter`` appending the frames with a flush every 0.5 s, and imagezmq's REQ/REP
+   ``SessionWriter`` appending the frames with a flush every 0.5 s (with direct I/O, its
+   default, and through the page cache), a plain file written in the same 1 MiB blocks
+   (buffered, and with ``O_DIRECT``: what the disk takes), and imagezmq's REQ/REP
    sender-to-hub rate (one and two sender processes; the hub only receives and replies b"OK").
 3. Load steps: the same rig with more offered load (fps up to the ZED X's 60 at HD1200, then more
    cameras per agent (``SimRigSpec.cameras``: extra cameras are the 4 cameras of the sim worlds
@@ -131,13 +133,15 @@ def threads_running(before: dict, after: dict, names: dict, wall_s: float) -> st
     return ", ".join(f"{name} {pct:.0f}%" for pct, name in reversed(busy))
 
 
-def busiest_thread(before: dict, after: dict, wall_s: float) -> tuple[float, float]:
-    """(% running, % waiting for a CPU) of the thread that ran most between two snapshots:
-    the recorder's I/O thread. The rest of the wall time it slept (idle, or blocked in I/O)."""
-    deltas = [
-        (after[t][0] - before[t][0], after[t][1] - before[t][1]) for t in after if t in before
-    ]
-    run, wait = max(deltas, default=(0, 0))
+def io_thread(before: dict, after: dict, names: dict, wall_s: float) -> tuple[float, float]:
+    """(% running, % waiting for a CPU) of the recorder's I/O thread ("recorder-io"; the
+    busiest thread for a recorder that does not name its threads) between two snapshots. The
+    rest of the wall time it slept (idle, or blocked in I/O)."""
+    deltas = {
+        t: (after[t][0] - before[t][0], after[t][1] - before[t][1]) for t in after if t in before
+    }
+    named = [d for t, d in deltas.items() if names.get(t) == "recorder-io"]
+    run, wait = named[0] if named else max(deltas.values(), default=(0, 0))
     return 100.0 * run / 1e9 / wall_s, 100.0 * wait / 1e9 / wall_s
 
 
@@ -560,8 +564,8 @@ def run_recording(
         latency_ms=summary["capture_to_durable_ms"],
         recorder_cpu=100.0 * (cpu1[0] - cpu0[0]) / wall,
         feeders_cpu=100.0 * (cpu1[1] - cpu0[1]) / wall,
-        io_thread_run=busiest_thread(sched0, sched1, wall)[0],
-        io_thread_wait=busiest_thread(sched0, sched1, wall)[1],
+        io_thread_run=io_thread(sched0, sched1, names1, wall)[0],
+        io_thread_wait=io_thread(sched0, sched1, names1, wall)[1],
         threads=threads_running(sched0, sched1, names1, wall),
         other_cpu=100.0 * ((busy1 - busy0) - (cpu1[0] - cpu0[0]) - (cpu1[1] - cpu0[1])) / wall,
         steady_rate=(fb - fa) / (tb - ta),
@@ -859,8 +863,11 @@ def imagezmq_limit(jpgs: list, seconds: float, senders: int) -> dict[str, float]
     return r
 
 
-def hdf5_limit(pairs: list, seconds: float, directory: Path, cameras: int = 4) -> dict[str, float]:
-    """SessionWriter alone: append the pairs round-robin over ``cameras``, flush every 0.5 s."""
+def hdf5_limit(
+    pairs: list, seconds: float, directory: Path, cameras: int = 4, direct_io: bool | None = None
+) -> dict[str, float]:
+    """SessionWriter alone: append the pairs round-robin over ``cameras``, flush every 0.5 s.
+    ``direct_io=False``: through the page cache (the writer's path before direct I/O)."""
     from protocol.session import CameraInfo, SessionWriter
 
     directory.mkdir(parents=True, exist_ok=True)
@@ -887,8 +894,10 @@ def hdf5_limit(pairs: list, seconds: float, directory: Path, cameras: int = 4) -
         tolerance_ns=int(0.5e9 / RIG_FPS),
         software_version="bench",
         started_unix_ns=time.time_ns(),
+        direct_io=direct_io,
     )
     frames = nbytes = 0
+    cpu0 = os.times()
     t0 = time.perf_counter()
     last_flush = t0
     end = t0 + seconds
@@ -916,15 +925,27 @@ def hdf5_limit(pairs: list, seconds: float, directory: Path, cameras: int = 4) -
                 last_flush = now
         w.close(time.time_ns())
         span = time.perf_counter() - t0
+        cpu1 = os.times()
     finally:
         path.unlink(missing_ok=True)
-    return {"frames_s": frames / span, "mb_s": nbytes / span / 1e6, "frames": frames}
+    cpu_s = (cpu1.user - cpu0.user) + (cpu1.system - cpu0.system)
+    return {
+        "frames_s": frames / span,
+        "mb_s": nbytes / span / 1e6,
+        "frames": frames,
+        "cpu_us_per_image": 1e6 * cpu_s / (2 * frames),
+    }
 
 
-def file_limit(pairs: list, seconds: float, directory: Path, cameras: int = 4) -> dict[str, float]:
-    """The page-cache floor under the writer: the same images copied into one reused 1 MiB
-    buffer per camera side and written whole with ``os.pwrite`` to a plain file, as
-    ``SessionWriter`` does into HDF5 chunks; no HDF5, no tables, no flush."""
+def file_limit(
+    pairs: list, seconds: float, directory: Path, cameras: int = 4, direct: bool = False
+) -> dict[str, float]:
+    """The page-cache floor under a buffered writer: the same images copied into one reused
+    1 MiB buffer per camera side and written whole with ``os.pwrite`` to a plain file, in one
+    thread; no HDF5, no tables, no flush. ``direct``: with ``O_DIRECT`` from page-aligned
+    buffers, the disk's own rate for the writes ``SessionWriter`` makes."""
+    import mmap
+
     import numpy as np
 
     from protocol.session import BLOB_CHUNK_BYTES as CHUNK
@@ -933,8 +954,9 @@ def file_limit(pairs: list, seconds: float, directory: Path, cameras: int = 4) -
     path = directory / "file_limit.bin"
     path.unlink(missing_ok=True)
     os.sync()
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-    buffers = [np.zeros(CHUNK, np.uint8) for _ in range(2 * cameras)]
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | (os.O_DIRECT if direct else 0)
+    fd = os.open(path, flags, 0o644)
+    buffers = [np.frombuffer(mmap.mmap(-1, CHUNK), np.uint8) for _ in range(2 * cameras)]
     fills = [0] * (2 * cameras)
     file_end = frames = nbytes = k = 0
     t0 = time.perf_counter()
@@ -1156,13 +1178,17 @@ def main() -> None:
         raw["push"].append(zmq_limit("push", pairs, args.raw_s))
         raw["pub"].append(zmq_limit("pub", pairs, args.raw_s))
         raw["h5"].append(hdf5_limit(pairs, args.raw_s, args.workdir / "raw"))
+        raw["h5c"].append(hdf5_limit(pairs, args.raw_s, args.workdir / "raw", direct_io=False))
         raw["file"].append(file_limit(pairs, args.raw_s, args.workdir / "raw"))
+        raw["disk"].append(file_limit(pairs, args.raw_s, args.workdir / "raw", direct=True))
         raw["iz1"].append(imagezmq_limit(jpgs, args.raw_s, senders=1))
         raw["iz2"].append(imagezmq_limit(jpgs, args.raw_s, senders=2))
         log(
             f"raw round {k + 1}: PUSH/PULL {raw['push'][-1]['msgs_s']:.0f} stereo/s, PUB/SUB "
-            f"{raw['pub'][-1]['msgs_s']:.0f}, HDF5 {raw['h5'][-1]['frames_s']:.0f}, plain file "
-            f"{raw['file'][-1]['frames_s']:.0f}, imagezmq "
+            f"{raw['pub'][-1]['msgs_s']:.0f}, HDF5 {raw['h5'][-1]['frames_s']:.0f} (through the "
+            f"page cache {raw['h5c'][-1]['frames_s']:.0f}), plain file "
+            f"{raw['file'][-1]['frames_s']:.0f} (direct {raw['disk'][-1]['frames_s']:.0f}), "
+            "imagezmq "
             f"{raw['iz1'][-1]['images_s']:.0f} / {raw['iz2'][-1]['images_s']:.0f} images/s"
         )
 
@@ -1172,6 +1198,8 @@ def main() -> None:
 
     push, pub = median_run(raw["push"], "msgs_s"), median_run(raw["pub"], "msgs_s")
     h5, plain = median_run(raw["h5"], "frames_s"), median_run(raw["file"], "frames_s")
+    h5c = median_run(raw["h5c"], "frames_s")
+    disk = median_run(raw["disk"], "frames_s")
     iz1, iz2 = median_run(raw["iz1"], "images_s"), median_run(raw["iz2"], "images_s")
 
     def spread(r: dict, scale: float) -> str:
@@ -1207,14 +1235,29 @@ def main() -> None:
                     fmt(h5["frames_s"]),
                     fmt(2 * h5["frames_s"]),
                     fmt(h5["mb_s"]),
-                    f"{spread(h5, 1)}; one process, frames only",
+                    f"{spread(h5, 1)}; one process, frames only; direct I/O, writer thread; "
+                    f"{h5['cpu_us_per_image']:.0f} us CPU per image",
+                ],
+                [
+                    "HDF5: the same through the page cache (direct_io=False)",
+                    fmt(h5c["frames_s"]),
+                    fmt(2 * h5c["frames_s"]),
+                    fmt(h5c["mb_s"]),
+                    f"{spread(h5c, 1)}; {h5c['cpu_us_per_image']:.0f} us CPU per image",
                 ],
                 [
                     "plain file: the same bytes in 1 MiB os.pwrite calls (no HDF5)",
                     fmt(plain["frames_s"]),
                     fmt(2 * plain["frames_s"]),
                     fmt(plain["mb_s"]),
-                    f"{spread(plain, 1)}; the page-cache floor under the writer",
+                    f"{spread(plain, 1)}; the page-cache floor under a buffered writer",
+                ],
+                [
+                    "plain file, the same 1 MiB writes with O_DIRECT (no HDF5): the disk",
+                    fmt(disk["frames_s"]),
+                    fmt(2 * disk["frames_s"]),
+                    fmt(disk["mb_s"]),
+                    f"{spread(disk, 1)}; what the disk takes, the ceiling of a durable writer",
                 ],
                 [
                     "imagezmq REQ/REP send_jpg -> bare hub, 1 sender process",
@@ -1247,9 +1290,11 @@ def main() -> None:
     print(steps_table(results, rig))
     print()
     # 3b. load steps with replay feeders, and one at imagezmq's rate
+    # the fewest cameras (an even number: two feeders) that offer imagezmq's rate exactly
     goal_cams = 2 * math.ceil(izmq / 2 / REPLAY_FPS / 2)
-    if (goal_cams, REPLAY_FPS) not in replay_steps:
-        replay_steps.append((goal_cams, REPLAY_FPS))
+    goal_fps = round(izmq / 2 / goal_cams, 1)
+    if (goal_cams, goal_fps) not in replay_steps:
+        replay_steps.append((goal_cams, goal_fps))
     replay_steps.sort(key=lambda s: (s[0] * s[1], s[0]))
     replayed = run_steps(replay_steps, args, "replay", pairs, None)
     lags = ", ".join(f"{r.cameras}x{r.fps:g}: {fmt(r.feeder_lag_ms, '.0f')}" for r in replayed)
@@ -1330,8 +1375,10 @@ def main() -> None:
         row("imagezmq bare hub, 2 senders", iz2["images_s"], "receives + replies"),
         row("ZeroMQ PUSH/PULL alone", 2 * push["msgs_s"], ""),
         row("ZeroMQ PUB/SUB alone", 2 * pub["msgs_s"], ""),
-        row("HDF5 SessionWriter alone", 2 * h5["frames_s"], ""),
-        row("plain file os.pwrite alone (no HDF5)", 2 * plain["frames_s"], ""),
+        row("HDF5 SessionWriter alone (direct I/O)", 2 * h5["frames_s"], ""),
+        row("HDF5 SessionWriter alone, through the page cache", 2 * h5c["frames_s"], ""),
+        row("plain file buffered os.pwrite alone (no HDF5)", 2 * plain["frames_s"], ""),
+        row("plain file O_DIRECT alone (no HDF5): the disk", 2 * disk["frames_s"], ""),
     ]
     print("### Summary (images/s; one stereo frame = 2 images)\n")
     print(
