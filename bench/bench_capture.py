@@ -1292,7 +1292,7 @@ def main() -> None:
     # 3b. load steps with replay feeders, and one at imagezmq's rate
     # the fewest cameras (an even number: two feeders) that offer imagezmq's rate exactly
     goal_cams = 2 * math.ceil(izmq / 2 / REPLAY_FPS / 2)
-    goal_fps = round(izmq / 2 / goal_cams, 1)
+    goal_fps = math.ceil(izmq / 2 / goal_cams * 10) / 10  # up: never below the reference
     if (goal_cams, goal_fps) not in replay_steps:
         replay_steps.append((goal_cams, goal_fps))
     replay_steps.sort(key=lambda s: (s[0] * s[1], s[0]))

@@ -286,13 +286,18 @@ def test_a_failed_write_loses_nothing_and_is_reported_before_more_is_recorded(
         assert [r.frame_bytes(1, row) for row in range(8)] == frames
 
 
-@pytest.mark.parametrize("direct_io", [None, False])
+@pytest.mark.parametrize("direct_io", [None, True, False])
 def test_the_bytes_are_the_same_with_and_without_direct_io(tmp_path, direct_io):
-    """Direct I/O (where the file system takes it) and writes through the page cache store the
-    same bytes, read back through the cache by a live reader and after close."""
+    """Direct I/O (required, or where the file system takes it) and writes through the page
+    cache store the same bytes, read back through the cache by a live reader and after close."""
     path = tmp_path / "s.h5"
     frames = [(_image(5, row, 0), _image(5, row, 1)) for row in range(40)]
-    with _writer(path, _cameras(5), direct_io=direct_io) as w:
+    try:
+        w = _writer(path, _cameras(5), direct_io=direct_io)
+    except OSError as exc:  # only where direct I/O is required and this file system refuses it
+        assert direct_io is True
+        pytest.skip(f"no direct I/O on {tmp_path}: {exc}")
+    with w:
         for row, data in enumerate(frames):
             _append(w, 5, row, data)
             if row % 9 == 4:
