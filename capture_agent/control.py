@@ -61,6 +61,17 @@ def format_summary(s: dict[str, Any]) -> str:
             f"{unwritten} frames were still queued when the recording had to stop "
             f"({s['reason']}) and are not in the file"
         )
+    refused = int(s.get("frames_not_written_write_failed", 0))
+    if refused or s.get("write_error"):
+        per_camera = ", ".join(
+            f"SN{serial} {c['not_written_write_failed']}"
+            for serial, c in s["cameras"].items()
+            if c.get("not_written_write_failed")
+        )
+        lines.append(
+            f"writing the session file failed ({s.get('write_error', 'see the recorder log')}): "
+            f"{refused} frames are not in the file" + (f" ({per_camera})" if per_camera else "")
+        )
     if s.get("malformed_messages") or s.get("unknown_version_messages"):
         lines.append(
             f"rejected messages: {s['malformed_messages']} malformed, "
@@ -79,6 +90,11 @@ def format_status(st: dict[str, Any]) -> str:
     else:
         head += "idle"
     lines = [head, f"disk: {st['disk_free_bytes'] / 1e9:.1f} GB free in {st['output_dir']}"]
+    if st.get("write_error"):
+        lines.append(
+            f"WRITING FAILS for {st['write_failing_s']:.0f} s: {st['write_error']}; "
+            f"{st['frames_not_written_write_failed']} frames not in the file so far"
+        )
     lines.append("camera       node      state      fps   dropped  ptp_offset_ns  ptp")
     for c in st["cameras"]:
         dropped = c["dropped_in_recording"] if st["recording"] else c["dropped_at_agent"]

@@ -25,6 +25,11 @@ streaming camera has delivered a frame captured after it. Whatever of the take c
 then (the disk reserve was reached, or the queue did not drain in time) is counted per camera as
 ``not_written_at_stop`` in the stop summary, never dropped silently.
 
+When the session file cannot be written (disk full, I/O error), the take goes on: the writer
+keeps what failed and retries it at each flush, frames arriving meanwhile are refused and counted
+(``not_written_write_failed``), and ``status`` shows the error. After ``WRITE_FAILURE_STOP_S`` of
+failures the take is stopped with the reason; the recorder itself keeps running.
+
 A start is refused, with the reason and what to do, when a camera the rig expects is not
 streaming, when an agent's PTP is not locked (``require_ptp_lock``), or when the disk cannot hold
 ``planned_duration_min`` at the rig's measured data rate.
@@ -62,7 +67,7 @@ from protocol.messages import (
     decode_published,
 )
 from protocol.os_thread import NamedThread
-from protocol.session import CameraInfo, SessionWriter
+from protocol.session import CameraInfo, SessionWriteError, SessionWriter
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +76,7 @@ LIVE_WINDOW_S = 2.0
 DISK_CHECK_S = 0.25
 DISK_HEADROOM_S = 3.0  # seconds of recording kept free above the reserve
 RECEIVE_QUEUE_S = 2.0  # the SUB socket's high-water mark, in seconds of one agent's frames
+WRITE_FAILURE_STOP_S = 5.0  # a take whose file cannot be written for this long is stopped
 STOP_WRITE_S = 3.0  # at a stop, write the queued frames of the take for at most this long
 STOP_COUNT_S = 1.0  # then count (without writing) what is still queued, for at most this long
 STOP_IDLE_S = 0.25  # a stop stops waiting for frames after this long without a message
@@ -224,7 +230,17 @@ class Recorder:
         if rec is not None:
             rec.poll(time.time_ns())
             if now - rec.last_flush >= self.config.flush_interval_s:
-                rec.flush()
+                try:
+                    rec.flush()
+                except SessionWriteError as exc:
+                    if rec.write_failing_s() >= WRITE_FAILURE_STOP_S:
+                        self._stop_recording(
+                            f"writing {rec.writer.path} failed for {rec.write_failing_s():.0f} s "
+                            f"({exc}); stopped. The file holds what was written before; check "
+                            "the disk, then start a new recording",
+                            write_queued=False,
+                        )
+                        return
         if now - self._last_disk_check >= DISK_CHECK_S:
             self._last_disk_check = now
             self._disk_free = self._free_bytes()
@@ -456,7 +472,10 @@ class Recorder:
                 break
             rec.write_to_stop = write and elapsed < STOP_WRITE_S
             if time.monotonic() - rec.last_flush >= self.config.flush_interval_s:
-                rec.flush()  # a crash while draining loses no more than at any other time
+                try:
+                    rec.flush()  # a crash while draining loses no more than at any other time
+                except SessionWriteError:
+                    pass  # counted and reported by the recording
             if not self.sub.poll(int(STOP_IDLE_S * 1000)):
                 break
             for _ in range(256):
@@ -549,6 +568,9 @@ class Recorder:
                     "frames": rec.frames_written,
                     "bytes": rec.writer.bytes_written,
                     "capture_to_durable_ms": rec.latency_ms(),
+                    "write_failing_s": round(rec.write_failing_s(), 1),
+                    "write_error": rec.write_error if rec.write_failing_since else "",
+                    "frames_not_written_write_failed": sum(rec.not_written_write_failed.values()),
                 }
             )
         if self.last_stop_summary is not None:

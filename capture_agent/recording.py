@@ -11,11 +11,17 @@ that are still queued are written (``write_to_stop``) or, once the recorder cann
 of them (disk reserve, time), counted per camera in ``not_written_at_stop``; frames captured after
 it are not part of the take, and ``passed_stop`` collects the cameras that sent one (so nothing
 earlier can come from them any more).
+
+Write failures (disk full, I/O error): the session writer keeps what it could not write and
+retries it at every flush; while it fails, it refuses new frames, which are counted per camera in
+``not_written_write_failed``. ``write_failing_s`` says for how long; the recorder stops the
+take when that grows too long. Whatever happens, ``finish`` returns a summary.
 """
 
 from __future__ import annotations
 
 import collections
+import logging
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -25,7 +31,9 @@ import numpy as np
 from capture_agent.accounting import StreamAccounting
 from capture_agent.sync import SyncedSet, Synchroniser
 from protocol.messages import FrameMessage
-from protocol.session import SessionWriter
+from protocol.session import SessionWriteError, SessionWriter
+
+log = logging.getLogger(__name__)
 
 TAKE_START_WAIT_NS = 2_000_000_000  # a take starts on a partial set after this long
 
@@ -51,6 +59,10 @@ class Recording:
     write_to_stop: bool = True  # False: frames of the take still arriving are only counted
     passed_stop: set[int] = field(default_factory=set)
     not_written_at_stop: collections.Counter[int] = field(default_factory=collections.Counter)
+    # frames the session writer refused while its writes failed, and since when they fail
+    not_written_write_failed: collections.Counter[int] = field(default_factory=collections.Counter)
+    write_failing_since: float | None = None
+    write_error: str = ""
     # capture stamps of frames written since the last flush, and capture-to-durable latencies
     unflushed_capture_ns: list[int] = field(default_factory=list)
     durable_latency_ns: collections.deque = field(
@@ -82,7 +94,18 @@ class Recording:
                 start_unix_ns=gap.start_unix_ns,
                 end_unix_ns=gap.end_unix_ns,
             )
-        row = self.writer.append_frame(
+        try:
+            row = self._append(serial, msg, recorder_receive_unix_ns)
+        except SessionWriteError as exc:
+            self._write_failed(exc)
+            self.not_written_write_failed[serial] += 1
+            return
+        self.frames_written += 1
+        self.unflushed_capture_ns.append(msg.capture_unix_ns)
+        self._write_sets(self.sync.add(serial, msg.capture_unix_ns, row, recorder_receive_unix_ns))
+
+    def _append(self, serial: int, msg: FrameMessage, recorder_receive_unix_ns: int) -> int:
+        return self.writer.append_frame(
             serial,
             left=msg.left,
             right=msg.right,
@@ -94,20 +117,42 @@ class Recording:
             ptp_offset_ns=msg.ptp_offset_ns,
             ptp_locked=msg.ptp_locked,
         )
-        self.frames_written += 1
-        self.unflushed_capture_ns.append(msg.capture_unix_ns)
-        self._write_sets(self.sync.add(serial, msg.capture_unix_ns, row, recorder_receive_unix_ns))
 
     def poll(self, now_unix_ns: int) -> None:
         """Write the sets that time (a silent camera's timeout) completes."""
         self._write_sets(self.sync.poll(now_unix_ns))
 
     def flush(self) -> None:
-        self.writer.flush()
+        """Make what was written durable; raises ``SessionWriteError`` while writes fail (the
+        next flush retries them)."""
+        self.last_flush = time.monotonic()
+        try:
+            self.writer.flush()
+        except SessionWriteError as exc:
+            self._write_failed(exc)
+            raise
+        if self.write_failing_since is not None:
+            log.warning(
+                "case %s: the session file is written again after %.1f s of failures",
+                self.case,
+                self.write_failing_s(),
+            )
+            self.write_failing_since = None
         now = time.time_ns()
         self.durable_latency_ns.extend(now - c for c in self.unflushed_capture_ns)
         self.unflushed_capture_ns.clear()
-        self.last_flush = time.monotonic()
+
+    def write_failing_s(self) -> float:
+        """For how long the session file has not been writable (0 while it is)."""
+        if self.write_failing_since is None:
+            return 0.0
+        return time.monotonic() - self.write_failing_since
+
+    def _write_failed(self, exc: SessionWriteError) -> None:
+        self.write_error = str(exc)
+        if self.write_failing_since is None:
+            self.write_failing_since = time.monotonic()
+            log.error("case %s: %s; frames are refused until it is writable again", self.case, exc)
 
     def _write_sets(self, sets: list[SyncedSet]) -> None:
         for s in sets:
@@ -138,7 +183,10 @@ class Recording:
             tail.pop()
             self.trailing_sets_skipped += 1
         self._write_sets(tail)
-        self.flush()
+        try:
+            self.flush()
+        except SessionWriteError:
+            pass  # the summary says so, and close() tries once more
         stopped_ns = time.time_ns()
         totals = self.accounting.totals()
         per_camera = {}
@@ -153,6 +201,7 @@ class Recording:
                 "missing_in_sets": int(self.sync.missing_markers.get(s, 0)),
                 "unassigned": int(self.sync.unassigned_frames.get(s, 0)),
                 "not_written_at_stop": int(self.not_written_at_stop[s]),
+                "not_written_write_failed": int(self.not_written_write_failed[s]),
             }
         summary = {
             "case": self.case,
@@ -163,12 +212,21 @@ class Recording:
             "partial_sets_trimmed": self.leading_sets_skipped + self.trailing_sets_skipped,
             "frames": self.frames_written,
             "frames_not_written_at_stop": sum(self.not_written_at_stop.values()),
+            "frames_not_written_write_failed": sum(self.not_written_write_failed.values()),
             "bytes": self.writer.bytes_written,
             "capture_to_durable_ms": self.latency_ms(),
             "cameras": per_camera,
             **extra,
         }
-        self.writer.close(stopped_ns, summary)
+        if self.write_error:
+            summary["write_error"] = self.write_error
+        try:
+            self.writer.close(stopped_ns, summary)
+        except SessionWriteError as exc:
+            # The file is closed without the clean mark and holds what the last good flush put
+            # there; every frame after that is in the counts above or in this error.
+            summary["write_error"] = str(exc)
+            log.error("case %s: %s", self.case, exc)
         return summary
 
     # -- numbers -----------------------------------------------------------------------------

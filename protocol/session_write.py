@@ -189,6 +189,7 @@ class SessionWriter:
             )
         self._serials = tuple(serials)
         self._closed = False
+        self._write_error: OSError | None = None  # of the last flush, until one succeeds
         self._sets_pending: list[tuple[int, tuple[int, ...], int]] = []
         self._sets_rows = 0
         self._gaps_pending: list[tuple[int, ...]] = []
@@ -333,6 +334,11 @@ class SessionWriter:
         Returns the frame's row in ``/cameras/<serial>``, the index that sets refer to.
         """
         cam = self._camera(camera_serial)
+        if self._write_error is not None:  # the last flush failed: not past it until one works
+            raise SessionWriteError(
+                f"{self._path}: writing failed ({self._write_error}); check free disk space and "
+                "the disk"
+            )
         try:
             self._sink.check()  # an earlier chunk that could not be written: not past it
         except OSError as exc:
@@ -429,7 +435,9 @@ class SessionWriter:
             self._flush()
             if fsync:
                 os.fsync(self._f.id.get_vfd_handle())
+            self._write_error = None
         except OSError as exc:
+            self._write_error = exc
             raise SessionWriteError(
                 f"{self._path}: writing failed ({exc}); check free disk space and the disk"
             ) from exc

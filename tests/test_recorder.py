@@ -4,6 +4,7 @@ in ZeroMQ until the stop drains them, as they do in a recorder that fell behind.
 
 from __future__ import annotations
 
+import threading
 import time
 
 import pytest
@@ -11,10 +12,11 @@ import zmq
 
 from capture_agent.accounting import StreamAccounting
 from capture_agent.config import AgentEndpoint, RigConfig
-from capture_agent.control import format_summary
+from capture_agent.control import format_status, format_summary
 from capture_agent.recorder import RECEIVE_QUEUE_S, CameraLive, Recorder, receive_hwm
 from capture_agent.recording import Recording
 from capture_agent.sync import SyncConfig, Synchroniser
+from protocol import chunk_sink
 from protocol.messages import FrameMessage
 from protocol.session import CameraInfo, SessionReader, SessionWriter
 from sim.deploy import free_ports
@@ -165,6 +167,86 @@ def test_a_stop_that_cannot_write_counts_what_it_leaves(queued):
     for s in SERIALS:
         row = next(line for line in printed.splitlines() if line.startswith(f"SN{s}"))
         assert row.split()[-1] == str(take)
+
+
+def _disk_full(monkeypatch) -> threading.Event:
+    """Every write of image chunks fails with ENOSPC while the returned event is set."""
+    real = chunk_sink._pwrite
+    full = threading.Event()
+
+    def pwrite(fd: int, data, offset: int) -> int:
+        if full.is_set():
+            raise OSError(28, "No space left on device")
+        return real(fd, data, offset)
+
+    monkeypatch.setattr(chunk_sink, "_pwrite", pwrite)
+    return full
+
+
+def _receive_all(recorder: Recorder) -> None:
+    while recorder.sub.poll(200):
+        recorder._on_published(recorder.sub.recv_multipart(copy=False))
+
+
+def test_a_disk_full_for_a_moment_loses_only_the_frames_it_refused(queued, monkeypatch):
+    """While the file cannot be written, the recording goes on, refusing and counting frames;
+    when it can again, everything written before and after is in the file, and the stop says
+    how many frames are not."""
+    recorder, take = queued
+    full = _disk_full(monkeypatch)
+    rec = recorder.recording
+    written = 10
+    for _ in range(written):
+        recorder._on_published(recorder.sub.recv_multipart(copy=False))
+    full.set()
+    rec.last_flush = 0.0
+    recorder._periodic()  # a flush is due: it fails, the recording goes on
+    assert recorder.recording is rec and rec.write_failing_since is not None
+    assert "No space" in rec.write_error
+    _receive_all(recorder)  # the rest of the take arrives while the disk is full: refused
+    status = recorder.status()  # what 'egosurg status' shows the operator meanwhile
+    assert "No space" in status["write_error"]
+    assert status["frames_not_written_write_failed"] == (take + 3) * len(SERIALS) - written
+    assert "WRITING FAILS" in format_status(status)
+    full.clear()
+    rec.last_flush = 0.0  # due again: it succeeds, with the chunks that failed
+    recorder._periodic()
+    assert rec.write_failing_since is None
+    summary = recorder._stop_recording("stopped by request")
+    refused = summary["frames_not_written_write_failed"]
+    assert summary["frames"] == written
+    assert refused == (take + 3) * len(SERIALS) - written
+    assert refused == sum(c["not_written_write_failed"] for c in summary["cameras"].values())
+    with SessionReader(summary["file"]) as r:
+        assert r.info.closed_cleanly and r.verify() == []
+        for s in SERIALS:
+            cam = summary["cameras"][str(s)]
+            assert r.frame_count(s) == cam["frames"]
+    assert f"{refused} frames are not in the file" in format_summary(summary)
+
+
+def test_a_recording_that_cannot_write_for_long_stops_with_the_reason(queued, monkeypatch):
+    """A disk that stays full stops the take (not the recorder), and the file keeps every frame
+    of the last good flush."""
+    from capture_agent import recorder as recorder_module
+
+    recorder, take = queued
+    full = _disk_full(monkeypatch)
+    monkeypatch.setattr(recorder_module, "WRITE_FAILURE_STOP_S", 0.0)
+    _receive_all(recorder)
+    recorder.recording.flush()  # every frame of the take so far, durable
+    flushed = recorder.recording.frames_written
+    assert flushed == (take + 3) * len(SERIALS)
+    full.set()
+    recorder.recording.last_flush = 0.0
+    recorder._periodic()
+    assert recorder.recording is None
+    summary = recorder.last_stop_summary
+    assert "failed" in summary["reason"] and "No space left" in summary["reason"]
+    assert "check the disk" in summary["reason"]
+    with SessionReader(summary["file"]) as r:
+        assert sum(r.frame_count(s) for s in SERIALS) == flushed
+        assert all(line.startswith("note:") for line in r.verify())
 
 
 def test_the_receive_queue_holds_seconds_of_the_busiest_agent(tmp_path):

@@ -249,9 +249,9 @@ def test_images_across_chunks_and_flushes_mid_chunk(tmp_path):
 def test_a_failed_write_loses_nothing_and_is_reported_before_more_is_recorded(
     tmp_path, monkeypatch
 ):
-    """Disk full while chunks are queued: the flush says so, the next append is refused before
-    it changes anything, and once there is room again every frame is in the file, the frames
-    whose chunks failed included."""
+    """Disk full while chunks are queued: the flush says so, appends are refused before they
+    change anything until a flush succeeds, and once there is room again every frame is in the
+    file, the frames whose chunks failed included."""
     from protocol import chunk_sink
 
     path = tmp_path / "s.h5"
@@ -279,6 +279,7 @@ def test_a_failed_write_loses_nothing_and_is_reported_before_more_is_recorded(
             assert r.frame_count(1) == 3
             assert [r.frame_bytes(1, row) for row in range(3)] == frames[:3]
         full.clear()
+        w.flush()  # the failed chunks are written now; appends are taken again
         for row in range(4, 8):
             assert _append(w, 1, row, frames[row]) == row
     with SessionReader(path) as r:
