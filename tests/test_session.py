@@ -602,3 +602,38 @@ def test_sigkill_leaves_every_flushed_frame_readable(tmp_path):
         in_file = r.frame_count(11)
     print(f"\nkilled writer: {frames} frames per camera reported flushed, {in_file} in the file")
     path.unlink()
+
+
+def test_a_file_system_that_refuses_direct_io_gets_the_bytes_through_the_cache(
+    tmp_path, monkeypatch
+):
+    """Some file systems open with O_DIRECT and then refuse the writes (EINVAL): the writer goes
+    on through the page cache, losing nothing."""
+    import errno
+
+    from protocol import chunk_sink
+
+    real = chunk_sink._pwrite
+    refused: list[int] = []
+
+    def pwrite(fd: int, data: Any, offset: int) -> int:
+        if fd == w._sink._direct_fd:
+            refused.append(offset)
+            raise OSError(errno.EINVAL, "Invalid argument")
+        return real(fd, data, offset)
+
+    monkeypatch.setattr(chunk_sink, "_pwrite", pwrite)
+    path = tmp_path / "s.h5"
+    frames = [(_image(3, row, 0), _image(3, row, 1)) for row in range(30)]
+    w = _writer(path, _cameras(3))
+    if not w._sink.direct_io:
+        w.abort()
+        pytest.skip(f"no direct I/O on {tmp_path} in the first place")
+    with w:
+        for row, data in enumerate(frames):
+            _append(w, 3, row, data)
+        w.flush()
+        assert not w._sink.direct_io and len(refused) == 1
+    with SessionReader(path) as r:
+        assert r.verify() == []
+        assert [r.frame_bytes(3, k) for k in range(30)] == frames
