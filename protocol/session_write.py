@@ -345,8 +345,15 @@ class SessionWriter:
             raise SessionWriteError(
                 f"{self._path}: writing failed ({exc}); check free disk space and the disk"
             ) from exc
-        lo, ll = cam.left.append(left)
-        ro, rl = cam.right.append(right)
+        try:
+            lo, ll = cam.left.append(left)
+            ro, rl = cam.right.append(right)
+        except SessionWriteError:
+            raise
+        except OSError as exc:  # growing the dataset failed: the frame's row is not recorded
+            raise SessionWriteError(
+                f"{self._path}: writing failed ({exc}); check free disk space and the disk"
+            ) from exc
         cam.pending.append(
             (
                 capture_unix_ns,

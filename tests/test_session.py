@@ -637,3 +637,29 @@ def test_a_file_system_that_refuses_direct_io_gets_the_bytes_through_the_cache(
     with SessionReader(path) as r:
         assert r.verify() == []
         assert [r.frame_bytes(3, k) for k in range(30)] == frames
+
+
+def test_a_dataset_that_cannot_grow_loses_that_frames_row_and_nothing_else(tmp_path, monkeypatch):
+    """Growing a byte dataset fails (the file system refuses HDF5's allocation): that append
+    raises SessionWriteError and its frame gets no row; later frames are stored right."""
+    from protocol import session_write
+
+    real = session_write._Blob._file_offset
+    failures = iter([True])
+
+    def fail_once(blob: Any) -> int:
+        if next(failures, False):
+            raise OSError(28, "No space left on device")
+        return real(blob)
+
+    frames = [(_image(1, row, 0), _image(1, row, 1)) for row in range(8)]
+    with _writer(tmp_path / "s.h5", _cameras(1), blob_chunk_bytes=4096) as w:
+        _append(w, 1, 0, frames[0])
+        monkeypatch.setattr(session_write._Blob, "_file_offset", fail_once)
+        with pytest.raises(SessionWriteError, match="check free disk space"):
+            _append(w, 1, 1, frames[1])
+        for row in range(1, 8):
+            assert _append(w, 1, row, frames[row]) == row
+    with SessionReader(tmp_path / "s.h5") as r:
+        assert r.verify() == []
+        assert [r.frame_bytes(1, row) for row in range(8)] == frames
