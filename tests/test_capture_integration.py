@@ -382,16 +382,24 @@ def test_a_killed_recorder_leaves_a_readable_file(rig):
         assert not reader.info.closed_cleanly
         assert not [p for p in reader.verify() if p.startswith("error")]
         sets = reader.sets()
-        tables = {s: reader.frame_table(s) for s in reader.info.camera_serials}
-        for s in reader.info.camera_serials:
+        serials = reader.info.camera_serials
+        tables = {s: reader.frame_table(s) for s in serials}
+        for s in serials:
             left, right = reader.frame_bytes(s, reader.frame_count(s) - 1)
             assert left[-2:] == b"\xff\xd9" and right[:2] == b"\xff\xd8"
-    # every set (and so every frame) older than one second before the kill is in the file
-    t = sets.set_unix_ns
-    assert t[-1] >= killed_at - 1.0e9
-    assert np.all(np.diff(t) < 1.6 * PERIOD_NS)  # no hole in the sets before that
+    # Every set (and so every frame) the recorder had completed more than one second before the
+    # kill is in the file: its last set in the file was completed (its last member received)
+    # less than a second before the kill. Counted on the recorder's clock of arrival: capture
+    # times also carry the agents' delivery latency, which a loaded machine stretches.
+    received = [
+        int(tables[s]["recorder_receive_unix_ns"][m])
+        for s, m in zip(serials, sets.members[-1], strict=True)
+        if m >= 0
+    ]
+    assert max(received) >= killed_at - 1.0e9
+    assert np.all(np.diff(sets.set_unix_ns) < 1.6 * PERIOD_NS)  # no hole in the sets before
     for table in tables.values():
-        assert table["capture_unix_ns"][-1] >= killed_at - 1.0e9
+        assert table["recorder_receive_unix_ns"][-1] >= killed_at - 1.0e9
     rig.start_recorder()  # the next test (if any) gets a recorder back
 
 
