@@ -101,7 +101,6 @@ class ChunkSink:
         self._writing = False
         self._closing = False
         self._cv = threading.Condition()
-        self.chunks_written = 0
         self._thread = NamedThread(target=self._run, name="session-writer", daemon=True)
         self._thread.start()
 
@@ -198,7 +197,6 @@ class ChunkSink:
             with self._cv:
                 self._free.append(buffer)
                 self._writing = False
-                self.chunks_written += 1
                 self._cv.notify_all()
 
     def _write(self, buffer: np.ndarray, offset: int) -> None:
