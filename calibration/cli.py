@@ -28,12 +28,12 @@ from pathlib import Path
 import numpy as np
 
 from calibration import exports
+from calibration.drift import align_to
 from calibration.extract import ExtractConfig, extract
 from calibration.report import ReportData, Thresholds, annotate, verdict, write_report
 from calibration.solve import Solution, SolveConfig, solve
-from protocol.camera import Pose
 from protocol.errors import UserError
-from protocol.rig_calibration import RigCalibration, SensorCalibration
+from protocol.rig_calibration import RigCalibration
 from protocol.wand import WandSpec
 
 log = logging.getLogger(__name__)
@@ -65,48 +65,6 @@ def report_data(
         thresholds=thresholds,
         title=title,
     )
-
-
-def align_to(
-    new: RigCalibration, old: RigCalibration
-) -> tuple[RigCalibration, np.ndarray, np.ndarray]:
-    """Express ``new`` in ``old``'s world frame: the rigid transform that best maps the new
-    camera centres onto the old ones (Kabsch). Returns the aligned calibration and, per sensor
-    of ``new``, the rotation (deg) and position (mm) change from ``old``."""
-    pairs = [(s, old.sensor(s.camera_serial, s.side)) for s in new.sensors]
-    a = np.array([s.pose.centre_m for s, _ in pairs])
-    b = np.array([o.pose.centre_m for _, o in pairs])
-    ca, cb = a.mean(axis=0), b.mean(axis=0)
-    U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T  # x_old = R @ x_new + t
-    t = cb - R @ ca
-    moved = []
-    rot_deg, pos_mm = [], []
-    for s, o in pairs:
-        Rc = s.pose.R @ R.T
-        pose = Pose(R=Rc, t_m=s.pose.t_m - Rc @ t)
-        moved.append(
-            SensorCalibration(
-                name=s.name,
-                camera_serial=s.camera_serial,
-                side=s.side,
-                intrinsics=s.intrinsics,
-                pose=pose,
-                stats=s.stats,
-            )
-        )
-        dR = pose.R @ o.pose.R.T
-        rot_deg.append(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0))))
-        pos_mm.append(1000 * np.linalg.norm(pose.centre_m - o.pose.centre_m))
-    aligned = RigCalibration(
-        sensors=tuple(moved),
-        resolution=new.resolution,
-        world_frame=old.world_frame,
-        quality=new.quality,
-        metadata=new.metadata,
-    )
-    return aligned, np.array(rot_deg), np.array(pos_mm)
 
 
 def main(argv: list[str]) -> int:
@@ -187,8 +145,9 @@ def main(argv: list[str]) -> int:
     )
     drift = None
     if old is not None:
-        cal, rot_deg, pos_mm = align_to(cal, old)
-        drift = (rot_deg, pos_mm)
+        moved_rig = align_to(cal, old, outlier_mm=DRIFT_LIMIT_MM)
+        cal = moved_rig.aligned
+        drift = (moved_rig.rotation_deg, moved_rig.position_mm)
         data = report_data(
             Solution(**{**solution.__dict__, "calibration": cal}),
             wand,
@@ -207,7 +166,10 @@ def main(argv: list[str]) -> int:
     for r in reasons:
         print(f"  - {r}")
     if drift is not None:
-        print("camera drift against the old calibration (rotation deg, position mm):")
+        print(
+            "camera drift against the old calibration (rotation deg, position mm), in the frame "
+            "of SN" + ", SN".join(str(c) for c in moved_rig.fitted_serials) + ":"
+        )
         for s, rd, pm in zip(cal.sensors, *drift, strict=True):
             flag = "  MOVED" if rd > DRIFT_LIMIT_DEG or pm > DRIFT_LIMIT_MM else ""
             print(f"  {s.name:<20} {rd:8.4f} deg {pm:8.2f} mm{flag}")
