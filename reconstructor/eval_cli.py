@@ -68,7 +68,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("eval_set", metavar="EVALSET", help="the evaluation set's folder (or manifest)")
     p.add_argument("--out", required=True, help="folder for the tables and pictures")
     p.add_argument(
-        "--protocol", default="near-field", choices=(*PROTOCOLS, "all"), help="default near-field"
+        "--protocol",
+        nargs="+",
+        default=["near-field"],
+        choices=(*PROTOCOLS, "all"),
+        help="one or more (default near-field)",
     )
     p.add_argument(
         "--methods", nargs="+", default=list(METHODS), help=f"any of {', '.join(METHODS)} (all)"
@@ -88,7 +92,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def settings_from_args(args: argparse.Namespace) -> EvalSettings:
-    protocols = PROTOCOLS if args.protocol == "all" else (args.protocol,)
+    chosen = set(args.protocol)
+    protocols = PROTOCOLS if "all" in chosen else tuple(p for p in PROTOCOLS if p in chosen)
     methods = _names(args.methods)
     # the paper's row order, whatever order they were given in
     ordered = tuple(m for m in METHODS if m in methods) + tuple(

@@ -110,7 +110,10 @@ def test_the_warp_reproduces_the_plane_where_the_reference_sees_it():
     err = np.abs(out.image - truth).max(axis=-1)
     assert err[seen].max() < 0.01  # bilinear sampling of a smooth texture
     np.testing.assert_array_equal(out.image[unseen], req.rendered[unseen])  # render kept
-    assert out.mask.all()  # a confident render everywhere
+    # the loss sees the reference's pixels, not the render kept where the reference is blind
+    assert out.mask[seen].all() and not out.mask[unseen].any()
+    with_render = GuidedRefiner(dataclasses.replace(RAW, supervise_rendered=True)).refine(req)
+    assert with_render.mask.all()  # a confident render everywhere
 
 
 def test_a_reference_stored_at_half_size_warps_to_the_same_place():
@@ -143,7 +146,9 @@ def test_a_fully_occluded_or_masked_reference_changes_nothing_the_render_is_sure
     for r in (occluded, masked):
         out = GuidedRefiner().refine(r)
         np.testing.assert_array_equal(out.image[confident], req.rendered[confident])
-        np.testing.assert_array_equal(out.mask, confident)  # inpainted pixels left out
+        assert not out.mask.any()  # nothing came from the reference: nothing to supervise
+        kept = GuidedRefiner(GuidedConfig(supervise_rendered=True)).refine(r)
+        np.testing.assert_array_equal(kept.mask, confident)  # inpainted pixels left out
         raw = GuidedRefiner(RAW).refine(r)
         np.testing.assert_array_equal(raw.image[confident], req.rendered[confident])
         assert not raw.image[~confident].any()  # holes stay empty without inpainting
@@ -188,8 +193,27 @@ def test_holes_are_filled(sim_case):
 
 def test_supervise_inpainted_extends_the_mask_to_every_pixel(sim_case):
     case = sim_case
+    every = GuidedConfig(supervise_inpainted=True, supervise_rendered=True)
+    assert GuidedRefiner(every).refine(case.request).mask.all()
+    default = GuidedRefiner().refine(case.request).mask
     out = GuidedRefiner(GuidedConfig(supervise_inpainted=True)).refine(case.request)
-    assert out.mask.all()
+    assert (out.mask & ~default).sum() >= case.holes.sum() * 0.9  # the holes join the mask
+
+
+def test_without_supervise_rendered_only_the_recorded_image_supervises(sim_case):
+    """The loss then sees only pixels that came from the reference image: where the warp did
+    not reach, the model's own render is not handed back to it as a target."""
+    case = sim_case
+    req = case.request
+    full = GuidedRefiner(GuidedConfig(supervise_rendered=True)).refine(req)
+    warped = GuidedRefiner().refine(req)  # the default
+    assert np.array_equal(warped.image, full.image)  # the same picture, a smaller mask
+    assert warped.mask.sum() < full.mask.sum() and not (warped.mask & ~full.mask).any()
+    assert warped.mask.mean() > 0.5
+    # every supervised pixel is the reference's colour at the truth's place: closer to the
+    # truth than the render kept elsewhere
+    kept = full.mask & ~warped.mask
+    assert psnr(warped.image, case.truth, warped.mask) > psnr(full.image, case.truth, kept)
 
 
 @pytest.mark.parametrize(
