@@ -235,6 +235,21 @@ def test_steps_split_like_the_papers_500_plus_1500():
         assert (s.warmup_steps, s.refine_steps) == (warmup, refine)
 
 
+@pytest.mark.parametrize(
+    ("given", "protocols"),
+    [
+        (["egocentric", "near-field"], ("near-field", "egocentric")),  # the paper's order
+        (["phases", "phases"], ("phases",)),
+        (["near-field", "all"], PROTOCOLS),
+    ],
+)
+def test_several_protocols_can_be_chosen_at_once(given, protocols):
+    from reconstructor.eval_cli import build_parser, settings_from_args
+
+    args = build_parser().parse_args(["set", "--out", "o", "--protocol", *given])
+    assert settings_from_args(args).protocols == protocols
+
+
 def test_ordering_check_on_the_papers_own_tables():
     # Table 3A PSNR follows depth reprojection < image-only < w/o diffusion < EgoSurg
     psnr_3a = {
