@@ -62,6 +62,11 @@ class EvalSetError(UserError, ValueError):
     """An evaluation set that is missing, of an unknown version, or inconsistent."""
 
 
+# how a simulated set's description ends: the exact command options that made it, so a report
+# can repeat the command (sim.eval_set writes it, reconstructor.eval_doc reads it)
+SIM_COMMAND_MARK = "; made by: egosurg sim eval-set "
+
+
 @dataclass(frozen=True)
 class ReferenceView:
     """An image from a known pinhole camera at the instant of one set of a scene's session."""

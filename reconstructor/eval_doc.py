@@ -18,7 +18,7 @@ import itertools
 import math
 from pathlib import Path
 
-from protocol.eval_set import EvalSet
+from protocol.eval_set import SIM_COMMAND_MARK, EvalSet
 from reconstructor.eval_methods import PAPER_ORDER, PROTOCOLS
 from reconstructor.eval_tables import (
     HIGHER_IS_BETTER,
@@ -173,8 +173,10 @@ def _phase_table(results: EvalResults) -> list[str]:
 def _made_by(eval_set: EvalSet, command: str) -> list[str]:
     """The two steps that made the report: the evaluation set, then the evaluation."""
     first = f"# evaluation set {eval_set.root}: {eval_set.description or '(no description)'}"
-    if eval_set.description.startswith("simulated OR"):
-        # a simulated set's description names the options it was made with
+    what, mark, options = eval_set.description.partition(SIM_COMMAND_MARK)
+    if mark:  # a simulated set's description ends with the options it was made with
+        first = f"egosurg sim eval-set --out {eval_set.root} {options}   # {what}"
+    elif eval_set.description.startswith("simulated OR"):  # a set from before that
         first = f"egosurg sim eval-set --out {eval_set.root}   # {eval_set.description}"
     return [
         "Made by these two commands (rerun them to reproduce every number below):",

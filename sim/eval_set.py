@@ -28,7 +28,7 @@ import numpy as np
 
 from protocol import __version__
 from protocol.camera import Resolution
-from protocol.eval_set import EvalScene, EvalSet, ReferenceView
+from protocol.eval_set import SIM_COMMAND_MARK, EvalScene, EvalSet, ReferenceView
 from protocol.images import encode_image
 from protocol.session import CameraInfo, SessionWriter
 from sim.phases import PHASES
@@ -69,6 +69,17 @@ class EvalSetSpec:
         if not self.fps > 0 or self.t_start_s < 0:
             raise ValueError("fps must be > 0 and t_start_s >= 0")
 
+    def command_options(self) -> str:
+        """The ``egosurg sim eval-set`` options that make this spec (all of them, so the
+        command repeats the set even if a default changes)."""
+        w, h = self.view_size_px
+        return (
+            f"--seed {self.seed} --phases {','.join(self.phases)} --resolution "
+            f"{self.resolution} --fps {self.fps:g} --t-start {self.t_start_s:g} --sets "
+            f"{self.sets} --eval-sets {','.join(map(str, self.eval_sets))} --jpeg-quality "
+            f"{self.jpeg_quality} --view-size {w}x{h} --view-hfov {self.view_hfov_deg:g}"
+        )
+
 
 def write_eval_set(out: Path | str, spec: EvalSetSpec) -> EvalSet:
     """Render and write the set; returns its manifest (also written to ``out``)."""
@@ -84,6 +95,7 @@ def write_eval_set(out: Path | str, spec: EvalSetSpec) -> EvalSet:
         description=(
             f"simulated OR, seed {spec.seed}, {spec.resolution} at {spec.fps:g} fps, "
             f"{spec.sets} sets from t = {spec.t_start_s:g} s"
+            f"{SIM_COMMAND_MARK}{spec.command_options()}"
         ),
         scenes=tuple(scenes),
     )

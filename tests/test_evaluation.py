@@ -317,8 +317,15 @@ def test_evaluate_command_writes_tables_pictures_and_the_report(eval_set, tmp_pa
     assert settings["eval_set_description"] == eval_set.description
 
     report = doc.read_text()
-    # both steps that made it: the evaluation set (its description says how) and the evaluation
-    assert f"egosurg sim eval-set --out {eval_set.root}   # {eval_set.description}" in report
+    # both steps that made it: the evaluation set, with every option the fixture gave it (its
+    # description carries the command), and the evaluation
+    made = next(x for x in report.splitlines() if "egosurg sim eval-set --out" in x)
+    command = made.split("#")[0].split()
+    assert command[:4] == ["egosurg", "sim", "eval-set", "--out"]
+    given = {"--out": str(eval_set.root), "--phases": PHASE, "--sets": "3", "--eval-sets": "0",
+             "--resolution": "SVGA", "--view-size": "160x100"}  # fmt: skip
+    for option, value in given.items():
+        assert command[command.index(option) + 1] == value, made
     assert "egosurg evaluate " + " ".join(args[1:]) in report
     assert "Table 3A" in report and "16.4 ± 0.2" in report  # the paper's number beside ours
     assert "PSNR (dB) ↑: the paper's ordering" in report
