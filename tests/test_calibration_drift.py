@@ -13,6 +13,7 @@ from protocol.camera import Pose
 from protocol.rig_calibration import RigCalibration
 from sim import World
 from sim.truth import true_rig_calibration
+from tests.test_calibration_e2e import _moved
 
 
 @pytest.fixture(scope="module")
@@ -27,15 +28,6 @@ def _in_another_frame(cal: RigCalibration, seed: int) -> RigCalibration:
     return replace(
         cal, sensors=tuple(replace(s, pose=s.pose.compose(frame.inverse())) for s in cal.sensors)
     )
-
-
-def _moved(cal: RigCalibration, serial: int, shift_m: np.ndarray) -> RigCalibration:
-    sensors = []
-    for s in cal.sensors:
-        if s.camera_serial == serial:
-            s = replace(s, pose=Pose(R=s.pose.R, t_m=s.pose.t_m - s.pose.R @ shift_m))
-        sensors.append(s)
-    return replace(cal, sensors=tuple(sensors))
 
 
 def _noisy(cal: RigCalibration, sd_m: float, seed: int) -> RigCalibration:
