@@ -27,21 +27,22 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(1800)]
 
 @pytest.fixture(scope="module")
 def wand_session(tmp_path_factory) -> Path:
-    """17 s of the wand phase at HD1200, 10 fps, free-running cameras with drops.
+    """23 s of the wand phase at HD1200, 10 fps, free-running cameras with drops.
 
     Every frame shows the scene at its own exposure time (content_fps = fps). The agents loop
-    14 s of prerendered content, so 17 s of recording holds the first 2 s of the loop, where the
+    20 s of prerendered content, so 23 s of recording holds the first 2 s of the loop, where the
     wand lies on the floor, whole. 10 fps, not the rig's 15: prerendering is most of this test's
     time (HD1200 pairs at about 175 ms each on two cores), and the wand's path matters more
     than the samples along it. Measured: 10 s of content at 15 fps missed the translation limit
-    (2.7 mm), 14 s at 10 fps is within half of both limits."""
+    (2.7 mm); 14 s at 10 fps read 1.2 mm in most runs but 2.18 mm in one CI run, because which
+    frames of the loop make the sets varies from run to run; 20 s covers more of every image."""
     spec = SimRigSpec(
         seed=SEED,
         phase="wand",
         resolution="HD1200",
         fps=10.0,
         content_fps=10.0,
-        prerender_s=14.0,
+        prerender_s=20.0,
         drop_probability=0.01,
         jpeg_quality=92,
     )
