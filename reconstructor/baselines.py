@@ -36,8 +36,10 @@ def reproject_points(
     point_size_m: float,
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
     max_radius_px: int = 6,
+    near_m: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(image (H, W, 3) float32 in [0, 1], depth_m (H, W) with inf where empty).
+    """(image (H, W, 3) float32 in [0, 1], depth_m (H, W) with inf where empty); points nearer
+    than ``near_m`` (and 1 mm) are left out.
 
     ``camera`` is treated as a pinhole (its distortion is ignored: render into undistorted views).
     """
@@ -50,7 +52,7 @@ def reproject_points(
         return image, depth
     pc = camera.pose.transform(np.asarray(points_m, np.float64))
     z = pc[:, 2]
-    front = z > 1e-3
+    front = z > max(near_m, 1e-3)
     pc, z, col = pc[front], z[front], np.asarray(colours, np.float32)[front]
     u = intr.fx_px * pc[:, 0] / z + intr.cx_px
     v = intr.fy_px * pc[:, 1] / z + intr.cy_px

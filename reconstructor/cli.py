@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import sys
 import time
 from pathlib import Path
@@ -49,6 +50,7 @@ from reconstructor.config import ReconstructConfig
 from reconstructor.errors import ReconstructError
 from reconstructor.frames import load_timestamp
 from reconstructor.train import StepStats
+from reconstructor.views import EYE_NEAR_M
 
 
 class ReconstructArgumentError(ReconstructError, ValueError):
@@ -240,15 +242,21 @@ def _parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def render_camera(model_path: Path, camera: Camera, background=(0.0, 0.0, 0.0)) -> np.ndarray:
-    """(H, W, 3) uint8 RGB of the splat model seen by ``camera`` (pinhole)."""
+def render_camera(
+    model_path: Path, camera: Camera, background=(0.0, 0.0, 0.0), near_m: float = 0.0
+) -> np.ndarray:
+    """(H, W, 3) uint8 RGB of the splat model seen by ``camera`` (pinhole), leaving out what is
+    nearer than ``near_m`` or the model's near plane."""
     from reconstructor import ply
     from reconstructor.train import render
     from reconstructor.views import novel_view
 
     g = ply.read_ply(model_path)
+    raster = _raster_config(model_path)
+    if near_m > raster.near_m:
+        raster = dataclasses.replace(raster, near_m=near_m)
     with torch.no_grad():
-        out = render(g, novel_view(camera), _raster_config(model_path), torch.tensor(background))
+        out = render(g, novel_view(camera), raster, torch.tensor(background))
     return (out.image.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
 
 
@@ -274,6 +282,13 @@ def main_render(argv: list[str]) -> int:
     parser.add_argument("--calibration", help="calibration.toml (default: beside the model)")
     parser.add_argument("--hfov", type=float, default=90.0, help="virtual camera hfov, degrees")
     parser.add_argument("--size", default="960x600", help="virtual camera size WxH")
+    parser.add_argument(
+        "--near-m",
+        type=float,
+        default=0.0,
+        help="leave out what is nearer to the camera than this, metres (default: the model's "
+        f"near plane); from a person's eye use {EYE_NEAR_M:g}, which leaves out their own head",
+    )
     args = parser.parse_args(argv)
     model = Path(args.model)
     if not model.exists():
@@ -282,9 +297,13 @@ def main_render(argv: list[str]) -> int:
     calibration = RigCalibration.read(cal_path) if cal_path.exists() else None
     if not 1.0 < args.hfov < 179.0:
         raise ReconstructArgumentError(f"--hfov {args.hfov}: must be between 1 and 179 degrees")
+    if not (math.isfinite(args.near_m) and 0.0 <= args.near_m < 10.0):
+        raise ReconstructArgumentError(
+            f"--near-m {args.near_m}: give a distance in metres from 0 to 10 (0.2 from an eye)"
+        )
     camera = parse_camera(args.camera, calibration, args.hfov, _parse_size(args.size))
     t0 = time.perf_counter()
-    rgb = render_camera(model, camera)
+    rgb = render_camera(model, camera, near_m=args.near_m)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(out), rgb[:, :, ::-1]):

@@ -103,24 +103,36 @@ def fill_points_in_world(
         return empty
     filled, full_mask = fill_disparity(depth, config, strided=False)
     fb = depth.intrinsics.fx_px * depth.baseline_m
-    sub = np.zeros_like(full_mask)
-    sub[:: config.stride_px, :: config.stride_px] = True
-    v, u = np.nonzero(full_mask & sub)
+    shell = config.room_shell and room_box_m is not None
+    lo = hi = centre = np.zeros(3)
+    if shell:
+        assert room_box_m is not None
+        lo = np.asarray(room_box_m[0], np.float64) + config.shell_inset_m
+        hi = np.asarray(room_box_m[1], np.float64) - config.shell_inset_m
+        centre = left_pose.centre_m
+        shell = bool(np.all(centre > lo) and np.all(centre < hi))
+    v, u = np.nonzero(full_mask)
     z = fb / filled[v, u].astype(np.float64)
     keep = (z >= min_depth_m) & (z <= max_depth_m)
-    v, u, z = v[keep], u[keep], z[keep]
     rays = _rect_rays(depth, u, v)
+    if shell:
+        # A fill that puts a pixel behind the room's walls is wrong: it spread the disparity of
+        # a far surface (the floor) into a near blank one (the wall the camera hangs on, seen at
+        # a grazing angle). Such a pixel, and one filled out of the depth range, is left to the
+        # shell, which has the wall's depth.
+        exit_z = ray_box_exit(centre, _to_world(rays, depth, left_pose) - centre, lo, hi)
+        keep &= z <= exit_z + config.shell_inset_m
+        full_mask[v[~keep], u[~keep]] = False
+    keep &= (v % config.stride_px == 0) & (u % config.stride_px == 0)
+    v, u, z, rays = v[keep], u[keep], z[keep], rays[keep]
     points = [_to_world(rays * z[:, None], depth, left_pose)]
     colours = [depth.rgb[v, u].astype(np.float32) / 255.0]
-    if config.room_shell and room_box_m is not None:
+    if shell:
         hole = ~(depth.valid & np.isfinite(depth.depth_m)) & ~full_mask
         sub = np.zeros_like(hole)
         sub[:: config.shell_stride_px, :: config.shell_stride_px] = True
         v, u = np.nonzero(hole & sub)
-        lo = np.asarray(room_box_m[0], np.float64) + config.shell_inset_m
-        hi = np.asarray(room_box_m[1], np.float64) - config.shell_inset_m
-        centre = left_pose.centre_m
-        if len(v) and np.all(centre > lo) and np.all(centre < hi):
+        if len(v):
             rays = _rect_rays(depth, u, v)
             dirs = _to_world(rays, depth, left_pose) - centre  # rays as world directions
             dist = ray_box_exit(centre, dirs, lo, hi)

@@ -171,16 +171,24 @@ def method_config(
     return apply_overrides(cfg, overrides, f"method {key}")
 
 
-def render_splats(recon: Reconstruction, view: View) -> np.ndarray:
-    """(H, W, 3) float32 in [0, 1]: the model seen from ``view`` over black."""
+def render_splats(recon: Reconstruction, view: View, near_m: float = 0.0) -> np.ndarray:
+    """(H, W, 3) float32 in [0, 1]: the model seen from ``view`` over black, leaving out what
+    is nearer than ``near_m`` (or the model's own near plane, whichever is further)."""
+    raster = recon.config.raster
+    if near_m > raster.near_m:
+        raster = dataclasses.replace(raster, near_m=near_m)
     with torch.no_grad():
-        out = render(recon.gaussians, view, recon.config.raster)
+        out = render(recon.gaussians, view, raster)
     return out.image.clamp(0, 1).numpy()
 
 
-def render_points(fused: FusedCloud, view: View, voxel_m: float) -> np.ndarray:
+def render_points(fused: FusedCloud, view: View, voxel_m: float, near_m: float = 0.0) -> np.ndarray:
     """(H, W, 3) float32 in [0, 1]: the depth-reprojection baseline seen from ``view``."""
     image, _ = reproject_points(
-        fused.points_m, fused.colours, view.camera, point_size_m=max(voxel_m, fused.spacing_m)
+        fused.points_m,
+        fused.colours,
+        view.camera,
+        point_size_m=max(voxel_m, fused.spacing_m),
+        near_m=near_m,
     )
     return image

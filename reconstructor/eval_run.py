@@ -41,7 +41,7 @@ from reconstructor.lpips import Lpips
 from reconstructor.metrics import psnr, ssim_value
 from reconstructor.pipeline import make_views, reconstruct, stereo_clouds
 from reconstructor.temporal import temporal_scores
-from reconstructor.views import View, novel_view
+from reconstructor.views import EYE_NEAR_M, View, novel_view
 
 if TYPE_CHECKING:
     from reconstructor.protocols import Job
@@ -172,6 +172,8 @@ class JobRunner:
         )
         held_out = make_views(ts, probe)[1] if job.held_out_protocols or job.temporal else []
         targets: list[View] = [*held_out, *(novel_view(v.camera) for v in job.ego_views)]
+        # an egocentric view is seen from a person's eye: their own head is left out
+        near = [0.0] * len(held_out) + [EYE_NEAR_M] * len(job.ego_views)
 
         renders: dict[str, list[np.ndarray]] = {}
         fused, voxel_m = None, probe.fusion.voxel_m
@@ -182,7 +184,7 @@ class JobRunner:
                 f"{key}-{job.train_views}", cfg.resolved(ts.resolution.width).to_toml()
             )
             recon = reconstruct(ts, cfg, calibration=calibration)
-            renders[key] = [render_splats(recon, v) for v in targets]
+            renders[key] = [render_splats(recon, v, n) for v, n in zip(targets, near, strict=True)]
             if METHODS[key].depth_init and fused is None:
                 fused, voxel_m = recon.fused, recon.config.fusion.voxel_m
             if key == "egosurg":
@@ -196,7 +198,9 @@ class JobRunner:
                 t0 = time.perf_counter()
                 fused = fuse(stereo_clouds(ts, probe)[0], probe.fusion)
                 self._tick("stereo + fusion for depth reprojection", job, time.perf_counter() - t0)
-            renders["depth-reprojection"] = [render_points(fused, v, voxel_m) for v in targets]
+            renders["depth-reprojection"] = [
+                render_points(fused, v, voxel_m, n) for v, n in zip(targets, near, strict=True)
+            ]
         methods = [m for m in s.methods if m in renders]
         self._score_held_out(job, held_out, methods, renders)
         self._score_ego(job, len(held_out), methods, renders)

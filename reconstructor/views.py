@@ -97,6 +97,13 @@ def view_from_image(camera: Camera, image_rgb: np.ndarray, *, max_width_px: int 
     )
 
 
+# A viewer's own head and face lie nearer than this to their eye (the sim's eye sits 13 cm in front
+# of the head's centre, 3 cm in front of the face). Renders from a person's eye leave out what is
+# nearer, as 3DGS's rasteriser culls everything nearer than 0.2 m: the head's Gaussians, seen
+# from inside, would blur the whole view.
+EYE_NEAR_M = 0.2
+
+
 def novel_view(camera: Camera) -> View:
     """A view with no image, for rendering only (image and mask are empty)."""
     intr = camera.intrinsics.undistorted()

@@ -139,3 +139,43 @@ def test_what_stays_a_hole_is_seen_through_to_the_room_shell(pair):
     )
     n_filled, _ = fill_points_in_world(depth, cam.pose, disabled, min_depth_m=0.3, max_depth_m=12.0)
     assert len(off) == len(n_filled)
+
+
+def test_a_near_wall_filled_behind_the_room_gets_its_own_depth():
+    """A camera hung close to its wall sees that wall at a grazing angle, blank and nearer than
+    stereo's range, beside the textured floor. Spreading the floor's disparity into it would
+    put the wall behind the room; those pixels get the room's shell instead, at the wall's true
+    depth, and no filled point lies outside the room."""
+    from sim import World
+
+    world = World.from_seed(3, phase="intraoperative")
+    unit = world.rig[3]  # its left sensor hangs 8 cm from the wall y = -3 m
+    left, right = (world.render_sensor(3, side, 2.0, "SVGA") for side in ("left", "right"))
+    cl, cr = unit.sensor("left", "SVGA"), unit.sensor("right", "SVGA")
+    depth = compute_depth(
+        left.image_rgb,
+        right.image_rgb,
+        cl.intrinsics,
+        cr.intrinsics,
+        right_from_left(cl, cr),
+        StereoConfig.for_resolution(960),
+    )
+    lo, hi = np.array([-3.5, -3.0, 0.0]), np.array([3.5, 3.0, 3.0])
+    cfg = FillConfig(stride_px=1, shell_stride_px=1, shell_inset_m=0.0)
+    pts, _ = fill_points_in_world(
+        depth, cl.pose, cfg, min_depth_m=0.4, max_depth_m=8.0, room_box_m=(lo, hi)
+    )
+    p = pts.astype(np.float64)
+    outside = np.maximum(lo - p, p - hi).max(axis=1)
+    assert outside.max() < 0.01, f"a filled point lies {outside.max():.2f} m outside the room"
+    px, zz = cl.project(p)
+    inside = (px[:, 0] >= 0) & (px[:, 0] < 959) & (px[:, 1] >= 0) & (px[:, 1] < 599)
+    u, v = px[inside, 0].astype(int), px[inside, 1].astype(int)
+    truth = left.depth_m[v, u]
+    near_wall = truth < 0.6  # nothing else in this view is that near
+    rel = np.abs(zz[inside][near_wall] / truth[near_wall] - 1)
+    print(
+        f"near-wall points {near_wall.sum()}, within 3 % of the true depth {(rel < 0.03).mean():.2f}"
+    )
+    assert near_wall.sum() > 2000
+    assert (rel < 0.03).mean() > 0.9
