@@ -14,12 +14,13 @@ measured in the frame the others agree on.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
 from protocol.camera import Pose
-from protocol.rig_calibration import RigCalibration, SensorCalibration
+from protocol.rig_calibration import RigCalibration
 
 
 @dataclass(frozen=True)
@@ -66,16 +67,7 @@ def align_to(new: RigCalibration, old: RigCalibration, outlier_mm: float = 5.0) 
     for s, o in pairs:
         Rc = s.pose.R @ R.T
         pose = Pose(R=Rc, t_m=s.pose.t_m - Rc @ t)
-        sensors.append(
-            SensorCalibration(
-                name=s.name,
-                camera_serial=s.camera_serial,
-                side=s.side,
-                intrinsics=s.intrinsics,
-                pose=pose,
-                stats=s.stats,
-            )
-        )
+        sensors.append(dataclasses.replace(s, pose=pose))
         dR = pose.R @ o.pose.R.T
         rot_deg.append(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0))))
         pos_mm.append(1000 * np.linalg.norm(pose.centre_m - o.pose.centre_m))
