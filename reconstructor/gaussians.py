@@ -169,7 +169,11 @@ def nearest_neighbour_scale(points_m: np.ndarray, k: int = 3) -> np.ndarray:
     if n < 2:
         return np.full(n, np.inf)
     k_eff = min(k, n - 1)
-    dist, _ = cKDTree(points_m).query(points_m, k=k_eff + 1, workers=-1)
+    # sliding-midpoint splits (balanced_tree=False): the median build recurses without end on
+    # many points sharing a coordinate (scipy#5564), as the walls' points clamped onto a wall
+    # do, and overflows the stack (a segfault in a fused room cloud)
+    tree = cKDTree(points_m, balanced_tree=False)
+    dist, _ = tree.query(points_m, k=k_eff + 1, workers=-1)
     dist = np.asarray(dist).reshape(n, k_eff + 1)[:, 1:]  # column 0 is the point itself
     return np.sqrt(np.mean(dist**2, axis=1))
 
