@@ -141,25 +141,6 @@ def fill_points_in_world(
     return np.concatenate(points).astype(np.float32), np.concatenate(colours)
 
 
-def clamp_into_room(
-    points_m: np.ndarray, centre_m: np.ndarray, room_box_m: tuple[np.ndarray, np.ndarray]
-) -> tuple[np.ndarray, int]:
-    """(points, how many moved): each point that lies behind the room's walls, as seen from
-    ``centre_m`` (the camera that measured it, inside the room), moved back along its ray onto
-    the wall. Nothing is behind a wall; stereo's depth noise on a wall puts half of the wall's
-    points there. A camera outside the box leaves the points as they are."""
-    lo, hi = (np.asarray(b, np.float64) for b in room_box_m)
-    c = np.asarray(centre_m, np.float64)
-    if not len(points_m) or not (np.all(c > lo) and np.all(c < hi)):
-        return points_m, 0
-    d = np.asarray(points_m, np.float64) - c
-    s = ray_box_exit(c, d, lo, hi)  # 1 = at the point itself
-    beyond = s < 1.0
-    out = np.array(points_m, copy=True)
-    out[beyond] = (c + d[beyond] * s[beyond, None]).astype(out.dtype)
-    return out, int(beyond.sum())
-
-
 def ray_box_exit(
     origin: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray
 ) -> np.ndarray:

@@ -169,9 +169,9 @@ def nearest_neighbour_scale(points_m: np.ndarray, k: int = 3) -> np.ndarray:
     if n < 2:
         return np.full(n, np.inf)
     k_eff = min(k, n - 1)
-    # sliding-midpoint splits (balanced_tree=False): the median build recurses without end on
-    # many points sharing a coordinate (scipy#5564), as the walls' points clamped onto a wall
-    # do, and overflows the stack (a segfault in a fused room cloud)
+    # sliding-midpoint splits (balanced_tree=False): the median build can recurse without end
+    # on many points sharing a coordinate (scipy#5564) and overflow the stack. It segfaulted on
+    # a room cloud whose stereo points had been moved onto the wall planes (a tried change)
     tree = cKDTree(points_m, balanced_tree=False)
     dist, _ = tree.query(points_m, k=k_eff + 1, workers=-1)
     dist = np.asarray(dist).reshape(n, k_eff + 1)[:, 1:]  # column 0 is the point itself

@@ -42,7 +42,7 @@ from protocol.rig_calibration import RigCalibration
 from reconstructor import ply
 from reconstructor.auxiliary import AuxiliaryConfig, Bounds, make_auxiliary_views
 from reconstructor.config import ReconstructConfig
-from reconstructor.depth_fill import clamp_into_room, fill_points_in_world
+from reconstructor.depth_fill import fill_points_in_world
 from reconstructor.frames import Timestamp, calibration_at, right_from_left
 from reconstructor.fusion import FusedCloud, fuse
 from reconstructor.gaussians import Gaussians, init_from_points, init_random
@@ -113,10 +113,7 @@ def stereo_clouds(
             matcher=matcher,
         )
         depths[f"SN{left.camera_serial}"] = depth
-        points, colours = depth.points_in_world(left.camera.pose)
-        if config.room_box_m is not None:
-            points, _ = clamp_into_room(points, left.camera.pose.centre_m, config.room_box_m)
-        clouds.append((points, colours))
+        clouds.append(depth.points_in_world(left.camera.pose))
         filled = fill_points_in_world(
             depth,
             left.camera.pose,

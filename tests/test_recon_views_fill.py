@@ -10,7 +10,6 @@ from protocol.camera import Camera, Intrinsics, Pose
 from reconstructor.baselines import reproject_points
 from reconstructor.depth_fill import (
     FillConfig,
-    clamp_into_room,
     fill_disparity,
     fill_points_in_world,
     ray_box_exit,
@@ -116,30 +115,6 @@ def test_a_ray_leaves_a_box_where_its_walls_are():
     # +x wall at 3.5 (2.5 away); -y wall at -3 (5 away, dir length 2); ceiling 1.5 away;
     # diagonal meets y = 3 first (1 away); floor 1.5 below at half speed
     np.testing.assert_allclose(s, [2.5, 2.5, 1.5, 1.0, 3.0])
-
-
-def test_a_point_behind_a_wall_moves_back_along_its_ray_onto_the_wall():
-    lo, hi = np.array([-3.5, -3.0, 0.0]), np.array([3.5, 3.0, 3.0])
-    camera = np.array([1.0, 2.0, 1.5])
-    points = np.array(
-        [
-            [4.0, 2.0, 1.5],  # 0.5 m behind the +x wall, straight ahead
-            [1.0, 2.0, -0.5],  # under the floor
-            [3.0, 3.5, 1.5],  # behind y = 3: the ray (2, 1.5, 0) meets it at 2/3 of the way
-            [0.0, 0.0, 1.0],  # in the room: stays
-        ],
-        np.float32,
-    )
-    moved, n = clamp_into_room(points, camera, (lo, hi))
-    assert n == 3
-    np.testing.assert_allclose(
-        moved,
-        [[3.5, 2.0, 1.5], [1.0, 2.0, 0.0], [1.0 + 2.0 * 2 / 3, 3.0, 1.5], [0.0, 0.0, 1.0]],
-        atol=1e-5,
-    )
-    # a camera outside the box cannot say what is behind which wall: nothing moves
-    same, n = clamp_into_room(points, np.array([5.0, 0.0, 1.0]), (lo, hi))
-    assert n == 0 and np.array_equal(same, points)
 
 
 def test_what_stays_a_hole_is_seen_through_to_the_room_shell(pair):
