@@ -233,9 +233,10 @@ def stage_reconstruction(
     cam = world.virtual_camera(view, hfov_deg=90.0, size_px=(960, 600), name=f"{who}'s eyes")
     rendered_png = recon / f"{who}_view_splats.png"
     eye_s, target_s = ",".join(f"{v:.4f}" for v in eye), ",".join(f"{v:.4f}" for v in target)
+    # --near-m 0.2: from a person's eye, leave out their own head (as the egocentric protocol)
     done = _egosurg(
         "render", str(model), "--camera", f"eye={eye_s} target={target_s}",
-        "--hfov", "90", "--size", "960x600", "--out", str(rendered_png),
+        "--hfov", "90", "--size", "960x600", "--near-m", "0.2", "--out", str(rendered_png),
     )  # fmt: skip
     if done.returncode != 0:
         return stamp
