@@ -166,7 +166,7 @@ def test_a_near_wall_filled_behind_the_room_gets_its_own_depth():
         StereoConfig.for_resolution(960),
     )
     lo, hi = np.array([-3.5, -3.0, 0.0]), np.array([3.5, 3.0, 3.0])
-    cfg = FillConfig(stride_px=1, shell_stride_px=1, shell_inset_m=0.0)
+    cfg = FillConfig(stride_px=1, shell_stride_px=1)  # the default shell, on the walls
     pts, _ = fill_points_in_world(
         depth, cl.pose, cfg, min_depth_m=0.4, max_depth_m=8.0, room_box_m=(lo, hi)
     )
