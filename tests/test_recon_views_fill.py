@@ -65,13 +65,13 @@ def test_reprojection_baseline_draws_the_nearest_point():
     assert np.isinf(depth).sum() == depth.size - 1  # a 1 cm voxel at 2 m is under a pixel
 
 
-@pytest.fixture(scope="module")
-def pair():
+def _sim_stereo(seed: int, unit_index: int, t_s: float):
+    """(stereo depth, the left sensor's camera, its true depth) of one simulated SVGA pair."""
     from sim import World
 
-    world = World.from_seed(2, phase="intraoperative")
-    unit = world.rig[0]
-    left, right = (world.render_sensor(0, side, 1.0, "SVGA") for side in ("left", "right"))
+    world = World.from_seed(seed, phase="intraoperative")
+    unit = world.rig[unit_index]
+    left, right = (world.render_sensor(unit_index, side, t_s, "SVGA") for side in ("left", "right"))
     cl, cr = unit.sensor("left", "SVGA"), unit.sensor("right", "SVGA")
     depth = compute_depth(
         left.image_rgb,
@@ -82,6 +82,11 @@ def pair():
         StereoConfig.for_resolution(960),
     )
     return depth, cl, left.depth_m
+
+
+@pytest.fixture(scope="module")
+def pair():
+    return _sim_stereo(2, 0, 1.0)
 
 
 def test_filling_covers_blank_walls_without_moving_confident_depth(pair):
@@ -151,20 +156,8 @@ def test_a_near_wall_filled_behind_the_room_gets_its_own_depth():
     stereo's range, beside the textured floor. Spreading the floor's disparity into it would
     put the wall behind the room; those pixels get the room's shell instead, at the wall's true
     depth, and no filled point lies outside the room."""
-    from sim import World
-
-    world = World.from_seed(3, phase="intraoperative")
-    unit = world.rig[3]  # its left sensor hangs 8 cm from the wall y = -3 m
-    left, right = (world.render_sensor(3, side, 2.0, "SVGA") for side in ("left", "right"))
-    cl, cr = unit.sensor("left", "SVGA"), unit.sensor("right", "SVGA")
-    depth = compute_depth(
-        left.image_rgb,
-        right.image_rgb,
-        cl.intrinsics,
-        cr.intrinsics,
-        right_from_left(cl, cr),
-        StereoConfig.for_resolution(960),
-    )
+    # seed 3's fourth camera: its left sensor hangs 8 cm from the wall y = -3 m
+    depth, cl, true_depth = _sim_stereo(3, 3, 2.0)
     lo, hi = np.array([-3.5, -3.0, 0.0]), np.array([3.5, 3.0, 3.0])
     cfg = FillConfig(stride_px=1, shell_stride_px=1)  # the default shell, on the walls
     pts, _ = fill_points_in_world(
@@ -176,7 +169,7 @@ def test_a_near_wall_filled_behind_the_room_gets_its_own_depth():
     px, zz = cl.project(p)
     inside = (px[:, 0] >= 0) & (px[:, 0] < 959) & (px[:, 1] >= 0) & (px[:, 1] < 599)
     u, v = px[inside, 0].astype(int), px[inside, 1].astype(int)
-    truth = left.depth_m[v, u]
+    truth = true_depth[v, u]
     near_wall = truth < 0.6  # nothing else in this view is that near
     rel = np.abs(zz[inside][near_wall] / truth[near_wall] - 1)
     share = (rel < 0.03).mean()
