@@ -20,6 +20,14 @@ its wall, and the held-out views beside it showed the misplaced wall. In an OR t
 stereo cannot match are mostly the walls and ceiling themselves, so the shell is their right
 depth; anything else left blank sits in front of it and training moves those Gaussians where the
 other views need them.
+
+With the room's box known, a filled pixel near its shell goes onto the shell (``shell_snap``: at
+least 70 % of the shell's depth along its ray). The smoother spreads a blank wall's disparity
+from everything around it, so a wall behind a person or a cabinet comes out bent toward them:
+measured on the sim (four cameras, intraoperative), only 37 % of the filled points were within
+3 % of the true depth and 47 % lay more than 5 % in front of it, floating in the room where
+every other view sees through them. Snapped: 69 % within 3 %, 15 % in front (12 % behind:
+blank objects near a wall, which training recolours from the views that see them).
 """
 
 from __future__ import annotations
@@ -44,6 +52,9 @@ class FillConfig:
     room_shell: bool = True  # points on the room's box for what is still a hole (needs bounds)
     shell_stride_px: int = 4
     shell_inset_m: float = 0.0  # cut the rays this far before the walls
+    # a filled pixel within this share of its shell depth (z >= (1 - shell_snap) * shell) goes
+    # onto the shell: the smoother bends a blank wall's disparity toward its neighbours' (0: off)
+    shell_snap: float = 0.3
 
     def __post_init__(self) -> None:
         if self.smoothness <= 0 or self.sigma_color <= 0:
@@ -61,6 +72,8 @@ class FillConfig:
             )
         if self.shell_inset_m < 0:
             raise ReconstructConfigError(f"fill.shell_inset_m={self.shell_inset_m}: must be >= 0")
+        if not 0 <= self.shell_snap < 1:
+            raise ReconstructConfigError(f"fill.shell_snap={self.shell_snap}: must be in [0, 1)")
 
 
 def fill_disparity(
@@ -126,6 +139,7 @@ def fill_points_in_world(
         exit_z = ray_box_exit(centre, _to_world(rays, depth, left_pose) - centre, lo, hi)
         keep &= z <= exit_z + config.shell_inset_m
         full_mask[v[~keep], u[~keep]] = False
+        z = np.where(keep & (z >= (1.0 - config.shell_snap) * exit_z), exit_z, z)
     keep &= (v % config.stride_px == 0) & (u % config.stride_px == 0)
     v, u, z, rays = v[keep], u[keep], z[keep], rays[keep]
     points = [_to_world(rays * z[:, None], depth, left_pose)]

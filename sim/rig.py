@@ -17,14 +17,19 @@ from sim.room import RoomSpec
 
 ZEDX_FX_HD1200_PX = 740.0
 ZEDX_BASELINE_MM = 120.0
+# The ZED X housing, width (along the baseline) x height x depth (Stereolabs datasheet: 188 x 49
+# x 47 mm): each sensor sits 34 mm in from the housing's end.
+ZEDX_HOUSING_MM = (188.0, 49.0, 47.0)
+MOUNT_MARGIN_M = 0.02  # every corner of a housing keeps this far from the walls, floor, ceiling
 
-# (x, y, z) of the left sensor and the point it looks at; above head height, on the long walls,
-# opposite the table, two per wall (as in the paper's Figure 1).
+# (x, y, z) of the housing's centre (midway between the sensors) and the point the camera looks
+# at; above head height, on the long walls, opposite the table, two per wall (as in the paper's
+# Figure 1). 15 cm off the wall: the bracket's depth, and room for the housing at any jitter.
 MOUNTS_M: tuple[tuple[tuple[float, float, float], tuple[float, float, float]], ...] = (
-    ((1.9, 2.88, 2.45), (0.0, 0.0, 0.9)),
-    ((-1.9, 2.88, 2.45), (0.0, 0.0, 0.9)),
-    ((1.9, -2.88, 2.45), (0.0, 0.0, 0.9)),
-    ((-1.9, -2.88, 2.45), (0.0, 0.0, 0.9)),
+    ((1.9, 2.85, 2.45), (0.0, 0.0, 0.9)),
+    ((-1.9, 2.85, 2.45), (0.0, 0.0, 0.9)),
+    ((1.9, -2.85, 2.45), (0.0, 0.0, 0.9)),
+    ((-1.9, -2.85, 2.45), (0.0, 0.0, 0.9)),
 )
 NODES = ("orin-a", "orin-a", "orin-b", "orin-b")
 
@@ -87,20 +92,35 @@ def _factory(serial: int, rng: np.random.Generator) -> ZedFactoryCalibration:
 
 
 def build_rig(seed: int, room: RoomSpec) -> tuple[ZedUnit, ...]:
+    """The four units of ``seed``'s rig; each whole housing inside ``room`` (``MOUNT_MARGIN_M``).
+
+    Raises ``OutsideRoomError`` when a housing does not fit (a mount too near a wall).
+    """
     rng = np.random.default_rng([seed, 0x21C])
     units = []
-    for i, ((eye, target), node) in enumerate(zip(MOUNTS_M, NODES, strict=True)):
+    for i, ((mount, target), node) in enumerate(zip(MOUNTS_M, NODES, strict=True)):
         serial = 41_000_000 + int(rng.integers(100_000, 999_999)) * 10 + i
-        eye_a = np.asarray(eye) + rng.uniform(-0.05, 0.05, size=3)
-        room.require_inside(eye_a, f"camera SN{serial}")
+        centre = np.asarray(mount) + rng.uniform(-0.05, 0.05, size=3)
         target_a = np.asarray(target) + rng.uniform(-0.15, 0.15, size=3)
+        factory = _factory(serial, rng)
+        facing = Pose.look_at(centre, target_a)
+        for corner in housing_corners_m(centre, facing.R):
+            room.require_inside(corner, f"the housing of camera SN{serial}", MOUNT_MARGIN_M)
+        left_centre = centre - factory.baseline_mm / 2000.0 * facing.R[0]  # x: toward the right
         units.append(
             ZedUnit(
                 index=i,
                 serial=serial,
                 node_id=node,
-                factory=_factory(serial, rng),
-                left_pose=Pose.look_at(eye_a, target_a),
+                factory=factory,
+                left_pose=Pose(R=facing.R, t_m=-facing.R @ left_centre),
             )
         )
     return tuple(units)
+
+
+def housing_corners_m(centre_m: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """(8, 3) world corners of a ZED X housing centred at ``centre_m`` with camera axes ``R``."""
+    half = np.asarray(ZEDX_HOUSING_MM) / 2000.0
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+    return np.asarray(centre_m) + (signs * half) @ np.asarray(R)

@@ -127,3 +127,22 @@ def test_virtual_camera_at_the_left_sensor_sees_the_undistorted_left_image(world
     )
     diff = np.abs(d_undist[inner] - view.depth_m[inner])
     assert np.median(diff[np.isfinite(diff)]) < 0.001
+
+
+@pytest.mark.parametrize("seed", range(0, 40, 3))
+def test_every_camera_of_a_rig_could_hang_on_its_wall(seed):
+    """Both sensors and the whole 188 mm ZED X housing (34 mm past each sensor) are inside the
+    room, 2 cm from every wall: a camera the sim renders is one a clinical engineer could mount."""
+    from sim.rig import build_rig
+    from sim.room import RoomSpec
+
+    room = RoomSpec()
+    half = np.array([room.length_x_m / 2, room.width_y_m / 2])
+    for unit in build_rig(seed, room):
+        left = unit.sensor("left", Resolution.SVGA).pose.centre_m
+        right = unit.sensor("right", Resolution.SVGA).pose.centre_m
+        along = (right - left) / np.linalg.norm(right - left)
+        for end in (left - 0.034 * along, right + 0.034 * along):
+            gap_to_wall_m = np.min(half - np.abs(end[:2]))
+            assert gap_to_wall_m >= 0.02, (seed, unit.serial, end, gap_to_wall_m)
+            assert 0.02 <= end[2] <= room.height_z_m - 0.02
