@@ -123,11 +123,16 @@ def content_time_s(t_sim_s: float, *, fps: float, content_fps: float, prerender_
     return float((int(np.floor(t_sim_s * content_fps)) % count) / content_fps)
 
 
+SPHERE_CLEARANCE_PX = 8.0  # image gap to any other sphere for a sphere to count as whole
+
+
 def wand_sphere_whole(world: World, render: Render, t_s: float, k: int) -> bool:
     """Wand sphere ``k`` is whole in ``render`` (a view of ``world`` at ``t_s``): not cut by the
     image border, nothing in front of it but the wand's own rod (it runs through the spheres and,
     where it leaves one towards the camera, crosses a little of its outline on every real wand
-    too), no other sphere next to it: where a detector's centre can be held to the truth."""
+    too), no other sphere within ``SPHERE_CLEARANCE_PX`` of its outline: where a detector's centre
+    can be held to the truth. (A detector that finds blobs on a coarser, closed mask sees two
+    outlines a few pixels apart as one blob, which it must drop rather than measure.)"""
     centres = world.wand_centres(t_s)
     if centres is None:
         return False
@@ -137,7 +142,7 @@ def wand_sphere_whole(world: World, render: Render, t_s: float, k: int) -> bool:
     H, W = oi.shape
     r = render.camera.intrinsics.fx_px * world.config.wand.radius_m / z[0]  # ~ the semi-minor axis
     u, v = px[0]
-    m = int(r) + 4
+    m = int(r) + int(SPHERE_CLEARANCE_PX) + 2
     if not (m <= u < W - m and m <= v < H - m):
         return False
     y0, x0 = int(v) - m, int(u) - m
@@ -149,5 +154,5 @@ def wand_sphere_whole(world: World, render: Render, t_s: float, k: int) -> bool:
         return False
     if not ours[d <= r - 0.8].all():
         return False
-    near = win[d <= r + 2.5]
+    near = win[d <= r + SPHERE_CLEARANCE_PX]
     return not ((near >= SPHERE_OBJECT_BASE) & (near != SPHERE_OBJECT_BASE + k)).any()
