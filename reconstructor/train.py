@@ -1,8 +1,15 @@
 """Training Gaussians on posed views with the paper's losses and schedule.
 
-Loss, per step on one view (paper, "Implementation Details")::
+Loss, per step on one view (paper, "Implementation Details", plus a needle term)::
 
-    L = (1 - α) · L1 + α · (1 - SSIM) + λ · mean(sigmoid(opacity)),   α = 0.2, λ = 0.2
+    L = (1 - α) · L1 + α · (1 - SSIM) + λ · mean(sigmoid(opacity)) + μ · needle,
+    α = 0.2, λ = 0.05 (the paper: 0.2), μ = 10 (the paper: none)
+
+``needle`` is ``anisotropy_penalty``. λ and μ were chosen on the simulated OR's egocentric
+views (docs/reconstruct.md, "Schedule"): at the paper's λ, Adam drove most Gaussians
+transparent and a few hundred grew metres long to paint what they left, a fog from any eye
+inside the room; needles that fit the wall cameras, which look along them, are streaks from
+elsewhere. The paper's loss: ``opacity_reg_weight = 0.2``, ``anisotropy_reg_weight = 0``.
 
 No densification, splitting or pruning: the depth initialisation already places one Gaussian per
 fused point. Backgrounds are random colours each step, so that the model cannot paint the
@@ -42,7 +49,7 @@ class TrainConfig:
     warmup_steps: int = 500
     refine_steps: int = 1500  # on the input views alone until a refiner adds auxiliary views
     ssim_weight: float = 0.2  # α
-    opacity_reg_weight: float = 0.2  # λ
+    opacity_reg_weight: float = 0.05  # λ (the paper: 0.2; see the module docstring)
     position_lr: float = 1.6e-4  # times the scene extent in metres, as 3DGS
     position_lr_final_ratio: float = 0.01
     sh_dc_lr: float = 2.5e-3
@@ -55,7 +62,7 @@ class TrainConfig:
     # anisotropy_reg_weight x the log of the excess (0: off). Needles that fit the few input
     # views show as streaks from far-off viewpoints (EVALUATION.md, egocentric views)
     anisotropy_max_ratio: float = 4.0
-    anisotropy_reg_weight: float = 0.0
+    anisotropy_reg_weight: float = 10.0
     seed: int = 0
     log_every_steps: int = 100
 
