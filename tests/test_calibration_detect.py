@@ -240,31 +240,24 @@ def test_detected_centres_match_the_projected_true_centres(sim):
     assert max(dist_errors) < 0.03
 
 
-def test_numba_kernels_give_the_numpy_twins_results_faster(sim):
+def test_numba_kernels_give_the_numpy_twins_results(sim):
     """What calibration runs per frame (detect, label, refit without the rod), with the numba
     kernels (the default) and with their numpy twins: the same spheres and labels, the centres
-    within 1e-5 px, and at least 1.5 times faster (about 3-4 times on an idle machine)."""
+    within 1e-5 px. How much faster the kernels are is measured by bench/bench_wand_detect.py
+    (BENCHMARKS.md), not asserted here."""
     twins = {}
     for side in SIDES:
         twins[side] = SphereDetector(
             sim.cams[side].intrinsics, WAND.radius_m, DetectorConfig(kernels="numpy")
         )
         twins[side].fit_background(sim.backgrounds[side])
-    fast_ms: list[float] = []
-    slow_ms: list[float] = []
     labelled = 0
     for (side, _t), render in sim.frames.items():
         img = _bgr(render)
         runs = {}
-        for det, times in ((sim.detectors[side], fast_ms), (twins[side], slow_ms)):
-            best = math.inf
-            for _ in range(2):
-                t0 = time.perf_counter()
-                blobs = det.detect(img)
-                label = refit_without_rod(det, img, label_wand(blobs, WAND))
-                best = min(best, time.perf_counter() - t0)
-            times.append(1000 * best)
-            runs[det.config.kernels] = (blobs, label)
+        for det in (sim.detectors[side], twins[side]):
+            blobs = det.detect(img)
+            runs[det.config.kernels] = (blobs, refit_without_rod(det, img, label_wand(blobs, WAND)))
         (fast_blobs, fast), (slow_blobs, slow) = runs["numba"], runs["numpy"]
         assert len(fast_blobs) == len(slow_blobs)
         for a, b in zip(fast_blobs, slow_blobs, strict=True):
@@ -274,13 +267,7 @@ def test_numba_kernels_give_the_numpy_twins_results_faster(sim):
         if fast.points_px is not None and slow.points_px is not None:
             assert np.abs(fast.points_px - slow.points_px).max() < 1e-5
             labelled += 1
-    ratio = float(np.median(slow_ms) / np.median(fast_ms))
-    print(
-        f"detect + label + refit per HD1200 frame: numba {np.median(fast_ms):.1f} ms, numpy "
-        f"twins {np.median(slow_ms):.1f} ms ({ratio:.1f}x), {labelled} frames labelled"
-    )
     assert labelled >= 10
-    assert ratio > 1.5
 
 
 def _jpeg(img: np.ndarray, sampling: int) -> np.ndarray:
