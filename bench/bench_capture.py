@@ -23,6 +23,12 @@ What it runs, in order, on loopback only:
    the stop = 0) and the recorder stored at least 99% of the frames offered over the recording.
    Steps stop at the first one not sustained. A step at imagezmq's measured hub rate is added,
    so the goal is tested directly.
+1b. CURVE's cost: the full rig again with plaintext links (``insecure = true``), in the same run:
+   the stored-rate ratio (CURVE / plaintext) and both p99 capture-to-durable latencies; and the
+   agents' load steps once more in plaintext (``--no-plaintext-steps`` skips them), so the
+   highest sustained step with CURVE can be set against the plaintext one (target: >= 0.8x).
+   Every other run uses CURVE, the default: agents, replay feeders and recorder are CURVE
+   servers and clients with the keys ``sim.deploy.write_keys`` makes.
 4. ``--profile``: the first step not sustained (else the highest step) again, with py-spy
    sampling the recorder; prints where its I/O thread spends its time.
 
@@ -185,6 +191,7 @@ class RunResult:
     other_cpu: float  # % of one core used by every other process of the machine
     feeder_lag_ms: float | None = None  # replay only: how late the feeders sent, at worst
     profile: str = ""
+    insecure: bool = False  # plaintext links (the CURVE comparison), else CURVE
 
     @property
     def lost(self) -> int:
@@ -203,10 +210,11 @@ class RunResult:
         return self.lost == 0 and self.steady_rate >= SUSTAIN_RATE * self.offered_rate
 
 
-def _spec(fps: float, duration_s: float, seed: int = 0):
+def _spec(fps: float, duration_s: float, seed: int = 0, insecure: bool = False):
     from sim.deploy import SimRigSpec
 
     return SimRigSpec(
+        insecure=insecure,
         seed=seed,
         resolution=RESOLUTION,
         fps=fps,
@@ -222,24 +230,33 @@ def _spec(fps: float, duration_s: float, seed: int = 0):
     )
 
 
-def make_rig(directory: Path, cameras: int, fps: float, duration_s: float, seed: int = 0):
+def make_rig(
+    directory: Path,
+    cameras: int,
+    fps: float,
+    duration_s: float,
+    seed: int = 0,
+    insecure: bool = False,
+):
     """``write_sim_rig`` for ``cameras`` stereo cameras: camera k >= 4 is camera ``k % 4`` of the
     sim world of seed ``seed + k // 4`` (``SimRigSpec.cameras``), two per node as on the rig."""
     from sim.deploy import write_sim_rig
 
     return write_sim_rig(
-        directory, dataclasses.replace(_spec(fps, duration_s, seed), cameras=cameras)
+        directory, dataclasses.replace(_spec(fps, duration_s, seed, insecure), cameras=cameras)
     )
 
 
-def make_replay_rig(directory: Path, cameras: int, fps: float, duration_s: float):
-    """A rig.toml whose two "agents" are replay feeders; the same recorder settings as the sim
-    rig (written by ``write_sim_rig``, then pointed at the feeders' ports)."""
-    from sim.deploy import SimRigFiles, free_ports
+def make_replay_rig(
+    directory: Path, cameras: int, fps: float, duration_s: float, insecure: bool = False
+):
+    """A rig.toml whose two "agents" are replay feeders; the same recorder settings and keys as
+    the sim rig (written as ``write_sim_rig`` does, then pointed at the feeders' ports)."""
+    from sim.deploy import SimRigFiles, free_ports, write_keys
 
     if cameras < 2 or cameras % 2:
         raise SystemExit(f"replay cameras must be even and >= 2, got {cameras}")
-    spec = _spec(fps, duration_s)
+    spec = _spec(fps, duration_s, insecure=insecure)
     ports = free_ports(5)
     nodes = {"replay-a": [], "replay-b": []}
     for k in range(cameras):
@@ -255,7 +272,18 @@ def make_replay_rig(directory: Path, cameras: int, fps: float, duration_s: float
         f"max_wait_ms = {spec.max_wait_ms!r}",
         f"disk_reserve_gb = {spec.disk_reserve_gb!r}",
         f"planned_duration_min = {spec.planned_duration_min!r}",
+        "",
+        "[security]",
     ]
+    if insecure:
+        lines.append("insecure = true")
+    else:
+        write_keys(directory / "keys", ["recorder", "operator", *nodes])
+        lines += [
+            'secret_key = "keys/recorder.key_secret"',
+            'operator_keys = ["keys/operator.key"]',
+            'operator_key = "keys/operator.key_secret"',
+        ]
     endpoints = {}
     for k, (node, serials) in enumerate(nodes.items()):
         fr, ct = f"tcp://127.0.0.1:{ports[2 * k]}", f"tcp://127.0.0.1:{ports[2 * k + 1]}"
@@ -267,6 +295,7 @@ def make_replay_rig(directory: Path, cameras: int, fps: float, duration_s: float
             f'frames = "{fr}"',
             f'control = "{ct}"',
             f"cameras = [{', '.join(map(str, serials))}]",
+            *([] if insecure else [f'public_key = "keys/{node}.key"']),
         ]
     directory.mkdir(parents=True, exist_ok=True)
     rig_path = directory / "rig.toml"
@@ -295,16 +324,21 @@ def _feeder(
     stop_at: float,
     stop_event,
     q,
+    key_file: str | None = None,
 ) -> None:
     """Stands in for one capture agent: publishes valid frame messages of ``serials`` at ``fps``
     each, free-running with random phases, stamped with their scheduled time (as a camera is),
     with the node's ``seq`` and each camera's ``frame_index``; answers the recorder's ``status``
     control request with the cameras' info. Images are the real JPEG pairs, sent with copy=False.
-    No rendering, no encoding, no per-frame validation: it costs the shared cores little."""
+    No rendering, no encoding, no per-frame validation: it costs the shared cores little. With
+    ``key_file`` its sockets are CURVE servers of that key, as an agent's are (without a ZAP
+    allow-list: the cost measured is the encryption, which is per message; ZAP is per
+    connection)."""
     import heapq
     import random
 
     import zmq
+    import zmq.auth
 
     from protocol.messages import ControlReply, ControlRequest, FrameMessage
 
@@ -312,9 +346,14 @@ def _feeder(
     pub = ctx.socket(zmq.PUB)
     pub.setsockopt(zmq.LINGER, 0)
     pub.setsockopt(zmq.SNDHWM, 480)  # the agent's: max(100, 4 * queue_frames)
-    pub.bind(frames_ep)
     rep = ctx.socket(zmq.REP)
     rep.setsockopt(zmq.LINGER, 0)
+    if key_file is not None:
+        public, secret = zmq.auth.load_certificate(key_file)
+        for sock in (pub, rep):
+            sock.curve_publickey, sock.curve_secretkey = public, secret
+            sock.curve_server = True
+    pub.bind(frames_ep)
     rep.bind(control_ep)
     templates = []
     for c, serial in enumerate(serials):
@@ -413,6 +452,7 @@ def run_recording(
     keep: bool,
     profile: bool = False,
     payload_out: list | None = None,
+    insecure: bool = False,
 ) -> RunResult:
     """Start the publishers and the recorder, record ``duration_s``, stop, read the numbers."""
     from sim.deploy import SimRig, SimRigError
@@ -428,12 +468,15 @@ def run_recording(
     stop_event = ctx.Event()
     q = ctx.Queue()
     if feed == "agents":
-        files = make_rig(directory, cameras, fps, duration_s)
+        files = make_rig(directory, cameras, fps, duration_s, insecure=insecure)
         what = "2 agents"
     else:
-        files, endpoints = make_replay_rig(directory, cameras, fps, duration_s)
+        files, endpoints = make_replay_rig(directory, cameras, fps, duration_s, insecure)
         what = "2 replay feeders"
-    log(f"{name}: starting {what} ({cameras} cameras at {fps:g} fps, {RESOLUTION}) + recorder")
+    log(
+        f"{name}: starting {what} ({cameras} cameras at {fps:g} fps, {RESOLUTION}) + recorder, "
+        + ("PLAINTEXT links" if insecure else "CURVE links")
+    )
     rig = SimRig(files)
     spy: subprocess.Popen | None = None
     feeder_reports: list[dict] = []
@@ -453,6 +496,7 @@ def run_recording(
                         time.monotonic() + duration_s + 300.0,
                         stop_event,
                         q,
+                        None if insecure else str(files.directory / "keys" / f"{node}.key_secret"),
                     ),
                     daemon=True,
                 )
@@ -572,6 +616,7 @@ def run_recording(
         steady_rate=(fb - fa) / (tb - ta),
         feeder_lag_ms=max((r["max_lag_ms"] for r in feeder_reports), default=None),
         profile=profile_text,
+        insecure=insecure,
     )
     session = Path(started["file"])
     if payload_out is not None:
@@ -1036,22 +1081,80 @@ def steps_table(results: list[RunResult], rig: RunResult | None) -> str:
     )
 
 
-def run_steps(steps, args, feed: str, pairs, rig: RunResult | None) -> list[RunResult]:
+def curve_table(curve: RunResult, plain: RunResult) -> str:
+    """Part 1b: the full rig with CURVE (part 1) against the same rig in plaintext."""
+    rows = []
+    for r in (curve, plain):
+        lat = r.latency_ms
+        rows.append(
+            [
+                "plaintext (insecure = true)" if r.insecure else "CURVE (the default)",
+                fmt(r.steady_rate, ".1f"),
+                str(r.lost),
+                f"{fmt(lat.get('p50'))} / {fmt(lat.get('p99'))}",
+                fmt(r.recorder_cpu),
+                fmt(r.feeders_cpu),
+            ]
+        )
+    ratio = curve.steady_rate / plain.steady_rate if plain.steady_rate else float("nan")
+    p99c, p99p = curve.latency_ms.get("p99"), plain.latency_ms.get("p99")
+    head = (
+        f"### 1b. CURVE against plaintext: the full rig ({RIG_CAMERAS} x {RIG_FPS:g} fps) again "
+        f"with insecure = true, {plain.duration_s:.0f} s\n\n"
+    )
+    body = table(
+        [
+            "links",
+            "stored stereo/s",
+            "lost",
+            "latency p50 / p99 (ms)",
+            "recorder CPU %",
+            "agents' CPU %",
+        ],
+        rows,
+        right={1, 2, 3, 4, 5},
+    )
+    tail = (
+        f"\n\nThroughput ratio CURVE / plaintext: {ratio:.3f}; p99 capture-to-durable latency "
+        f"{fmt(p99c)} ms with CURVE, {fmt(p99p)} ms in plaintext. At the rig's load both store "
+        "everything offered, so the ratio is ~1 and the cost shows in CPU; section 3a' finds it "
+        "at the limit."
+    )
+    return head + body + tail
+
+
+def curve_steps_line(curve: list[RunResult], plain: list[RunResult]) -> str:
+    def best(rs: list[RunResult]) -> float:
+        return max((r.offered_rate for r in rs if r.sustained), default=0.0)
+
+    c, p = best(curve), best(plain)
+    ratio = c / p if p else float("nan")
+    return (
+        f"Highest sustained step with CURVE: {c:g} stereo/s; plaintext: {p:g} stereo/s; ratio "
+        f"{ratio:.2f} (target >= 0.8: **{'met' if ratio >= 0.8 else 'not met'}**)."
+    )
+
+
+def run_steps(
+    steps, args, feed: str, pairs, rig: RunResult | None, insecure: bool = False
+) -> list[RunResult]:
     results: list[RunResult] = []
+    links = "-plaintext" if insecure else ""
     for k, (cams, fps) in enumerate(steps):
         if rig is not None and (cams, fps) == (rig.cameras, rig.fps):
             results.append(rig)  # measured in part 1, over a longer run
         else:
             for attempt in range(2):
                 r = run_recording(
-                    args.workdir / f"{feed}{k}",
-                    f"{feed}-{cams}x{fps:g}",
+                    args.workdir / f"{feed}{links}{k}",
+                    f"{feed}{links}-{cams}x{fps:g}",
                     cams,
                     fps,
                     args.step_s,
                     feed=feed,
                     pairs=pairs,
                     keep=args.keep,
+                    insecure=insecure,
                 )
                 if r.other_cpu <= BUSY_OTHER_CPU or attempt == 1:
                     break
@@ -1089,6 +1192,11 @@ def main() -> None:
         type=float,
         default=120.0,
         help="before each measurement, wait at most this long for other processes to go quiet",
+    )
+    parser.add_argument(
+        "--no-plaintext-steps",
+        action="store_true",
+        help="skip the agents' load steps with plaintext links (CURVE's cost at the limit)",
     )
     parser.add_argument("--keep", action="store_true", help="keep the session files")
     parser.add_argument("--workdir", type=Path, default=_ROOT / "out" / "bench_capture")
@@ -1167,6 +1275,19 @@ def main() -> None:
             right={1},
         )
     )
+    print()
+
+    # 1b. CURVE against plaintext, the same rig in the same run
+    plain = run_recording(
+        args.workdir / "rig-plaintext",
+        "rig-plaintext",
+        RIG_CAMERAS,
+        RIG_FPS,
+        args.duration_s,
+        keep=args.keep,
+        insecure=True,
+    )
+    print(curve_table(rig, plain))
     print()
 
     # 2. raw limits on the same JPEGs
@@ -1290,6 +1411,13 @@ def main() -> None:
     )
     print(steps_table(results, rig))
     print()
+    if not args.no_plaintext_steps:
+        plain_results = run_steps(steps, args, "agents", pairs, plain, insecure=True)
+        print("### 3a'. The same load steps with plaintext links (insecure = true)\n")
+        print(steps_table(plain_results, plain))
+        print()
+        print(curve_steps_line(results, plain_results))
+        print()
     # 3b. load steps with replay feeders, and one at imagezmq's rate
     # the fewest cameras (an even number: two feeders) that offer imagezmq's rate exactly
     goal_cams = 2 * math.ceil(izmq / 2 / REPLAY_FPS / 2)

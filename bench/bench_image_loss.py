@@ -2,9 +2,9 @@
 
 One step's loss at the trainer's image size: (1 - α) · L1 + α · (1 - SSIM) of a render against
 its target over a mask, with the random-background fill, then the gradient in the render. The
-twin is ``metrics.l1`` + ``metrics.ssim`` under autograd (what the trainer used before); the
-fused path is ``reconstructor.image_loss``. Both run interleaved in the same process; the table
-gives medians and the ratio.
+twin is ``ssim.l1`` + ``ssim.ssim`` under autograd (what the trainer used before); the
+fused path is ``reconstructor.splats.image_loss``. Both run interleaved in the same process;
+the table gives medians and the ratio.
 
     .venv/bin/python bench/bench_image_loss.py               # 960x600, 15 steps each
     .venv/bin/python bench/bench_image_loss.py --size 480x300
@@ -24,7 +24,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.malloc_tuning import tune_malloc
-from reconstructor.image_loss import image_loss
+from reconstructor.splats.image_loss import image_loss
 
 
 def _case(h: int, w: int) -> tuple[torch.Tensor, ...]:

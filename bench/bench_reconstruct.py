@@ -34,9 +34,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from protocol.camera import Resolution
 from reconstructor.config import ReconstructConfig
-from reconstructor.frames import SensorFrame, Timestamp
+from reconstructor.data.frames import SensorFrame, Timestamp
 from reconstructor.pipeline import reconstruct
-from reconstructor.train import TrainConfig, Trainer
+from reconstructor.splats.train import TrainConfig, Trainer
 from sim import World
 
 PAPER_STEPS = 2000
@@ -123,8 +123,8 @@ def main() -> int:
 def time_model(ts: Timestamp, model: Path, part_steps: int) -> int:
     """A trained model's training step, part by part, and its render fps."""
     from reconstructor.pipeline import make_views
-    from reconstructor.ply import read_ply
-    from reconstructor.train import scene_extent_m
+    from reconstructor.splats.ply import read_ply
+    from reconstructor.splats.train import scene_extent_m
 
     cfg = ReconstructConfig().resolved(ts.frames[0].camera.intrinsics.width_px)
     views, _ = make_views(ts, cfg)
@@ -152,7 +152,7 @@ def print_parts_and_renders(trainer: Trainer, views: list, steps: int, when: str
 
 def render_times_ms(trainer: Trainer, views: list, n: int) -> list[float]:
     """Wall ms of ``n`` renders of the model from ``views`` under ``torch.no_grad()``."""
-    from reconstructor.train import render
+    from reconstructor.splats.train import render
 
     times = []
     with torch.no_grad():
@@ -165,9 +165,9 @@ def render_times_ms(trainer: Trainer, views: list, n: int) -> list[float]:
 
 def step_parts_ms(trainer: Trainer, views: list, steps: int) -> dict[str, float]:
     """A training step taken apart (the same calls as ``Trainer.step``), timed part by part."""
-    from reconstructor.image_loss import image_loss
     from reconstructor.raster.function import stage_times_ms
-    from reconstructor.train import render
+    from reconstructor.splats.image_loss import image_loss
+    from reconstructor.splats.train import render
 
     cfg = trainer.config
     rows: dict[str, list[float]] = {}

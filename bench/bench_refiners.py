@@ -41,8 +41,8 @@ import cv2
 import numpy as np
 
 from protocol.camera import Camera, Pose
-from reconstructor.refiners import GuidedConfig, GuidedRefiner, IdentityRefiner, Refiner
-from reconstructor.refiners.base import RefineRequest
+from reconstructor.refine.base import IdentityRefiner, Refiner, RefineRequest
+from reconstructor.refine.guided import GuidedConfig, GuidedRefiner
 
 
 @dataclass(frozen=True)
@@ -228,7 +228,7 @@ def difix_cost(sizes_hw: list[tuple[int, int]]) -> None:
     import torch
     from diffusers import AutoencoderKL, DDPMScheduler, UNet2DConditionModel
 
-    from reconstructor.refiners.difix import NUM_VIEWS, DifixModel, set_frame_attention
+    from reconstructor.refine.difix import NUM_VIEWS, DifixModel, set_frame_attention
 
     t0 = time.perf_counter()
     vae: Any = AutoencoderKL(  # SD-Turbo's VAE (SD 2.1)

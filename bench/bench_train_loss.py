@@ -25,8 +25,8 @@ import numpy as np
 import reconstructor  # noqa: F401  (flushes denormals before torch starts its threads)
 from protocol.eval_set import EvalSet
 from reconstructor.config import apply_overrides
-from reconstructor.eval_methods import EvalSettings, method_config
-from reconstructor.eval_run import EvalSource
+from reconstructor.evaluation.methods import EvalSettings, method_config
+from reconstructor.evaluation.runner import EvalSource
 from reconstructor.pipeline import reconstruct
 
 ARMS = {

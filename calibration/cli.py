@@ -30,7 +30,8 @@ import numpy as np
 from calibration import exports
 from calibration.drift import align_to
 from calibration.extract import ExtractConfig, extract
-from calibration.report import ReportData, Thresholds, annotate, verdict, write_report
+from calibration.report import ReportData, Thresholds, annotate, verdict
+from calibration.report_page import write_report
 from calibration.solve import Solution, SolveConfig, solve
 from protocol.errors import UserError
 from protocol.rig_calibration import RigCalibration

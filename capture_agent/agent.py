@@ -30,8 +30,10 @@ from dataclasses import dataclass, field
 import zmq
 
 from capture_agent.config import CameraEntry, NodeConfig
-from capture_agent.daemon import run_until_signal
+from capture_agent.control_server import ControlServer, Refused
+from capture_agent.daemon import Progress, run_until_signal
 from capture_agent.ptp import PtpConfig, PtpMonitor, PtpStatus
+from capture_agent.security import CONTROL_MAX_BYTES, SUBSCRIPTION_MAX_BYTES, LinkGuard, harden
 from capture_agent.sources import make_source
 from capture_agent.sources.base import CameraSource, CameraUnavailableError, GrabbedFrame
 from protocol import __version__
@@ -39,11 +41,9 @@ from protocol.images import EncodedPair, encode_pair
 from protocol.messages import (
     AgentStatus,
     CameraStatus,
-    ControlReply,
     ControlRequest,
     Encoding,
     FrameMessage,
-    MalformedMessageError,
     PtpState,
 )
 from protocol.os_thread import NamedThread
@@ -51,6 +51,7 @@ from protocol.os_thread import NamedThread
 log = logging.getLogger(__name__)
 
 GRAB_TIMEOUT_S = 0.25
+STALL_LIMIT_S = 10.0  # a loop without progress for this long: exit, systemd restarts the agent
 
 
 def latest_ptp(monitor: PtpMonitor) -> PtpStatus:
@@ -284,6 +285,10 @@ class Agent:
 
             raise ConfigError(f"{config.source_path}: two [[cameras]] have the same serial")
         self.stopped = threading.Event()
+        # Each loop's heartbeat (status, and systemd's watchdog) and the control socket's
+        # request handling, shared with the recorder (capture_agent/control_server.py).
+        self.progress = Progress("publish", "control", "watchdog")
+        self.control = ControlServer(f"agent {config.node_id}", self._answer)
         self._ctx: zmq.Context = zmq.Context.instance()
         self._seq = 0
         self._status_seq = 0
@@ -325,14 +330,21 @@ class Agent:
 
     # -- threads --------------------------------------------------------------------------------
     def start(self) -> None:
-        self.ptp.start()
+        # Its own context: one ZAP authenticator per context, with this agent's allow-list.
+        # Keys are loaded first, so a missing or unprotected key stops the start cleanly.
+        links = self.config.security.links()
+        self._ctx = zmq.Context()
+        self.guard = LinkGuard(self._ctx, links, f"agent {self.config.node_id}")
         pub = self._ctx.socket(zmq.PUB)
-        pub.setsockopt(zmq.LINGER, 0)
+        harden(pub, SUBSCRIPTION_MAX_BYTES)
         pub.setsockopt(zmq.SNDHWM, max(100, 4 * self.config.queue_frames))
+        self.guard.make_server(pub, f"{self.config.node_id}.frames")
         pub.bind(self.config.frames_bind)
         rep = self._ctx.socket(zmq.REP)
-        rep.setsockopt(zmq.LINGER, 0)
+        harden(rep, CONTROL_MAX_BYTES)
+        self.guard.make_server(rep, f"{self.config.node_id}.control")
         rep.bind(self.config.control_bind)
+        self.ptp.start()
         for w in self.workers:
             w.start()
         self._threads = [
@@ -357,12 +369,18 @@ class Agent:
         for t in self._threads:
             t.join(timeout=2.0)
         self.ptp.stop()
+        guard = getattr(self, "guard", None)
+        if guard is not None:
+            guard.close()
+            if not any(t.is_alive() for t in self._threads):
+                self._ctx.term()  # every socket is closed: nothing can block it
 
     def _publish(self, pub: zmq.Socket) -> None:
         next_status = time.monotonic()
         by_serial = {w.serial: w for w in self.workers}
         try:
             while not self.stopped.is_set():
+                self.progress.beat("publish")
                 now = time.monotonic()
                 if now >= next_status:
                     pub.send_multipart(self.status().to_parts())
@@ -397,39 +415,54 @@ class Agent:
             pub.close(linger=0)
 
     def _control(self, rep: zmq.Socket) -> None:
+        """Answer every request on the REP socket, whatever it holds (ControlServer); this
+        thread ends only when the agent stops."""
         poller = zmq.Poller()
         poller.register(rep, zmq.POLLIN)
         try:
             while not self.stopped.is_set():
-                if not poller.poll(100):
-                    continue
-                raw = rep.recv()
+                self.progress.beat("control")
                 try:
-                    req = ControlRequest.from_bytes(raw)
-                except MalformedMessageError as exc:
-                    rep.send(ControlReply(ok=False, error=str(exc), request_id="").to_bytes())
-                    continue
-                rep.send(self._answer(req).to_bytes())
+                    if poller.poll(100):
+                        self.control.serve(rep)
+                except zmq.ZMQError as exc:
+                    if exc.errno in (zmq.ETERM, zmq.ENOTSOCK):
+                        break  # the context or socket is closed: the agent is stopping
+                    log.exception("control socket error; going on")
+                    self.stopped.wait(0.1)
+                except Exception:  # the control thread must never die: the recorder needs it
+                    log.exception("control loop error; going on")
+                    self.stopped.wait(0.1)
         finally:
             rep.close(linger=0)
 
-    def _answer(self, req: ControlRequest) -> ControlReply:
+    def _answer(self, req: ControlRequest) -> dict:
+        """A request's result; ``Refused`` for the verbs an agent does not serve."""
         if req.verb == "heartbeat":
-            return ControlReply(
-                ok=True, result={"node_id": self.config.node_id}, request_id=req.request_id
-            )
+            return {"node_id": self.config.node_id}
         if req.verb == "status":
-            st = self.status()
-            return ControlReply(
-                ok=True,
-                result={"status": st.to_json(), "cameras_info": self.camera_info()},
-                request_id=req.request_id,
-            )
-        return ControlReply(
-            ok=False,
-            error=f"an agent does not {req.verb} recordings; send '{req.verb}' to the recorder "
-            "(egosurg record ...)",
-            request_id=req.request_id,
+            return {
+                "status": self.status().to_json(),
+                "cameras_info": self.camera_info(),
+                # how the agent's loops and control socket fare (fields the contract allows:
+                # a receiver ignores what it does not know)
+                "progress_age_s": self.progress.ages_s(),
+                "control": self.control.counts(),
+            }
+        raise Refused(
+            f"an agent does not {req.verb} recordings; send '{req.verb}' to the recorder "
+            "(egosurg record ...)"
+        )
+
+    def status_line(self) -> str:
+        """One line for systemd's ``STATUS=`` (read from another thread: plain reads only)."""
+        states = [w.counters.state for w in self.workers]
+        streaming = states.count("streaming")
+        others = sorted({st for st in states if st != "streaming"})
+        return (
+            f"{streaming} of {len(states)} cameras streaming"
+            + (f" (others: {', '.join(others)})" if others else "")
+            + f"; PTP {latest_ptp(self.ptp).state}"
         )
 
     def _watchdog(self) -> None:
@@ -437,6 +470,7 @@ class Agent:
         SDK takes seconds), so only grab() is timed."""
         limit = self.config.watchdog_timeout_s + GRAB_TIMEOUT_S + 1.0
         while not self.stopped.wait(0.2):
+            self.progress.beat("watchdog")
             for w in self.workers:
                 started = w.grab_started
                 if started is not None and time.monotonic() - started > limit:
@@ -458,4 +492,8 @@ def main(argv: list[str]) -> int:
         agent.stop,
         f"egosurg agent {config.node_id}: streaming {len(agent.workers)} camera(s) on "
         f"{config.frames_bind}; control on {config.control_bind}",
+        progress=agent.progress.ages_s,
+        stall_limit_s=STALL_LIMIT_S,
+        status_line=agent.status_line,
+        healthy=lambda: all(t.is_alive() for t in agent._threads),
     )

@@ -3,10 +3,16 @@
 Example ``node.toml``::
 
     node_id = "orin-a"
-    frames_bind = "tcp://*:5550"       # PUB: frames and 1 Hz status
-    control_bind = "tcp://*:5551"      # REP: status, heartbeat
+    frames_bind = "tcp://10.10.0.11:5550"   # PUB: frames and 1 Hz status (the rig VLAN's address)
+    control_bind = "tcp://10.10.0.11:5551"  # REP: status, heartbeat
     encoding = "jpeg"                  # or "raw_bgr8"
     jpeg_quality = 90
+
+    [security]                         # CURVE keys (egosurg keys generate); paths relative to here
+    secret_key = "/etc/egosurg/keys/orin-a.key_secret"     # this agent's keypair (mode 0600)
+    allowed_keys = ["/etc/egosurg/keys/recorder.key", "/etc/egosurg/keys/operator.key"]
+    # insecure = true                  # plaintext links: only for a bench, warns at every start
+    # allow_all_interfaces = true      # allow binding tcp://* / 0.0.0.0
 
     [ptp]
     source = "pmc"                     # or "none" where there is no PTP (simulation)
@@ -23,25 +29,45 @@ Example ``rig.toml``::
     control_bind = "tcp://127.0.0.1:5560"
     output_dir = "/data/egosurg/sessions"
     require_ptp_lock = true
+    receive_buffer_mb = 1024           # what queued frames may hold in the recorder, all agents
+    # max_image_bytes = 6912000        # largest legal image (default: raw_bgr8 at HD1200)
+
+    [security]
+    secret_key = "/etc/egosurg/keys/recorder.key_secret"   # the recorder's keypair (mode 0600)
+    # public_key = "/etc/egosurg/keys/recorder.key"        # default: secret_key minus _secret
+    operator_keys = ["/etc/egosurg/keys/operator.key"]     # allowed on the control socket
+    operator_key = "~/.egosurg/operator.key_secret"        # the key egosurg record/status use
 
     [[agents]]
     node_id = "orin-a"
     frames = "tcp://10.10.0.11:5550"
     control = "tcp://10.10.0.11:5551"
     cameras = [41234567, 41234568]     # expected serials; a start is refused if one is missing
+    public_key = "/etc/egosurg/keys/orin-a.key"            # frames from another key are refused
 """
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from capture_agent.security import (
+    LARGEST_IMAGE_BYTES,
+    SECRET_SUFFIX,
+    LinkSecurity,
+    frame_message_max_bytes,
+    key_path,
+    secure_bind_check,
+)
 from protocol.errors import ConfigError
+from protocol.messages import MAX_FRAME_BYTES
 
 ENCODINGS = ("jpeg", "raw_bgr8")
+MIN_RECEIVE_MESSAGES = 8  # the smallest receive queue per agent that receive_buffer_mb may give
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,31}$")
 
 
@@ -107,6 +133,73 @@ class CameraEntry:
     where: str
 
 
+_NO_KEYS = (
+    "make keys with 'egosurg keys generate --out DIR --name NAME' and name them in [security] "
+    "(see docs/capture.md, Security), or set insecure = true in [security] for plaintext links"
+)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SecurityConfig:
+    """The ``[security]`` table of node.toml or rig.toml: key file paths (relative paths are
+    relative to the config's folder), not keys: a client reading rig.toml need not be able to
+    read the recorder's secret key. ``links()`` loads them when a daemon starts."""
+
+    insecure: bool = False
+    allow_all_interfaces: bool = False
+    secret_key: str = ""  # this daemon's keypair (a .key_secret file, mode 0600)
+    allowed_keys: tuple[str, ...] = ()  # node: recorder + operators; rig: operators on control
+    public_key: str = ""  # rig: the recorder's public key, which clients connect to
+    operator_key: str = ""  # rig: the keypair that egosurg record/status/shell use
+    where: str = ""
+
+    def links(self) -> LinkSecurity:
+        """This daemon's keys, loaded (ConfigError when missing, unreadable or not 0600)."""
+        if self.insecure:
+            return LinkSecurity.plaintext()
+        if not self.secret_key or not self.allowed_keys:
+            raise ConfigError(f"{self.where or 'config'}: no CURVE keys; {_NO_KEYS}")
+        return LinkSecurity.load(self.secret_key, self.allowed_keys)
+
+    @classmethod
+    def from_table(cls, data: dict[str, Any], where: str, *, rig: bool) -> SecurityConfig:
+        raw = data.get("security", {})
+        if not isinstance(raw, dict):
+            raise ConfigError(f"{where}: [security] must be a table")
+        t = _Table(raw, f"{where} [security]")
+        base = Path(where).parent
+        insecure = t.get("insecure", bool, False)
+        allowed_name = "operator_keys" if rig else "allowed_keys"
+        allowed = t.get(allowed_name, list, [])
+        if not all(isinstance(k, str) and k for k in allowed):
+            raise ConfigError(f"{t.where}: '{allowed_name}' must list public key file paths")
+        secret = t.get("secret_key", str, "")
+        if not insecure and not secret:
+            raise ConfigError(f"{t.where}: 'secret_key' is required; {_NO_KEYS}")
+        if not insecure and not allowed:
+            who = "the operators' public keys" if rig else "the recorder's and operators' keys"
+            raise ConfigError(f"{t.where}: '{allowed_name}' must list {who}; {_NO_KEYS}")
+        public = t.get("public_key", str, "") if rig else ""
+        if rig and not public and secret.endswith(SECRET_SUFFIX):
+            public = secret[: -len("_secret")]
+        cfg = cls(
+            insecure=insecure,
+            allow_all_interfaces=t.get("allow_all_interfaces", bool, False),
+            secret_key=key_path(secret, base) if secret else "",
+            allowed_keys=tuple(key_path(k, base) for k in allowed),
+            public_key=key_path(public, base) if public else "",
+            operator_key=key_path(t.get("operator_key", str, ""), base) if rig else "",
+            where=t.where,
+        )
+        t.reject_unknown()
+        return cfg
+
+    def check_bind(self, address: str, name: str) -> None:
+        secure_bind_check(
+            address, self.insecure, self.allow_all_interfaces, f"{self.where} ({name})"
+        )
+
+
 @dataclass(frozen=True, kw_only=True)
 class NodeConfig:
     node_id: str
@@ -120,6 +213,7 @@ class NodeConfig:
     reopen_interval_s: float = 1.0
     ptp: dict[str, Any] = field(default_factory=dict)
     cameras: tuple[CameraEntry, ...] = ()
+    security: SecurityConfig = SecurityConfig()
     source_path: str = ""
 
     @classmethod
@@ -148,8 +242,12 @@ class NodeConfig:
             raise ConfigError(f"{where}: [ptp] must be a table")
         cfg = cls(
             node_id=node_id,
-            frames_bind=t.get("frames_bind", str, check=_endpoint, hint="like tcp://*:5550"),
-            control_bind=t.get("control_bind", str, check=_endpoint, hint="like tcp://*:5551"),
+            frames_bind=t.get(
+                "frames_bind", str, check=_endpoint, hint="like tcp://10.10.0.11:5550"
+            ),
+            control_bind=t.get(
+                "control_bind", str, check=_endpoint, hint="like tcp://10.10.0.11:5551"
+            ),
             encoding=t.get(
                 "encoding",
                 str,
@@ -188,8 +286,12 @@ class NodeConfig:
             cameras=tuple(entries),
             source_path=where,
         )
+        t.used.add("security")
         t.reject_unknown()
-        return cfg
+        security = SecurityConfig.from_table(data, where, rig=False)
+        security.check_bind(cfg.frames_bind, "frames_bind")
+        security.check_bind(cfg.control_bind, "control_bind")
+        return dataclasses.replace(cfg, security=security)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -198,6 +300,7 @@ class AgentEndpoint:
     frames: str
     control: str
     cameras: tuple[int, ...] = ()
+    public_key: str = ""  # the agent's public key file: the only key its frames may come from
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -213,6 +316,10 @@ class RigConfig:
     disk_reserve_gb: float = 2.0
     planned_duration_min: float = 60.0
     agent_timeout_s: float = 3.0
+    receive_buffer_mb: float = 1024.0
+    max_image_bytes: int = LARGEST_IMAGE_BYTES
+    max_clock_skew_s: float = 10.0  # frames stamped further from the recorder's clock: refused
+    security: SecurityConfig = SecurityConfig()
     toml_text: str = ""
     source_path: str = ""
 
@@ -244,6 +351,7 @@ class RigConfig:
                     frames=at.get("frames", str, check=_endpoint, hint="like tcp://host:5550"),
                     control=at.get("control", str, check=_endpoint, hint="like tcp://host:5551"),
                     cameras=tuple(cams),
+                    public_key=at.get("public_key", str, ""),
                 )
             )
             at.reject_unknown()
@@ -289,11 +397,59 @@ class RigConfig:
             agent_timeout_s=t.get(
                 "agent_timeout_s", float, 3.0, check=lambda v: 0.5 <= v <= 60, hint="0.5 to 60 s"
             ),
+            receive_buffer_mb=t.get(
+                "receive_buffer_mb",
+                float,
+                1024.0,
+                check=lambda v: 1 <= v <= 1_000_000,
+                hint="MB of queued frames the recorder may hold, 1 to 1000000",
+            ),
+            max_image_bytes=t.get(
+                "max_image_bytes",
+                int,
+                LARGEST_IMAGE_BYTES,
+                check=lambda v: 1024 <= v <= MAX_FRAME_BYTES,
+                hint=f"bytes per image, 1024 to {MAX_FRAME_BYTES}; larger images are refused",
+            ),
+            max_clock_skew_s=t.get(
+                "max_clock_skew_s",
+                float,
+                10.0,
+                check=lambda v: 0.1 <= v <= 86_400,
+                hint="seconds a frame's capture time may differ from the recorder's clock, "
+                "0.1 to 86400",
+            ),
             toml_text=text,
             source_path=where,
         )
+        t.used.add("security")
         t.reject_unknown()
-        return cfg
+        return _with_rig_security(cfg, data, where)
+
+
+def _with_rig_security(cfg: RigConfig, data: dict[str, Any], where: str) -> RigConfig:
+    security = SecurityConfig.from_table(data, where, rig=True)
+    security.check_bind(cfg.control_bind, "control_bind")
+    base = Path(where).parent
+    agents = []
+    for i, a in enumerate(cfg.agents):
+        if not a.public_key and not security.insecure:
+            raise ConfigError(
+                f"{where} [[agents]] #{i + 1} ({a.node_id}): 'public_key' is required (the "
+                f"agent's .key file); {_NO_KEYS}"
+            )
+        agents.append(
+            dataclasses.replace(a, public_key=key_path(a.public_key, base) if a.public_key else "")
+        )
+    per_agent = cfg.receive_buffer_mb * 1e6 / len(agents)
+    need = MIN_RECEIVE_MESSAGES * frame_message_max_bytes(cfg.max_image_bytes)
+    if per_agent < need:
+        raise ConfigError(
+            f"{where}: receive_buffer_mb = {cfg.receive_buffer_mb:g} leaves {per_agent / 1e6:.0f} "
+            f"MB per agent, under {MIN_RECEIVE_MESSAGES} of the largest legal frame messages "
+            f"({need / 1e6:.0f} MB); raise receive_buffer_mb or lower max_image_bytes"
+        )
+    return dataclasses.replace(cfg, agents=tuple(agents), security=security)
 
 
 def connect_address(bind: str) -> str:

@@ -18,6 +18,7 @@ from typing import Any
 
 from capture_agent.rig_client import RigClient
 from protocol.errors import UserError
+from protocol.safe_text import safe_text as _t  # every string from the recorder, terminal-safe
 
 
 class ArgumentProblem(UserError, ValueError):
@@ -42,16 +43,16 @@ def _meta(items: list[str]) -> dict[str, str]:
 
 def format_summary(s: dict[str, Any]) -> str:
     lines = [
-        f"case {s['case']}: {s['duration_s']:.1f} s, {s['sets']} synchronised sets, "
+        f"case {_t(s['case'])}: {s['duration_s']:.1f} s, {s['sets']} synchronised sets, "
         f"{s['frames']} frames, {s['bytes'] / 1e6:.1f} MB",
-        f"file: {s['file']}",
-        f"stopped: {s['reason']}",
+        f"file: {_t(s['file'])}",
+        f"stopped: {_t(s['reason'])}",
         "camera       frames  dropped  lost-in-transport  time-gaps  reconnects  missing-in-sets"
         "  not-written-at-stop",
     ]
     for serial, c in s["cameras"].items():
         lines.append(
-            f"SN{serial:<10} {c['frames']:>6} {c['dropped']:>8} {c['transport_lost']:>18} "
+            f"SN{_t(serial):<10} {c['frames']:>6} {c['dropped']:>8} {c['transport_lost']:>18} "
             f"{c['time_gaps']:>10} {c['reconnects']:>11} {c['missing_in_sets']:>16} "
             f"{c.get('not_written_at_stop', 0):>20}"
         )
@@ -59,17 +60,18 @@ def format_summary(s: dict[str, Any]) -> str:
     if unwritten:
         lines.append(
             f"{unwritten} frames were still queued when the recording had to stop "
-            f"({s['reason']}) and are not in the file"
+            f"({_t(s['reason'])}) and are not in the file"
         )
     refused = int(s.get("frames_not_written_write_failed", 0))
     if refused or s.get("write_error"):
         per_camera = ", ".join(
-            f"SN{serial} {c['not_written_write_failed']}"
+            f"SN{_t(serial)} {c['not_written_write_failed']}"
             for serial, c in s["cameras"].items()
             if c.get("not_written_write_failed")
         )
         lines.append(
-            f"writing the session file failed ({s.get('write_error', 'see the recorder log')}): "
+            f"writing the session file failed "
+            f"({_t(s.get('write_error', 'see the recorder log'))}): "
             f"{refused} frames are not in the file" + (f" ({per_camera})" if per_camera else "")
         )
     if s.get("malformed_messages") or s.get("unknown_version_messages"):
@@ -80,26 +82,33 @@ def format_summary(s: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def format_started(result: dict[str, Any]) -> str:
+    """The answer to a start, in the words of 'egosurg record start' and the console's rig."""
+    return (
+        f"recording case {result['case']} from {len(result['cameras'])} cameras to {result['file']}"
+    )
+
+
 def format_status(st: dict[str, Any]) -> str:
-    head = f"rig {st['rig_name']}: "
+    head = f"rig {_t(st['rig_name'])}: "
     if st["recording"]:
         head += (
-            f"RECORDING case {st['case']} for {st['duration_s']:.0f} s, {st['sets']} sets, "
-            f"{st['bytes'] / 1e6:.0f} MB -> {st['file']}"
+            f"RECORDING case {_t(st['case'])} for {st['duration_s']:.0f} s, {st['sets']} sets, "
+            f"{st['bytes'] / 1e6:.0f} MB -> {_t(st['file'])}"
         )
     else:
         head += "idle"
-    lines = [head, f"disk: {st['disk_free_bytes'] / 1e9:.1f} GB free in {st['output_dir']}"]
+    lines = [head, f"disk: {st['disk_free_bytes'] / 1e9:.1f} GB free in {_t(st['output_dir'])}"]
     if st.get("write_error"):
         lines.append(
-            f"WRITING FAILS for {st['write_failing_s']:.0f} s: {st['write_error']}; "
+            f"WRITING FAILS for {st['write_failing_s']:.0f} s: {_t(st['write_error'])}; "
             f"{st['frames_not_written_write_failed']} frames not in the file so far"
         )
     lines.append("camera       node      state      fps   dropped  ptp_offset_ns  ptp")
     for c in st["cameras"]:
         dropped = c["dropped_in_recording"] if st["recording"] else c["dropped_at_agent"]
         lines.append(
-            f"SN{c['serial']:<10} {c['node_id'] or '-':<9} "
+            f"SN{_t(c['serial']):<10} {_t(c['node_id'] or '-'):<9} "
             f"{'streaming' if c['streaming'] else 'NO FRAMES':<10} {c['fps']:>5.1f} "
             f"{dropped if dropped is not None else '-':>9} "
             f"{c['ptp_offset_ns'] if c['ptp_offset_ns'] is not None else '-':>14}  "
@@ -107,13 +116,37 @@ def format_status(st: dict[str, Any]) -> str:
         )
     for a in st["agents"]:
         if not a["alive"]:
-            lines.append(f"agent {a['node_id']} ({a['control']}): NO STATUS - is it running?")
+            lines.append(
+                f"agent {_t(a['node_id'])} ({_t(a['control'])}): NO STATUS - is it running?"
+            )
     if st["malformed_messages"] or st["unknown_version_messages"]:
         lines.append(
             f"rejected messages: {st['malformed_messages']} malformed, "
             f"{st['unknown_version_messages']} of an unknown version"
         )
+    lines += _refusals(st)
     return "\n".join(lines)
+
+
+def _refusals(st: dict[str, Any]) -> list[str]:
+    """What the recorder refused, and a loop that stopped making progress."""
+    out = []
+    control = st.get("control") or {}
+    unreadable = int(control.get("rejected_malformed", 0)) + int(
+        control.get("rejected_unknown_version", 0)
+    )
+    unknown = int(st.get("frames_refused_unknown_camera", 0))
+    clock = int(st.get("frames_refused_clock", 0))
+    if unknown or clock or unreadable:
+        out.append(
+            f"refused: {unknown} frames of cameras not in rig.toml, {clock} frames stamped more "
+            f"than {st.get('max_clock_skew_s', '?')} s off the recorder's clock, {unreadable} "
+            "unreadable control requests"
+        )
+    for loop, age in (st.get("progress_age_s") or {}).items():
+        if float(age) > 2.0:
+            out.append(f"recorder loop {_t(loop)}: no progress for {float(age):.1f} s")
+    return out
 
 
 def main_record(argv: list[str]) -> int:
@@ -134,12 +167,7 @@ def main_record(argv: list[str]) -> int:
     rig = RigClient.connect(args.recorder, args.config)
     if args.action == "start":
         result = rig.start(args.case, args.planned_min, **_meta(args.meta))
-        print(
-            json.dumps(result, indent=2)
-            if args.json
-            else f"recording case {result['case']} from {len(result['cameras'])} cameras to "
-            f"{result['file']}"
-        )
+        print(json.dumps(result, indent=2) if args.json else format_started(result))
     else:
         summary = rig.stop()
         print(json.dumps(summary, indent=2) if args.json else format_summary(summary))

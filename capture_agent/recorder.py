@@ -8,21 +8,26 @@ Example::
 One I/O thread owns every socket and the session file, so control commands (start, stop) are
 served in order between frames and two simultaneous starts cannot race. It:
 
-- receives frame messages and agent status on one SUB socket connected to every agent; malformed
-  messages and unknown versions are counted, logged and skipped;
+- receives frame messages and agent status on one SUB socket per agent, a CURVE client of that
+  agent's public key (``capture_agent/security.py``), so every message is known to come from
+  that agent's key; malformed messages, unknown versions and messages that name another node
+  or a camera that is not the agent's in rig.toml are counted, logged and skipped;
 - while recording: stores every frame as received (no re-encoding), accounts for drops and gaps
   from frame indices, per-node sequence numbers and timestamps, feeds the synchroniser and stores
   each completed set; flushes the file every ``flush_interval_s`` (a crash loses at most that
   much) and stops cleanly before the disk's free space falls under ``disk_reserve_gb``;
 - answers ``start``, ``stop``, ``status`` and ``heartbeat`` on its REP control socket.
 
-The SUB socket queues about ``RECEIVE_QUEUE_S`` of the rig's traffic per agent (its high-water
-mark, in messages). A recorder that falls further behind makes the agents' PUB sockets drop
-messages, which the per-node ``seq`` shows as transport losses: overload becomes counted loss, not
-unbounded memory. At a stop, the take ends at the stop's time: the frames captured before it that
-are still queued are received and written first (for up to ``STOP_WRITE_S``), until every
-streaming camera has delivered a frame captured after it. Whatever of the take cannot be written
-then (the disk reserve was reached, or the queue did not drain in time) is counted per camera as
+Each agent's SUB socket queues what ``receive_buffer_mb`` allows (split over the agents, counted
+at the largest legal frame message; at most ``RECEIVE_QUEUE_S`` of that agent's frames: see
+``receive_hwm``). A recorder that falls further behind leaves the backlog in the agents' send
+queues, then makes their PUB sockets drop messages, which the per-node ``seq`` shows as transport
+losses: overload becomes counted loss, not unbounded memory.
+
+At a stop, the take ends at the stop's time: the frames captured before it that are still queued
+are received and written first (for up to ``STOP_WRITE_S``), until every streaming camera has
+delivered a frame captured after it. Whatever of the take cannot be written then (the disk
+reserve was reached, or the queue did not drain in time) is counted per camera as
 ``not_written_at_stop`` in the stop summary, never dropped silently.
 
 When the session file cannot be written (disk full, I/O error), the take goes on: the writer
@@ -52,11 +57,25 @@ from typing import Any
 import zmq
 
 from capture_agent.accounting import StreamAccounting
-from capture_agent.config import RigConfig
-from capture_agent.daemon import run_until_signal
+from capture_agent.config import AgentEndpoint, RigConfig
+from capture_agent.control_server import ControlServer, Refused
+from capture_agent.daemon import Progress, run_until_signal
 from capture_agent.recording import Recording
+from capture_agent.security import (
+    CONTROL_MAX_BYTES,
+    LinkGuard,
+    LinkSecurity,
+    frame_message_max_bytes,
+    frame_part_max_bytes,
+    harden,
+    load_public_key,
+    make_client,
+)
 from capture_agent.sync import SyncConfig, Synchroniser
+from capture_agent.take_journal import TakeJournal, TakeResume
+from capture_agent.take_journal import remove as remove_take_journal
 from protocol import __version__
+from protocol.agent_info import AgentReplyError, AgentStatusReply
 from protocol.messages import (
     AgentStatus,
     ControlReply,
@@ -67,11 +86,18 @@ from protocol.messages import (
     decode_published,
 )
 from protocol.os_thread import NamedThread
+from protocol.safe_text import brief, safe_text, unsafe_character
 from protocol.session import CameraInfo, SessionWriteError, SessionWriter
+from protocol.session_privacy import make_private_dir
 
 log = logging.getLogger(__name__)
 
-CASE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+CASE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # with fullmatch: no trailing \n
+MAX_META_KEYS = 64
+MAX_META_KEY_CHARS = 64
+MAX_META_VALUE_CHARS = 4096
+MAX_UNLISTED_CAMERAS = 64  # the camera table's bound when rig.toml lists no cameras
+STALL_LIMIT_S = 20.0  # the I/O loop without progress for this long: exit, systemd restarts
 LIVE_WINDOW_S = 2.0
 DISK_CHECK_S = 0.25
 DISK_HEADROOM_S = 3.0  # seconds of recording kept free above the reserve
@@ -82,7 +108,7 @@ STOP_COUNT_S = 1.0  # then count (without writing) what is still queued, for at 
 STOP_IDLE_S = 0.25  # a stop stops waiting for frames after this long without a message
 
 
-class StartRefused(Exception):
+class StartRefused(Refused):
     """A start that cannot go ahead; the message says why and what to do."""
 
 
@@ -99,6 +125,7 @@ class CameraLive:
     ptp_offset_ns: int = 0
     ptp_locked: bool = False
     frames_rx: int = 0
+    frames_refused_clock: int = 0  # stamped further than max_clock_skew_s from our clock
 
     def fps(self) -> float:
         s = list(self.stamps)
@@ -117,14 +144,24 @@ class CameraLive:
 
 
 class Recorder:
+    _resume: TakeResume | None = None  # a take a killed recorder left unfinished (take_journal)
+
     def __init__(self, config: RigConfig) -> None:
         self.config = config
-        self.ctx: zmq.Context = zmq.Context.instance()
+        self.ctx: zmq.Context = zmq.Context()  # its own: one ZAP authenticator per context
         self.cameras: dict[int, CameraLive] = {}
         self.agent_status: dict[str, tuple[AgentStatus, float]] = {}
         self.recording: Recording | None = None
         self.malformed = 0
         self.unknown_version = 0
+        self.frames_refused_sender = 0  # frames naming a node or camera not of their agent's key
+        self.status_refused_sender = 0
+        self.guard: LinkGuard | None = None
+        self.subs: dict[zmq.Socket, AgentEndpoint] = {}
+        self._server_keys: dict[str, bytes] = {}  # agent endpoint -> the agent's public key
+        self.frames_refused_unknown_camera = 0  # serials not in rig.toml (or over the cap)
+        self.progress = Progress("io")  # the I/O loop's heartbeat, for status and systemd
+        self.control = ControlServer(f"recorder {config.rig_name}", self._handle)
         self.stopped = threading.Event()
         self.last_stop_summary: dict[str, Any] | None = None
         self._thread: threading.Thread | None = None
@@ -133,6 +170,7 @@ class Recorder:
 
     # -- lifecycle ------------------------------------------------------------------------------
     def start(self) -> None:
+        self._resume_on_start()  # owner-only session folder; a take to resume (take_journal)
         self.open_sockets()
         self._thread = NamedThread(target=self._loop, name="recorder-io", daemon=True)
         self._thread.start()
@@ -145,17 +183,57 @@ class Recorder:
         )
 
     def open_sockets(self) -> None:
-        """The SUB and REP sockets (``start`` calls it; tests drive the I/O by hand)."""
+        """One SUB socket per agent and the control REP (``start`` calls it; tests drive the
+        I/O by hand). Every link is CURVE unless rig.toml says ``insecure = true``."""
         Path(self.config.output_dir).mkdir(parents=True, exist_ok=True)
-        self.sub = self.ctx.socket(zmq.SUB)
-        self.sub.setsockopt(zmq.LINGER, 0)
-        self.sub.setsockopt(zmq.RCVHWM, receive_hwm(self.config))
-        self.sub.setsockopt(zmq.SUBSCRIBE, b"")
+        self.links: LinkSecurity = self.config.security.links()
+        self.guard = LinkGuard(self.ctx, self.links, f"recorder {self.config.rig_name}")
         for a in self.config.agents:
-            self.sub.connect(a.frames)
+            if not self.links.insecure:
+                key = load_public_key(a.public_key, f"public key file of agent {a.node_id}")
+                self._server_keys[a.frames] = self._server_keys[a.control] = key
+            sub = self.ctx.socket(zmq.SUB)
+            harden(sub, frame_part_max_bytes(self.config.max_image_bytes))
+            sub.setsockopt(zmq.RCVHWM, receive_hwm(self.config, a))
+            sub.setsockopt(zmq.SUBSCRIBE, b"")
+            make_client(sub, self.links, self._server_keys.get(a.frames))
+            sub.connect(a.frames)
+            self.subs[sub] = a
         self.rep = self.ctx.socket(zmq.REP)
-        self.rep.setsockopt(zmq.LINGER, 0)
+        harden(self.rep, CONTROL_MAX_BYTES)
+        self.guard.make_server(self.rep, "recorder.control")
         self.rep.bind(self.config.control_bind)
+
+    def close_sockets(self) -> None:
+        for sub in self.subs:
+            sub.close(linger=0)
+        self.rep.close(linger=0)
+        if self.guard is not None:
+            self.guard.close()
+
+    def receive_published(self, timeout_ms: int, max_messages: int = 256) -> int:
+        """Wait up to ``timeout_ms`` for messages from any agent, then handle up to
+        ``max_messages`` of each agent's; returns how many were handled."""
+        poller = zmq.Poller()
+        for sub in self.subs:
+            poller.register(sub, zmq.POLLIN)
+        ready = [s for s, _ in poller.poll(timeout_ms)]
+        return self._receive(ready, max_messages)
+
+    def _receive(self, ready: list, max_messages: int = 256) -> int:
+        """Drain the ready SUB sockets, at most ``max_messages`` each, so that control and
+        flushing come back regularly."""
+        n = 0
+        for sub in ready:
+            agent = self.subs[sub]
+            for _ in range(max_messages):
+                try:
+                    parts = sub.recv_multipart(zmq.NOBLOCK, copy=False)
+                except zmq.Again:
+                    break
+                n += 1
+                self._on_published(parts, agent)
+        return n
 
     def stop(self) -> None:
         self.stopped.set()
@@ -165,29 +243,24 @@ class Recorder:
     # -- the I/O loop ---------------------------------------------------------------------------
     def _loop(self) -> None:
         poller = zmq.Poller()
-        poller.register(self.sub, zmq.POLLIN)
+        for sub in self.subs:
+            poller.register(sub, zmq.POLLIN)
         poller.register(self.rep, zmq.POLLIN)
         try:
             while not self.stopped.is_set():
                 events = dict(poller.poll(20))
-                if self.sub in events:
-                    # drain what is queued, but come back to control and flushing regularly
-                    for _ in range(256):
-                        try:
-                            parts = self.sub.recv_multipart(zmq.NOBLOCK, copy=False)
-                        except zmq.Again:
-                            break
-                        self._on_published(parts)
+                self._receive([s for s in self.subs if s in events])
+                self.progress.beat("io")
                 if self.rep in events:
-                    self._on_control(self.rep.recv())
+                    self.control.serve(self.rep)  # one reply per request, whatever it holds
                 self._periodic()
         finally:
             if self.recording is not None:
                 self._stop_recording("the recorder was shut down")
-            self.sub.close(linger=0)
-            self.rep.close(linger=0)
+            self.close_sockets()
 
-    def _on_published(self, parts: list) -> None:
+    def _on_published(self, parts: list, agent: AgentEndpoint) -> None:
+        """A message from ``agent``'s SUB socket (so, over CURVE, from that agent's key)."""
         rx_ns = time.time_ns()
         try:
             msg = decode_published(parts)
@@ -201,16 +274,71 @@ class Recorder:
             if self.malformed <= 5 or self.malformed % 1000 == 0:
                 log.warning("rejected malformed message #%d: %s", self.malformed, exc)
             return
+        if self._wrong_sender(msg, agent):
+            return
         if isinstance(msg, AgentStatus):
             self.agent_status[msg.node_id] = (msg, time.monotonic())
             return
         self._on_frame(msg, rx_ns)
 
+    def _wrong_sender(self, msg: FrameMessage | AgentStatus, agent: AgentEndpoint) -> bool:
+        """True (counted, logged) for a message that names another node than the agent whose
+        key sent it, or a camera that rig.toml does not list under that agent: a rogue or
+        misconfigured key cannot speak for another node's cameras."""
+        if isinstance(msg, AgentStatus):
+            if msg.node_id == agent.node_id:
+                return False
+            self.status_refused_sender += 1
+            n, what = self.status_refused_sender, "status"
+        else:
+            if msg.node_id == agent.node_id and (
+                not agent.cameras or msg.camera_serial in agent.cameras
+            ):
+                return False
+            self.frames_refused_sender += 1
+            n, what = self.frames_refused_sender, f"frame of camera {msg.camera_serial}"
+        if n <= 5 or n % 1000 == 0:
+            log.warning(
+                "refused %s #%d naming node %r from the link of agent %s (cameras %s)",
+                what,
+                n,
+                msg.node_id,
+                agent.node_id,
+                list(agent.cameras),
+            )
+        return True
+
+    def link_counts(self) -> dict[str, Any]:
+        """What the links refused, for ``status``."""
+        return {
+            "auth_refused": self.guard.refused if self.guard is not None else {},
+            "frames_refused_sender": self.frames_refused_sender,
+            "status_refused_sender": self.status_refused_sender,
+            "insecure": self.config.security.insecure,
+        }
+
     def _on_frame(self, msg: FrameMessage, rx_ns: int) -> None:
-        cam = self.cameras.get(msg.camera_serial)
+        cam = self._camera_for(msg)
         if cam is None:
-            cam = self.cameras[msg.camera_serial] = CameraLive(msg.camera_serial, msg.node_id)
-            log.info("camera %d streaming from %s", msg.camera_serial, msg.node_id)
+            return
+        skew_ns = msg.capture_unix_ns - rx_ns
+        if abs(skew_ns) > self.config.max_clock_skew_s * 1e9:
+            # A clock step or a broken or hostile sender: such a stamp would corrupt the
+            # rates and the sets (hours of empty windows), so it is refused and counted.
+            cam.frames_refused_clock += 1
+            n = cam.frames_refused_clock
+            if n <= 5 or n % 1000 == 0:
+                log.warning(
+                    "camera %d: refused frame #%d stamped %.1f s %s the recorder's clock "
+                    "(max_clock_skew_s = %g); check PTP on %s",
+                    msg.camera_serial,
+                    n,
+                    abs(skew_ns) / 1e9,
+                    "ahead of" if skew_ns > 0 else "behind",
+                    self.config.max_clock_skew_s,
+                    cam.node_id,
+                )
+            return
         now = time.monotonic()
         cam.node_id = msg.node_id
         cam.stamps.append(msg.capture_unix_ns)
@@ -220,11 +348,56 @@ class Recorder:
         cam.ptp_offset_ns = msg.ptp_offset_ns
         cam.ptp_locked = msg.ptp_locked
         cam.frames_rx += 1
-        cam.last_message = msg  # type: ignore[attr-defined]  # preview for the console
+        # No message is kept: each pins its images (up to 128 MiB); the console's preview
+        # subscribes to the agent itself (rig_client.last_frame).
         if self.recording is not None:
             self.recording.write_frame(msg, rx_ns)
 
+    def _camera_for(self, msg: FrameMessage) -> CameraLive | None:
+        """The camera's entry; a new one only for a serial that rig.toml lists (or, when it
+        lists none, while the table is under MAX_UNLISTED_CAMERAS). Others are counted."""
+        owner = next(
+            (a.node_id for a in self.config.agents if msg.camera_serial in a.cameras), None
+        )
+        if owner is not None and owner != msg.node_id:
+            # a listed camera speaks only through its own agent (whose link checked node_id)
+            self.frames_refused_sender += 1
+            n = self.frames_refused_sender
+            if n <= 5 or n % 1000 == 0:
+                log.warning(
+                    "refused frame #%d of camera %d from node %s: rig.toml lists it under %s",
+                    n,
+                    msg.camera_serial,
+                    safe_text(msg.node_id),
+                    owner,
+                )
+            return None
+        cam = self.cameras.get(msg.camera_serial)
+        if cam is not None:
+            return cam
+        listed = self.config.expected_cameras
+        if (listed and msg.camera_serial not in listed) or (
+            not listed and len(self.cameras) >= MAX_UNLISTED_CAMERAS
+        ):
+            self.frames_refused_unknown_camera += 1
+            n = self.frames_refused_unknown_camera
+            if n <= 5 or n % 1000 == 0:
+                log.warning(
+                    "refused frame #%d of camera %d from %s: %s",
+                    n,
+                    msg.camera_serial,
+                    msg.node_id,
+                    "not a camera of rig.toml"
+                    if listed
+                    else f"rig.toml lists no cameras and {MAX_UNLISTED_CAMERAS} already stream",
+                )
+            return None
+        cam = self.cameras[msg.camera_serial] = CameraLive(msg.camera_serial, msg.node_id)
+        log.info("camera %d streaming from %s", msg.camera_serial, msg.node_id)
+        return cam
+
     def _periodic(self) -> None:
+        self._resume_take_if_due()  # a take a killed recorder left (take_journal); never waits
         now = time.monotonic()
         rec = self.recording
         if rec is not None:
@@ -263,24 +436,6 @@ class Recorder:
                 )
 
     # -- control --------------------------------------------------------------------------------
-    def _on_control(self, raw: bytes) -> None:
-        try:
-            req = ControlRequest.from_bytes(raw)
-        except MalformedMessageError as exc:
-            self.rep.send(ControlReply(ok=False, error=str(exc), request_id="").to_bytes())
-            return
-        try:
-            result = self._handle(req)
-            reply = ControlReply(ok=True, result=result, request_id=req.request_id)
-        except StartRefused as exc:
-            reply = ControlReply(ok=False, error=str(exc), request_id=req.request_id)
-        except Exception as exc:  # a bug must not take the recorder down mid-case
-            log.exception("control %s failed", req.verb)
-            reply = ControlReply(
-                ok=False, error=f"internal error: {exc}", request_id=req.request_id
-            )
-        self.rep.send(reply.to_bytes())
-
     def _handle(self, req: ControlRequest) -> dict[str, Any]:
         if req.verb == "heartbeat":
             return {"rig_name": self.config.rig_name, "unix_ns": time.time_ns()}
@@ -292,7 +447,7 @@ class Recorder:
             if self.recording is None:
                 raise StartRefused("not recording; nothing to stop")
             return self._stop_recording("stopped by request")
-        raise StartRefused(f"unknown verb {req.verb!r}")
+        raise Refused(f"the recorder does not know the verb {brief(req.verb)}")
 
     def _free_bytes(self) -> int:
         target = Path(self.config.output_dir)
@@ -304,22 +459,60 @@ class Recorder:
     def _reserve_bytes(self) -> float:
         return self.config.disk_reserve_gb * 1e9
 
+    def _start_args(self, args: dict[str, Any]) -> tuple[str, dict[str, str], float]:
+        """A start's case name, metadata and planned minutes, checked: they become a file
+        name and a medical record's text, and are printed on operators' terminals."""
+        case = args.get("case")
+        if not isinstance(case, str) or not CASE_NAME.fullmatch(case):
+            raise StartRefused(
+                f"case name {brief(case)} is not usable as a file name; use 1 to 64 letters, "
+                "digits, - _ . starting with a letter or digit"
+            )
+        meta = args.get("meta", {})
+        if not isinstance(meta, dict):
+            raise StartRefused("case metadata must be key=value text pairs")
+        if len(meta) > MAX_META_KEYS:
+            raise StartRefused(
+                f"case metadata has {len(meta)} keys; at most {MAX_META_KEYS} are kept per case"
+            )
+        for key, value in meta.items():
+            if not isinstance(value, str):
+                raise StartRefused(
+                    f"case metadata {brief(key)} is {type(value).__name__}; metadata must be "
+                    "key=value text pairs"
+                )
+            if not 1 <= len(key) <= MAX_META_KEY_CHARS or len(value) > MAX_META_VALUE_CHARS:
+                raise StartRefused(
+                    f"case metadata {brief(key)} ({len(key)}-character key, {len(value)}-"
+                    f"character value) is too long: keys 1 to {MAX_META_KEY_CHARS} characters, "
+                    f"values at most {MAX_META_VALUE_CHARS}"
+                )
+            bad = unsafe_character(key) or unsafe_character(value)
+            if bad is not None:
+                raise StartRefused(
+                    f"case metadata {brief(key)} holds the control character {bad}; metadata "
+                    "is plain text on one line: no terminal escapes, bidi controls or line breaks"
+                )
+        planned = args.get("planned_duration_min", self.config.planned_duration_min)
+        if (
+            isinstance(planned, bool)
+            or not isinstance(planned, int | float)
+            or not math.isfinite(planned)
+            or planned <= 0
+        ):
+            raise StartRefused(
+                f"planned_duration_min = {brief(planned)}: give the planned length of the case "
+                "in minutes, a number > 0 (the disk check needs it)"
+            )
+        return case, meta, float(planned)
+
     def _start_recording(self, args: dict[str, Any]) -> dict[str, Any]:
+        case, meta, planned_min = self._start_args(args)  # first: a bad start says what is bad
         if self.recording is not None:
             raise StartRefused(
                 f"already recording case '{self.recording.case}' to "
                 f"{self.recording.writer.path}; stop it first (egosurg record stop)"
             )
-        case = str(args.get("case", ""))
-        if not CASE_NAME.match(case):
-            raise StartRefused(
-                f"case name {case!r} is not usable as a file name; use letters, digits, - _ . "
-                "(up to 64 characters)"
-            )
-        meta = args.get("meta", {})
-        if not isinstance(meta, dict) or not all(isinstance(v, str) for v in meta.values()):
-            raise StartRefused("case metadata must be key=value text pairs")
-        planned_min = float(args.get("planned_duration_min", self.config.planned_duration_min))
         expected = self.config.expected_cameras or tuple(sorted(self.cameras))
         if not expected:
             raise StartRefused(
@@ -378,8 +571,11 @@ class Recorder:
         while path.exists():
             n += 1
             path = path.with_name(f"{case}_{stamp}_{n}.h5")
+        previous, part = self._resume.link(case) if self._resume else ("", 1)  # a resumed take
         writer = SessionWriter(
             path,
+            previous_session_file=previous,
+            take_part=part,
             session_name=case,
             case_metadata={str(k): v for k, v in meta.items()},
             cameras=infos,
@@ -405,6 +601,7 @@ class Recorder:
             last_flush=time.monotonic(),
         )
         log.info("recording case %s to %s (%d cameras)", case, path, len(expected))
+        self._take_started(case, meta, planned_min, path, previous, part)
         return {
             "case": case,
             "file": str(path),
@@ -413,30 +610,31 @@ class Recorder:
         }
 
     def _camera_infos(self, serials: tuple[int, ...]) -> list[CameraInfo]:
-        """Ask each agent for its cameras' modes and factory files (stored in the session)."""
+        """Ask each agent for its cameras' modes and factory files (stored in the session).
+
+        The reply is checked field by field (``protocol/agent_info.py``): an agent that does
+        not answer, answers ``ok: false`` or breaks the contract is refused with that reason.
+        """
         infos: dict[int, CameraInfo] = {}
         for a in self.config.agents:
-            reply = self.request_agent(a.control, "status")
+            needed = bool(a.cameras) or any(
+                self.cameras.get(s) is not None and self.cameras[s].node_id == a.node_id
+                for s in serials
+            )
+            reply = self._agent_status_reply(a.node_id, a.control, needed)
             if reply is None:
-                if any(
-                    self.cameras.get(s) and self.cameras[s].node_id == a.node_id for s in serials
-                ):
-                    raise StartRefused(
-                        f"agent {a.node_id} does not answer on {a.control}; is it running?"
-                    )
                 continue
-            for ci in reply.get("cameras_info", []):
-                s = int(ci["camera_serial"])
-                infos[s] = CameraInfo(
-                    camera_serial=s,
-                    node_id=a.node_id,
-                    resolution=str(ci["resolution"]),
-                    width=int(ci["width"]),
-                    height=int(ci["height"]),
-                    fps_nominal=float(ci["fps"]),
-                    encoding=str(ci["encoding"]),
-                    factory_conf_text=str(ci.get("factory_conf", "")),
-                )
+            for s in a.cameras:
+                if reply.camera(s) is None:
+                    raise StartRefused(
+                        f"agent {a.node_id}'s status reply has no cameras_info entry for camera "
+                        f"{s}, which rig.toml lists under it; check the serials in rig.toml "
+                        f"(see {CONTRACT_DOC})"
+                    )
+            for ci in reply.cameras_info:
+                owner = self._camera_owner(ci.camera_serial)
+                if ci.camera_serial in serials and owner in (None, a.node_id):
+                    infos[ci.camera_serial] = ci.to_session(a.node_id)
         missing = [s for s in serials if s not in infos]
         if missing:
             raise StartRefused(
@@ -444,20 +642,63 @@ class Recorder:
             )
         return [infos[s] for s in serials]
 
-    def request_agent(self, endpoint: str, verb: str, timeout_ms: int = 1500) -> dict | None:
+    def _camera_owner(self, serial: int) -> str | None:
+        """The node a camera belongs to: rig.toml's listing, else the node its frames name."""
+        for a in self.config.agents:
+            if serial in a.cameras:
+                return a.node_id
+        cam = self.cameras.get(serial)
+        return cam.node_id if cam is not None else None
+
+    def _agent_status_reply(
+        self, node_id: str, endpoint: str, needed: bool
+    ) -> AgentStatusReply | None:
+        """An agent's checked ``status`` reply; None for an agent whose cameras the take does
+        not need and that cannot give one (logged); a refusal naming the problem otherwise."""
+        try:
+            reply = self.request_agent(endpoint, "status")
+            if reply is None:
+                problem = (
+                    f"agent {node_id} does not answer on {endpoint}; is it running "
+                    "(systemctl status egosurg-agent on that node)?"
+                    + (
+                        ""
+                        if self.config.security.insecure
+                        else " If it runs, check that its public_key in rig.toml is current and "
+                        "that its allowed_keys list the recorder's key"
+                    )
+                )
+            elif not reply.ok:
+                problem = f"agent {node_id} refused 'status': {(reply.error or '')[:300]}"
+            else:
+                return AgentStatusReply.from_json(reply.result, node_id=node_id)
+        except AgentReplyError as exc:
+            problem = f"agent {node_id}'s status reply {exc}; see {CONTRACT_DOC}"
+        if needed:
+            raise StartRefused(problem)
+        log.warning("%s (none of its cameras is recorded)", problem)
+        return None
+
+    def request_agent(
+        self, endpoint: str, verb: str, timeout_ms: int = 1500
+    ) -> ControlReply | None:
+        """One request to an agent: its reply (``ok`` or not), or None when none came in time.
+        A reply that is not a valid EgoSurg reply to this request raises ``AgentReplyError``."""
         sock = self.ctx.socket(zmq.REQ)
-        sock.setsockopt(zmq.LINGER, 0)
+        harden(sock, CONTROL_MAX_BYTES)
         sock.setsockopt(zmq.RCVTIMEO, timeout_ms)
         sock.setsockopt(zmq.SNDTIMEO, timeout_ms)
+        request = ControlRequest(verb=verb)
         try:
+            make_client(sock, self.links, self._server_keys.get(endpoint))
             sock.connect(endpoint)
-            sock.send(ControlRequest(verb=verb).to_bytes())
-            reply = ControlReply.from_bytes(sock.recv())
-            return reply.result if reply.ok else None
-        except (zmq.Again, MalformedMessageError):
+            sock.send(request.to_bytes())
+            raw = sock.recv()
+        except zmq.Again:
             return None
         finally:
             sock.close(linger=0)
+        return checked_reply(raw, request)
 
     def _drain_to_stop(self, rec: Recording, write: bool) -> None:
         """Receive the take's frames still queued (captured before the stop): written while
@@ -476,14 +717,8 @@ class Recorder:
                     rec.flush()  # a crash while draining loses no more than at any other time
                 except SessionWriteError:
                     pass  # counted and reported by the recording
-            if not self.sub.poll(int(STOP_IDLE_S * 1000)):
+            if not self.receive_published(int(STOP_IDLE_S * 1000)):
                 break
-            for _ in range(256):
-                try:
-                    parts = self.sub.recv_multipart(zmq.NOBLOCK, copy=False)
-                except zmq.Again:
-                    break
-                self._on_published(parts)
         unwritten = sum(rec.not_written_at_stop.values())
         log.log(
             logging.WARNING if unwritten else logging.INFO,
@@ -508,8 +743,64 @@ class Recorder:
         )
         self.recording = None
         self.last_stop_summary = summary
+        self._take_stopped()
         log.info("stopped case %s: %s", rec.case, reason)
         return summary
+
+    # -- a take resumed after a kill (capture_agent/take_journal.py) ----------------------------
+    def _resume_on_start(self) -> None:
+        make_private_dir(self.config.output_dir)  # sessions are medical records: 0700
+        self._resume = TakeResume.load(self.config.output_dir)
+
+    def _resume_take_if_due(self) -> None:
+        """Start the journal's take again once every expected camera streams (I/O thread)."""
+        resume = self._resume
+        if resume is None or self.recording is not None or not resume.due():
+            return
+        expected = self.config.expected_cameras or tuple(sorted(self.cameras))
+        streaming = [s in self.cameras and self.cameras[s].streaming() for s in expected]
+        if not expected or not all(streaming):
+            return
+        try:
+            self._start_recording(resume.start_args())
+        except (Refused, SessionWriteError) as exc:
+            resume.state = f"waiting: the start was refused: {exc}"
+            log.warning("case %s not resumed yet (retrying): %s", resume.journal.case, exc)
+        except Exception as exc:  # a bug must not take the I/O loop down
+            resume.state = f"waiting: the start failed: {exc}"
+            log.exception("case %s not resumed yet (retrying)", resume.journal.case)
+
+    def _take_started(
+        self, case: str, meta: dict, planned_min: float, path: Path, previous: str, part: int
+    ) -> None:
+        if self._resume is not None:
+            self._resume.started(case, path.name)
+        if previous:
+            log.warning(
+                "case %s resumed after the recorder was killed: part %d in %s continues %s",
+                case,
+                part,
+                path,
+                previous,
+            )
+        journal = TakeJournal(
+            case=case,
+            meta={str(k): str(v) for k, v in meta.items()},
+            planned_duration_min=planned_min,
+            file=path.name,
+            take_part=part,
+            written_unix_ns=time.time_ns(),
+        )
+        try:
+            journal.write(self.config.output_dir)
+        except OSError as exc:  # the take records; only a resume after a kill is lost
+            log.error("cannot write the take journal in %s: %s", self.config.output_dir, exc)
+
+    def _take_stopped(self) -> None:
+        try:
+            remove_take_journal(self.config.output_dir)
+        except OSError as exc:
+            log.error("cannot remove the take journal in %s: %s", self.config.output_dir, exc)
 
     def status(self) -> dict[str, Any]:
         rec = self.recording
@@ -533,6 +824,7 @@ class Recorder:
                     "ptp_locked": cam.ptp_locked if cam else False,
                     "dropped_in_recording": totals[s].frames_dropped_camera if s in totals else 0,
                     "dropped_at_agent": agent_drops,
+                    "frames_refused_clock": cam.frames_refused_clock if cam else 0,
                 }
             )
         agents = []
@@ -543,6 +835,7 @@ class Recorder:
                     "node_id": a.node_id,
                     "frames": a.frames,
                     "control": a.control,
+                    "public_key": self._server_keys.get(a.frames, b"").decode(),
                     "alive": bool(st and time.monotonic() - st[1] < self.config.agent_timeout_s),
                     "ptp_state": st[0].ptp.state if st else None,
                     "ptp_offset_ns": st[0].ptp.master_offset_ns if st else None,
@@ -557,6 +850,15 @@ class Recorder:
             "agents": agents,
             "malformed_messages": self.malformed,
             "unknown_version_messages": self.unknown_version,
+            "links": self.link_counts(),
+            # what the recorder refused and how its loop and control socket fare: counts, never
+            # lists of what a sender made up, so the reply stays small whatever arrives
+            "frames_refused_unknown_camera": self.frames_refused_unknown_camera,
+            "frames_refused_clock": sum(c.frames_refused_clock for c in self.cameras.values()),
+            "max_clock_skew_s": self.config.max_clock_skew_s,
+            "control": self.control.counts(),
+            "progress_age_s": self.progress.ages_s(),
+            "stall_limit_s": STALL_LIMIT_S,
         }
         if rec is not None:
             out.update(
@@ -569,20 +871,70 @@ class Recorder:
                     "bytes": rec.writer.bytes_written,
                     "capture_to_durable_ms": rec.latency_ms(),
                     "write_failing_s": round(rec.write_failing_s(), 1),
-                    "write_error": rec.write_error if rec.write_failing_since else "",
+                    "write_error": safe_text(rec.write_error, 500)
+                    if rec.write_failing_since
+                    else "",
                     "frames_not_written_write_failed": sum(rec.not_written_write_failed.values()),
                 }
             )
         if self.last_stop_summary is not None:
             out["last_recording"] = self.last_stop_summary
+        if self._resume is not None:  # a take resumed (or to resume) after the recorder was killed
+            out["take_resume"] = self._resume.status()
         return out
 
+    def status_line(self) -> str:
+        """One line for systemd's ``STATUS=`` (read from another thread: plain reads only)."""
+        rec = self.recording
+        cams = list(self.cameras.values())
+        streaming = sum(1 for c in cams if c.streaming())
+        expected = len(self.config.expected_cameras) or len(cams)
+        if rec is not None:
+            return (
+                f"recording case {rec.case}: {rec.frames_written} frames written; "
+                f"{streaming} of {expected} cameras streaming"
+            )
+        return f"idle; {streaming} of {expected} cameras streaming"
 
-def receive_hwm(config: RigConfig) -> int:
-    """The SUB socket's high-water mark, in messages: RECEIVE_QUEUE_S of the busiest agent's
-    frames (ZeroMQ applies it to each agent's connection), plus its status messages."""
-    cameras = max((len(a.cameras) for a in config.agents), default=0) or 4
-    return max(100, math.ceil(RECEIVE_QUEUE_S * config.fps * cameras) + 10)
+
+CONTRACT_DOC = "docs/capture.md#the-status-reply"
+
+
+def checked_reply(raw: bytes, request: ControlRequest) -> ControlReply:
+    """An agent's answer to ``request``; ``AgentReplyError`` names what is wrong with it."""
+    try:
+        reply = ControlReply.from_bytes(raw)
+    except MalformedMessageError as exc:
+        raise AgentReplyError("reply", f"is not a valid EgoSurg reply ({exc})") from None
+    if reply.request_id != request.request_id:
+        raise AgentReplyError(
+            "request_id",
+            f"answers request_id {reply.request_id[:40]!r}, not the request's "
+            f"{request.request_id!r}; a reply must echo its request's request_id",
+        )
+    return reply
+
+
+def receive_hwm(config: RigConfig, agent: AgentEndpoint) -> int:
+    """``agent``'s SUB socket's high-water mark, in messages, from a byte budget.
+
+    ZeroMQ bounds a queue in messages, so memory is bounded by counting every queued message at
+    the largest legal frame message (``frame_message_max_bytes``: header and two images of
+    ``max_image_bytes``, raw BGR at HD1200 unless rig.toml says less):
+
+        hwm = min(receive_buffer_mb / agents / largest message,
+                  RECEIVE_QUEUE_S * fps * the agent's cameras + 10 status messages)
+
+    e.g. 1024 MB over 2 agents at 13.8 MB (raw HD1200) -> 37 messages (0.6 s of two cameras at
+    30 fps); with ``max_image_bytes = 2000000`` (JPEG) 127 (2 s would take 130). The config
+    refuses a budget under MIN_RECEIVE_MESSAGES per agent. A full queue leaves the backlog in
+    the agent's send queue (the agent's memory), then the agent's PUB drops and ``seq`` counts
+    the loss."""
+    largest = frame_message_max_bytes(config.max_image_bytes)
+    by_budget = int(config.receive_buffer_mb * 1e6 / max(len(config.agents), 1) // largest)
+    cameras = len(agent.cameras) or 4  # an agent listed without cameras: a node's usual most
+    by_time = math.ceil(RECEIVE_QUEUE_S * config.fps * cameras) + 10
+    return max(1, min(by_budget, by_time))
 
 
 def main(argv: list[str]) -> int:
@@ -600,5 +952,8 @@ def main(argv: list[str]) -> int:
         recorder.stop,
         f"egosurg recorder {config.rig_name}: {len(config.agents)} agent(s); control on "
         f"{config.control_bind}; sessions in {config.output_dir}",
+        progress=recorder.progress.ages_s,
+        stall_limit_s=STALL_LIMIT_S,
+        status_line=recorder.status_line,
         healthy=lambda: recorder._thread is not None and recorder._thread.is_alive(),
     )

@@ -32,6 +32,7 @@ from capture_agent.accounting import StreamAccounting
 from capture_agent.sync import SyncedSet, Synchroniser
 from protocol.messages import FrameMessage
 from protocol.session import SessionWriteError, SessionWriter
+from protocol.set_counts import missing_in_sets
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +63,8 @@ class Recording:
     # frames the session writer refused while its writes failed, and since when they fail
     not_written_write_failed: collections.Counter[int] = field(default_factory=collections.Counter)
     write_failing_since: float | None = None
+    # per camera, the written sets without a frame of it (the stop summary's missing_in_sets)
+    missing_in_sets: collections.Counter[int] = field(default_factory=collections.Counter)
     write_error: str = ""
     # capture stamps of frames written since the last flush, and capture-to-durable latencies
     unflushed_capture_ns: list[int] = field(default_factory=list)
@@ -168,6 +171,8 @@ class Recording:
                 self.take_started = True
             self.writer.append_set(s.set_unix_ns, s.member_rows(), s.spread_ns)
             self.sets_written += 1
+            # counted as the file's readers count it (protocol/set_counts.py), sets written only
+            self.missing_in_sets.update(missing_in_sets([s.member_rows()], self.serials))
 
     # -- the stop ----------------------------------------------------------------------------
     def begin_stop(self, stop_unix_ns: int, *, write: bool) -> None:
@@ -198,7 +203,7 @@ class Recording:
                 "transport_lost": t.transport_lost if t else 0,
                 "time_gaps": t.time_gaps if t else 0,
                 "reconnects": t.reconnects if t else 0,
-                "missing_in_sets": int(self.sync.missing_markers.get(s, 0)),
+                "missing_in_sets": int(self.missing_in_sets[s]),
                 "unassigned": int(self.sync.unassigned_frames.get(s, 0)),
                 "not_written_at_stop": int(self.not_written_at_stop[s]),
                 "not_written_write_failed": int(self.not_written_write_failed[s]),

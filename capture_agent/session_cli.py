@@ -5,6 +5,12 @@ Examples::
     egosurg session info sessions/case-0042_20261121-101500.h5
     egosurg session verify sessions/case-0042_20261121-101500.h5
     egosurg session export-frames sessions/case-0042_20261121-101500.h5 --out frames/ --sets 0:30
+    egosurg session recover damaged.h5 --out recovered.h5
+
+A file that cannot be read (truncated, damaged metadata, not a session) gives one line and exit
+code 2; ``verify`` exits 1 when it finds damage inside a readable file (an image whose checksum
+no longer matches, ...). ``recover`` copies every intact frame and synchronised set of a damaged
+or killed recording into a new session and says what was kept and lost.
 
 ``export-frames`` exports by synchronised set, so the files of one set index show one instant
 from every camera: ``<out>/set_000012/SN<serial>_left.png``. With ``--by-camera`` it exports
@@ -15,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from pathlib import Path
 
 import cv2
@@ -22,11 +29,23 @@ import numpy as np
 
 from protocol.errors import UserError
 from protocol.images import decode_image
-from protocol.session import GapKind, SessionReader
+from protocol.session import GapKind, SessionFormatError, SessionReader
+from protocol.session_recover import recover_session
+from protocol.set_counts import missing_in_sets
 
 
 class SessionArgumentError(UserError, ValueError):
     pass
+
+
+# What reading a damaged file may still raise past the reader's own checks (h5py, numpy, cv2).
+_READ_ERRORS = (OSError, RuntimeError, KeyError, ValueError, TypeError, IndexError, MemoryError)
+_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f\u200e\u200f\u202a-\u202e\u2066-\u2069]")
+
+
+def _safe(text: object) -> str:
+    """Text from a file, with terminal controls (ANSI, bidi) shown as escapes, not obeyed."""
+    return _CONTROL.sub(lambda m: ascii(m.group(0))[1:-1], str(text))
 
 
 def _slice(text: str | None, n: int) -> range:
@@ -46,13 +65,13 @@ def _slice(text: str | None, n: int) -> range:
 def summarise(reader: SessionReader) -> dict:
     info = reader.info
     sets = reader.sets()
+    missing = missing_in_sets(sets.members, info.camera_serials)  # as the stop summary counts
     cams = []
     for serial in info.camera_serials:
         table = reader.frame_table(serial)
         stamps = table["capture_unix_ns"]
         fps = (len(stamps) - 1) / ((stamps[-1] - stamps[0]) / 1e9) if len(stamps) > 1 else 0.0
         ci = info.camera(serial)
-        col = list(info.camera_serials).index(serial)
         cams.append(
             {
                 "serial": serial,
@@ -61,9 +80,7 @@ def summarise(reader: SessionReader) -> dict:
                 "encoding": ci.encoding,
                 "frames": len(stamps),
                 "fps_measured": round(float(fps), 2),
-                "missing_in_sets": int((sets.members[:, col] < 0).sum())
-                if len(sets.members)
-                else 0,
+                "missing_in_sets": missing[serial],
             }
         )
     gaps: dict[str, dict[str, int]] = {}
@@ -94,6 +111,9 @@ def summarise(reader: SessionReader) -> dict:
         "session": info.session_name,
         "metadata": info.case_metadata,
         "closed_cleanly": info.closed_cleanly,
+        "format_version": info.format_version,
+        "take_part": info.take_part,
+        "previous_session_file": info.previous_session_file,
         "duration_s": round((last - first) / 1e9, 3) if last > first else 0.0,
         "sets": len(sets.set_unix_ns),
         "complete_sets": complete,
@@ -112,7 +132,7 @@ def format_info(s: dict) -> str:
     state = "closed cleanly" if s["closed_cleanly"] else "NOT CLOSED CLEANLY (recorder killed?)"
     lines = [
         f"{s['file']}",
-        f"session {s['session']}  {state}",
+        f"session {_safe(s['session'])}  {state}  (format version {s['format_version']})",
         f"duration {s['duration_s']:.2f} s; {s['sets']} synchronised sets, "
         f"{s['complete_sets']} complete",
     ]
@@ -122,8 +142,15 @@ def format_info(s: dict) -> str:
             f"set spread: median {sp['median']:.2f} ms, p95 {sp['p95']:.2f} ms, max "
             f"{sp['max']:.2f} ms (each frame within +-{s['tolerance_ms']:.2f} ms of its set time)"
         )
+    if s["previous_session_file"]:
+        lines.append(
+            f"take part {s['take_part']}: continues {_safe(s['previous_session_file'])} (same "
+            "folder); the recorder was restarted during the take"
+        )
     if s["metadata"]:
-        lines.append("metadata: " + ", ".join(f"{k}={v}" for k, v in s["metadata"].items()))
+        lines.append(
+            "metadata: " + ", ".join(f"{_safe(k)}={_safe(v)}" for k, v in s["metadata"].items())
+        )
     lines.append(
         "camera       node      mode                       frames    fps  "
         "missing-in-sets  drops/gaps"
@@ -132,7 +159,7 @@ def format_info(s: dict) -> str:
         g = s["drops_and_gaps"].get(str(c["serial"]), {})
         gtext = ", ".join(f"{k} {v}" for k, v in sorted(g.items())) or "none"
         lines.append(
-            f"SN{c['serial']:<10} {c['node_id']:<9} {c['mode']:<26} {c['frames']:>6} "
+            f"SN{c['serial']:<10} {_safe(c['node_id']):<9} {c['mode']:<26} {c['frames']:>6} "
             f"{c['fps_measured']:>6.2f} {c['missing_in_sets']:>16}  {gtext}"
         )
     return "\n".join(lines)
@@ -204,6 +231,13 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_recover(args: argparse.Namespace) -> int:
+    report = recover_session(args.file, args.out)
+    for line in report.lines():
+        print(_safe(line))
+    return 0 if sum(report.frames_kept.values()) else 1
+
+
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(
         prog="egosurg session",
@@ -229,7 +263,21 @@ def main(argv: list[str]) -> int:
     p.add_argument("--frames", help="with --by-camera: row range, e.g. 0:100")
     p.add_argument("--every", type=int, default=1, help="take every Nth set or frame")
     p.set_defaults(func=cmd_export)
+    p = sub.add_parser(
+        "recover", help="copy every intact frame and set of a damaged file into a new session"
+    )
+    p.add_argument("file")
+    p.add_argument("--out", required=True, help="the new session file (must not exist)")
+    p.set_defaults(func=cmd_recover)
     args = parser.parse_args(argv)
     if getattr(args, "every", 1) < 1:
         raise SessionArgumentError("--every must be 1 or more")
-    return int(args.func(args))
+    try:
+        return int(args.func(args))
+    except (UserError, BrokenPipeError):
+        raise
+    except _READ_ERRORS as exc:  # a damaged file must give one line (exit 2), not a traceback
+        raise SessionFormatError(
+            f"{args.file}: cannot {args.command} it ({type(exc).__name__}: {exc}); the file may be "
+            "damaged: 'egosurg session recover' copies what is intact"
+        ) from None

@@ -32,7 +32,12 @@ rounding stays far below 1 ns over days of recording.
    of the window, so the membership is a fixed point that only real drift can change. The
    proportional step follows the common clock: a ppm error moves the cameras by under 1 us a
    frame, which the loop tracks with a lag of about ``drift / GAIN`` (tens of us). A window
-   without any member is not emitted (it says nothing) and ``t_{k+1} = t_k + P``.
+   without any member is not emitted (it says nothing) and ``t_{k+1} = t_k + P``. A run of empty
+   windows is jumped over in one step (``_skip_empty``): after a frame stamped hours away (a
+   clock step, a broken or hostile sender) the next window is the first one that can hold a
+   frame or is not complete yet, not hours of windows closed one by one. Times in a run of empty
+   windows are ``t_base + n * P`` from the last steered reference, so a run jumped in one step
+   or in several gives the same float, and the online result stays equal to the batch twin's.
 4. **Completion.** Window k is complete when at least one camera has delivered a frame with
    capture ``> t_k + H`` and every *live* camera has. Frames of one camera arrive in capture
    order, so nothing more can arrive for that window. A camera stops being live when ``poll(now)``
@@ -154,6 +159,23 @@ def _next_reference(t: float, lo_member: int, hi_member: int, period: float) -> 
     return t + period + GAIN * ((lo_member + hi_member) / 2.0 - t)
 
 
+def _skip_empty(base: float, n: int, bound: float | None, period: float) -> int:
+    """After the empty window ``base + n * period``: the ``n`` of the next window to look at,
+    the first after it whose end (reference + half a period) reaches ``bound``. Every window
+    skipped ends before ``bound`` (the earliest frame still pending, or the newest frame of
+    the live camera furthest behind), so each would have closed empty, one at a time."""
+    half = period / 2.0
+    m = n + 1
+    if bound is None or base + m * period + half >= bound:
+        return m
+    m = max(m, math.ceil((bound - half - base) / period))
+    while base + m * period + half < bound:
+        m += 1
+    while m > n + 1 and base + (m - 1) * period + half >= bound:
+        m -= 1
+    return m
+
+
 class _Camera:
     __slots__ = ("heard_ns", "newest_ns", "pending", "removed", "serial", "silent")
 
@@ -180,7 +202,9 @@ class Synchroniser:
         self._cams = [_Camera(s) for s in config.camera_serials]
         self._by_serial = {c.serial: c for c in self._cams}
         self._origin: int | None = None  # None until anchored
-        self._t = 0.0  # current window's reference, ns after the origin
+        self._t = 0.0  # current window's reference, ns after the origin: base + n * period
+        self._t_base = 0.0  # the last steered reference (or the anchor)
+        self._n_empty = 0  # empty windows since it
         self._closed_end = -math.inf  # end of the last closed window, ns after the origin
         self._first_heard_ns: int | None = None
         self._sets_emitted = 0
@@ -308,7 +332,8 @@ class Synchroniser:
             return False
         firsts = [c.pending[0][0] for c in with_frames]
         origin = min(firsts)
-        self._t = _anchor_offset([f - origin for f in firsts], self._period)
+        self._t = self._t_base = _anchor_offset([f - origin for f in firsts], self._period)
+        self._n_empty = 0
         self._origin = origin
         log.debug("anchored at %d ns from %d cameras", origin + round(self._t), len(firsts))
         return True
@@ -332,12 +357,12 @@ class Synchroniser:
                     break
             elif not self._complete():
                 break
-            s = self._close_window()
+            s = self._close_window(flush)
             if s is not None:
                 out.append(s)
         return out
 
-    def _close_window(self) -> SyncedSet | None:
+    def _close_window(self, flush: bool = False) -> SyncedSet | None:
         origin = self._origin
         assert origin is not None
         t = self._t
@@ -368,15 +393,35 @@ class Synchroniser:
             stamps.append(capture)
         present = [s for s in stamps if s is not None]
         if not present:
-            self._t = t + self._period
+            self._n_empty = _skip_empty(
+                self._t_base, self._n_empty, self._skip_bound(flush), self._period
+            )
+            self._t = self._t_base + self._n_empty * self._period
+            # the windows skipped are closed too: a frame for one of them is late (step 5)
+            last_skipped = self._t_base + (self._n_empty - 1) * self._period
+            self._closed_end = max(hi, last_skipped + self._half)
             return None
         a, b = min(present), max(present)
-        self._t = _next_reference(t, a - origin, b - origin, self._period)
+        self._t = self._t_base = _next_reference(t, a - origin, b - origin, self._period)
+        self._n_empty = 0
         self._sets_emitted += 1
         for cam, m in zip(self._cams, members, strict=True):
             if m is None:
                 self._missing[cam.serial] += 1
         return SyncedSet(origin + round(t), tuple(members), tuple(stamps), b - a)
+
+    def _skip_bound(self, flush: bool) -> float | None:
+        """How far empty windows may be skipped (offsets from the origin): up to the earliest
+        pending frame and, unless flushing, the newest frame of the live camera furthest
+        behind (a later window is not complete yet)."""
+        assert self._origin is not None
+        origin = self._origin
+        bounds = [c.pending[0][0] - origin for c in self._cams if c.pending]
+        if not flush:
+            bounds += [
+                c.newest_ns - origin for c in self._cams if c.live and c.newest_ns is not None
+            ]
+        return float(min(bounds)) if bounds else None
 
 
 def group_offline(stamps_by_camera: Mapping[int, np.ndarray], fps: float) -> list[SyncedSet]:
@@ -396,7 +441,8 @@ def group_offline(stamps_by_camera: Mapping[int, np.ndarray], fps: float) -> lis
     period = 1e9 / fps
     half = period / 2.0
     origin = min(firsts)
-    t = _anchor_offset([f - origin for f in firsts], period)
+    t = base = _anchor_offset([f - origin for f in firsts], period)
+    n_empty = 0
     offsets = [a - origin for a in arrays]
     used = [np.zeros(a.size, bool) for a in arrays]
     out: list[SyncedSet] = []
@@ -416,11 +462,15 @@ def group_offline(stamps_by_camera: Mapping[int, np.ndarray], fps: float) -> lis
             stamps.append(int(a[j]))
         present = [s for s in stamps if s is not None]
         if not present:
-            t = t + period
+            later = [x[~u & (x > hi)] for x, u in zip(offsets, used, strict=True)]
+            bound = min((float(v.min()) for v in later if v.size), default=None)
+            n_empty = _skip_empty(base, n_empty, bound, period)
+            t = base + n_empty * period
             continue
         a_min, b_max = min(present), max(present)
         out.append(SyncedSet(origin + round(t), tuple(members), tuple(stamps), b_max - a_min))
-        t = _next_reference(t, a_min - origin, b_max - origin, period)
+        t = base = _next_reference(t, a_min - origin, b_max - origin, period)
+        n_empty = 0
     return out
 
 

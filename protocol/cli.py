@@ -27,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "record": ("capture_agent.control:main_record", "start or stop recording a case"),
     "status": ("capture_agent.control:main_status", "the rig's health: fps, drops, PTP, disk"),
     "shell": ("capture_agent.console:main", "an operator console with a connected 'rig'"),
+    "keys": ("capture_agent.keys_cli:main", "make the CURVE keys that secure the rig's links"),
     "session": ("capture_agent.session_cli:main", "inspect, verify and export a session file"),
     "calibrate": ("calibration.cli:main", "extrinsic calibration of the rig from a wand session"),
     "reconstruct": (
@@ -35,7 +36,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "render": ("reconstructor.cli:main_render", "render a splat model from any viewpoint"),
     "evaluate": (
-        "reconstructor.eval_cli:main",
+        "reconstructor.evaluation.cli:main",
         "the paper's evaluation protocols and baselines on an evaluation set",
     ),
     "sim": ("sim.cli:main", "the simulated operating room: frames, factory files, views"),

@@ -50,9 +50,10 @@ from typing import Any
 
 import numpy as np
 
-from protocol.camera import Camera, Intrinsics, Pose
+from protocol.camera import Camera
+from protocol.camera_toml import camera_lines, read_camera
+from protocol.camera_toml import toml_value as _v
 from protocol.errors import UserError
-from protocol.rig_calibration import _v
 
 EVAL_SET_FORMAT_VERSION = 1
 EVAL_SET_FILE = "eval_set.toml"
@@ -63,7 +64,7 @@ class EvalSetError(UserError, ValueError):
 
 
 # how a simulated set's description ends: the exact command options that made it, so a report
-# can repeat the command (sim.eval_set writes it, reconstructor.eval_doc reads it)
+# can repeat the command (sim.eval_set writes it, reconstructor.evaluation.doc reads it)
 SIM_COMMAND_MARK = "; made by: egosurg sim eval-set "
 
 
@@ -140,7 +141,6 @@ class EvalSet:
             if s.room_bounds_m:
                 lines.append(f"room_bounds_m = {_v(list(s.room_bounds_m))}")
             for v in s.views:
-                i, p = v.camera.intrinsics, v.camera.pose
                 lines += [
                     "",
                     "[[scenes.views]]",
@@ -149,14 +149,7 @@ class EvalSet:
                     f"role = {_v(v.role)}",
                     f"set_index = {v.set_index}",
                     f"image = {_v(v.image)}",
-                    f"width_px = {i.width_px}",
-                    f"height_px = {i.height_px}",
-                    f"fx_px = {_v(i.fx_px)}",
-                    f"fy_px = {_v(i.fy_px)}",
-                    f"cx_px = {_v(i.cx_px)}",
-                    f"cy_px = {_v(i.cy_px)}",
-                    f"rotation = {_v([list(r) for r in p.R])}",
-                    f"translation_m = {_v(list(p.t_m))}",
+                    *camera_lines(v.camera.intrinsics, v.camera.pose, dist=False),
                 ]
         return "\n".join(lines) + "\n"
 
@@ -217,22 +210,7 @@ def _scene(t: dict[str, Any], where: str) -> EvalScene:
     views = []
     for j, v in enumerate(t.get("views", [])):
         vw = f"{where} view #{j + 1}"
-        R = np.asarray(v["rotation"], dtype=np.float64)
-        tr = np.asarray(v["translation_m"], dtype=np.float64)
-        if R.shape != (3, 3) or tr.shape != (3,):
-            raise EvalSetError(f"{vw}: rotation must be 3x3 and translation_m 3 long")
-        try:
-            pose = Pose(R=R, t_m=tr)
-        except ValueError as exc:
-            raise EvalSetError(f"{vw}: {exc}") from None
-        intr = Intrinsics(
-            width_px=int(v["width_px"]),
-            height_px=int(v["height_px"]),
-            fx_px=float(v["fx_px"]),
-            fy_px=float(v["fy_px"]),
-            cx_px=float(v["cx_px"]),
-            cy_px=float(v["cy_px"]),
-        )
+        intr, pose = read_camera(v, vw, EvalSetError, dist=False)
         name = str(v["name"])
         views.append(
             ReferenceView(

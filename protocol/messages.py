@@ -3,13 +3,18 @@
 Every message has one encoder and one decoder here. Nothing from the network is ever unpickled or
 ``eval``-ed: frames are a fixed binary header plus raw buffers, everything else is UTF-8 JSON.
 
-Sockets (see ``docs/capture.md``)
----------------------------------
-- Agent ``PUB`` -> recorder ``SUB``: frame messages (3 parts) and agent status messages (1 part),
-  interleaved on one socket. The receiver calls ``decode_published(parts)``, which dispatches on the
-  4-byte magic that starts the first part.
+Sockets (the whole agent-recorder contract: ``docs/capture.md``, "Writing an agent")
+-------------------------------------------------------------------------------------
+- Agent ``PUB`` (the agent binds ``frames_bind``) -> recorder ``SUB`` (connects to every agent's
+  ``frames`` in rig.toml, subscribes to everything): frame messages (3 parts) and agent status
+  messages (1 part), interleaved on one socket. The receiver calls ``decode_published(parts)``,
+  which dispatches on the 4-byte magic that starts the first part.
 - Control, ``REQ``/``REP`` (or ``DEALER``/``ROUTER``): one ``ControlRequest`` part, answered by one
-  ``ControlReply`` part.
+  ``ControlReply`` part. Every agent binds a ``REP`` socket (``control_bind``) that the recorder
+  connects to; the recorder binds its own ``REP`` for the control tools.
+- Every link is CURVE-encrypted, the binding side the CURVE server with an allow-list of client
+  keys; plaintext only where the configs say ``insecure = true``.
+- ``node_id`` in frames and status messages must equal the agent's ``node_id`` in rig.toml.
 
 Frame message (magic ``b"EGSF"``), a ZeroMQ multipart message of exactly 3 parts
 ----------------------------------------------------------------------------------
@@ -36,6 +41,11 @@ implicit padding; every 8-byte field sits on an 8-byte boundary)::
     79     1    u8     reserved               0
     80     32   bytes  node_id                UTF-8, padded with NUL bytes to 32
 
+``frame_index`` only increases while a camera stays open; after a reopen it may restart at 0 (the
+recorder records a reconnect, not a loss). ``seq`` going backwards means the agent restarted.
+``ptp_offset_ns`` has linuxptp's sign: this node's clock minus the grandmaster's (0 if unknown).
+``width``, ``height`` and ``encoding`` equal the camera's ``cameras_info`` entry (below).
+
 Part 1 is the left image, part 2 the right image, each sent and received without a copy
 (``send_multipart(msg.to_parts(), copy=False)`` / ``recv_multipart(copy=False)``). ``jpeg`` is a
 complete JPEG file (starts with ``FF D8``) that decodes to BGR; ``raw_bgr8`` is exactly
@@ -54,14 +64,24 @@ Agent status message (magic ``b"EGSH"``), 1 part, about once a second per agent
                   "queue_depth": 1, "reopen_count": 0,
                   "last_capture_unix_ns": 1699999999990000000, "error": null}]}
 
-``status_seq`` is the status messages' own counter, independent of the frames' ``seq``.
+``status_seq`` is the status messages' own counter, independent of the frames' ``seq``. Every
+field is required; ``master_offset_ns``, ``gm_present``, ``last_capture_unix_ns`` and ``error``
+are nullable. ``ptp.state`` is one of ``PTP_STATES``, a camera's ``state`` one of
+``CAMERA_STATES`` (meanings in docs/capture.md). The recorder counts an agent gone after
+``agent_timeout_s`` (rig.toml, default 3 s) without a status message.
 
 Control messages, 1 part, a UTF-8 JSON object
 ---------------------------------------------
 Request: ``{"egosurg": "control", "version": 1, "verb": "start", "args": {...},
 "request_id": "..."}``; verbs are ``CONTROL_VERBS``. Reply: ``{"egosurg": "reply", "version": 1,
 "ok": false, "result": {}, "error": "PTP is unlocked on node-b; ...", "request_id": "..."}``,
-echoing the request's ``request_id``; ``error`` is null exactly when ``ok`` is true.
+echoing the request's ``request_id`` (1..``MAX_REQUEST_ID_CHARS`` characters, no control
+characters); ``error`` is null exactly when ``ok`` is true. A ``REP`` socket answers every
+request, also one it cannot decode (``ok: false`` with ``request_id`` ""). An agent answers ``status`` and
+``heartbeat`` with ``ok: true`` and ``start``/``stop`` with ``ok: false``; its ``status`` result
+is ``{"cameras_info": [{"camera_serial", "resolution", "width", "height", "fps", "encoding",
+"factory_conf"}, ...], "status": {...optional, a status message's body}}``, checked by
+``protocol/agent_info.py`` (every entry field required, ``factory_conf`` text or null).
 
 Versioning
 ----------
@@ -97,6 +117,8 @@ from typing import TYPE_CHECKING, Any, ClassVar, TypeAlias
 import numpy as np
 
 from protocol.errors import UserError
+from protocol.safe_text import brief as _brief
+from protocol.safe_text import unsafe_character
 
 if TYPE_CHECKING:
     import zmq
@@ -120,6 +142,7 @@ MAX_FRAME_BYTES = 64 * 1024 * 1024  # per image; HD1200 raw BGR is 6.9 MB
 MAX_JSON_BYTES = 1024 * 1024  # status and control bodies
 MAX_IMAGE_SIDE_PX = 8192
 MAX_NODE_ID_BYTES = 32
+MAX_REQUEST_ID_CHARS = 128  # a uuid4 hex is 32
 
 _FRAME_HEADER = struct.Struct("<4sHHQQQqqqQQHHBBBB32s")
 FRAME_HEADER_BYTES = _FRAME_HEADER.size  # 112
@@ -192,7 +215,7 @@ class FrameMessage:
             object.__setattr__(self, name, value)
         if not isinstance(self.ptp_locked, bool | np.bool_):
             raise MalformedMessageError(
-                f"{what} ptp_locked={self.ptp_locked!r} must be a bool (True or False)"
+                f"{what} ptp_locked={_brief(self.ptp_locked)} must be a bool (True or False)"
             )
         object.__setattr__(self, "ptp_locked", bool(self.ptp_locked))
         try:
@@ -200,7 +223,7 @@ class FrameMessage:
         except ValueError:
             valid = ", ".join(e.value for e in Encoding)
             raise MalformedMessageError(
-                f"{what} encoding {self.encoding!r} is unknown; valid encodings: {valid}"
+                f"{what} encoding {_brief(self.encoding)} is unknown; valid encodings: {valid}"
             ) from None
         object.__setattr__(self, "encoding", encoding)
         for name in ("width", "height"):
@@ -313,7 +336,7 @@ class FrameMessage:
             node_id = node_bytes.decode("utf-8")
         except UnicodeDecodeError as exc:
             raise MalformedMessageError(
-                f"frame header node_id {node_bytes!r} is not valid UTF-8 ({exc.reason})"
+                f"frame header node_id {_brief(node_bytes)} is not valid UTF-8 ({exc.reason})"
             ) from None
         images = []
         for side, claimed, part in (
@@ -413,8 +436,12 @@ def _check_prefix(buf: bytes | memoryview, magic: bytes, supported: int, kind: s
 def _magic_problem(got: bytes, kind: str, expected: bytes) -> str:
     other = {FRAME_MAGIC: "a frame message", STATUS_MAGIC: "an agent status message"}.get(got)
     if other is not None:
-        return f"header magic {got!r} is {other}, not a {kind}; decode with decode_published()"
-    return f"header magic {got!r} is not an EgoSurg message (a {kind} starts with {expected!r})"
+        return (
+            f"header magic {_brief(got)} is {other}, not a {kind}; decode with decode_published()"
+        )
+    return (
+        f"header magic {_brief(got)} is not an EgoSurg message (a {kind} starts with {expected!r})"
+    )
 
 
 def _check_version(version: object, supported: int, kind: str) -> None:
@@ -427,7 +454,7 @@ def _check_version(version: object, supported: int, kind: str) -> None:
             "upgrade the sender (capture agent or control tool) to the receiver's EgoSurg version"
         )
     raise UnknownVersionError(
-        f"{kind} wire version {version!r} is not supported by this receiver "
+        f"{kind} wire version {_brief(version)} is not supported by this receiver "
         f"(supports {supported}); {hint}"
     )
 
@@ -452,7 +479,7 @@ class PtpState:
             object.__setattr__(self, "master_offset_ns", offset)
         if self.gm_present is not None and not isinstance(self.gm_present, bool):
             raise MalformedMessageError(
-                f"ptp gm_present={self.gm_present!r} must be true, false or null"
+                f"ptp gm_present={_brief(self.gm_present)} must be true, false or null"
             )
 
     def to_json(self) -> dict[str, Any]:
@@ -505,9 +532,11 @@ class CameraStatus:
         fps = self.fps_measured
         is_number = isinstance(fps, int | float | np.integer | np.floating)
         if isinstance(fps, bool) or not is_number or not math.isfinite(fps):
-            raise MalformedMessageError(f"{where} fps_measured={fps!r} must be a finite number")
+            raise MalformedMessageError(
+                f"{where} fps_measured={_brief(fps)} must be a finite number"
+            )
         if fps < 0:
-            raise MalformedMessageError(f"{where} fps_measured={fps!r} must be >= 0")
+            raise MalformedMessageError(f"{where} fps_measured={_brief(fps)} must be >= 0")
         object.__setattr__(self, "fps_measured", float(fps))
         if self.last_capture_unix_ns is not None:
             last = _check_int(
@@ -515,7 +544,9 @@ class CameraStatus:
             )
             object.__setattr__(self, "last_capture_unix_ns", last)
         if self.error is not None and not isinstance(self.error, str):
-            raise MalformedMessageError(f"{where} error={self.error!r} must be a string or null")
+            raise MalformedMessageError(
+                f"{where} error={_brief(self.error)} must be a string or null"
+            )
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -562,21 +593,24 @@ class AgentStatus:
         status_seq = _check_int(self.status_seq, "agent status status_seq", 0, _U63 - 1)
         object.__setattr__(self, "status_seq", status_seq)
         if not isinstance(self.ptp, PtpState):
-            raise MalformedMessageError(f"agent status ptp must be a PtpState, got {self.ptp!r}")
+            raise MalformedMessageError(
+                f"agent status ptp must be a PtpState, got {_brief(self.ptp)}"
+            )
         if isinstance(self.cameras, str | bytes) or not isinstance(self.cameras, Sequence):
             raise MalformedMessageError(
-                f"agent status cameras must be a sequence of CameraStatus, got {self.cameras!r}"
+                "agent status cameras must be a sequence of CameraStatus, got "
+                f"{_brief(self.cameras)}"
             )
         cameras = tuple(self.cameras)
         for cam in cameras:
             if not isinstance(cam, CameraStatus):
                 raise MalformedMessageError(
-                    f"agent status cameras must hold CameraStatus records, got {cam!r}"
+                    f"agent status cameras must hold CameraStatus records, got {_brief(cam)}"
                 )
         object.__setattr__(self, "cameras", cameras)
         if not isinstance(self.software_version, str):
             raise MalformedMessageError(
-                f"agent status software_version={self.software_version!r} must be a string"
+                f"agent status software_version={_brief(self.software_version)} must be a string"
             )
 
     def to_json(self) -> dict[str, Any]:
@@ -632,7 +666,7 @@ def decode_published(parts: Sequence[WirePart]) -> FrameMessage | AgentStatus:
     if magic == STATUS_MAGIC:
         return AgentStatus.from_parts(parts)
     raise MalformedMessageError(
-        f"header magic {magic!r} is not an EgoSurg message "
+        f"header magic {_brief(magic)} is not an EgoSurg message "
         f"(frames start with {FRAME_MAGIC!r}, agent status with {STATUS_MAGIC!r})"
     )
 
@@ -655,7 +689,8 @@ class ControlRequest:
     def __post_init__(self) -> None:
         if self.verb not in CONTROL_VERBS:
             raise MalformedMessageError(
-                f"control verb {self.verb!r} is unknown; valid verbs: {', '.join(CONTROL_VERBS)}"
+                f"control verb {_brief(self.verb)} is unknown; valid verbs: "
+                f"{', '.join(CONTROL_VERBS)}"
             )
         _check_json_object(self.args, "control request args")
         _check_request_id(self.request_id, "control request")
@@ -695,17 +730,17 @@ class ControlReply:
 
     def __post_init__(self) -> None:
         if not isinstance(self.ok, bool):
-            raise MalformedMessageError(f"control reply ok={self.ok!r} must be true or false")
+            raise MalformedMessageError(f"control reply ok={_brief(self.ok)} must be true or false")
         _check_json_object(self.result, "control reply result")
         if self.ok and self.error is not None:
             raise MalformedMessageError(
-                f"control reply is ok but carries error {self.error!r}; error must be null"
+                f"control reply is ok but carries error {_brief(self.error)}; error must be null"
             )
         if not self.ok and (not isinstance(self.error, str) or not self.error.strip()):
             raise MalformedMessageError(
                 "control reply is not ok, so error must be a non-empty message saying what to do"
             )
-        _check_request_id(self.request_id, "control reply")
+        _check_request_id(self.request_id, "control reply", allow_empty=not self.ok)
 
     def to_bytes(self) -> bytes:
         return _dump_json(
@@ -737,10 +772,10 @@ def _load_envelope(data: WirePart, kind: str, what: str) -> dict[str, Any]:
     if got != kind:
         if got in ("control", "reply"):
             raise MalformedMessageError(
-                f"{what}: message is an EgoSurg {got!r} message, expected {kind!r}"
+                f"{what}: message is an EgoSurg {_brief(got)} message, expected {kind!r}"
             )
         raise MalformedMessageError(
-            f"{what}: JSON field 'egosurg' is {got!r}, expected {kind!r}; "
+            f"{what}: JSON field 'egosurg' is {_brief(got)}, expected {kind!r}; "
             "this is not an EgoSurg control message"
         )
     if "version" not in d:
@@ -749,9 +784,20 @@ def _load_envelope(data: WirePart, kind: str, what: str) -> dict[str, Any]:
     return d
 
 
-def _check_request_id(request_id: object, what: str) -> None:
-    if not isinstance(request_id, str) or not request_id:
-        raise MalformedMessageError(f"{what} request_id={request_id!r} must be a non-empty string")
+def _check_request_id(request_id: object, what: str, *, allow_empty: bool = False) -> None:
+    """A request id is 1..MAX_REQUEST_ID_CHARS characters without control characters. Only an
+    error reply may carry an empty one: the answer to a request too broken to name its id."""
+    if (
+        not isinstance(request_id, str)
+        or len(request_id) > MAX_REQUEST_ID_CHARS
+        or (not request_id and not allow_empty)
+        or unsafe_character(request_id) is not None
+    ):
+        raise MalformedMessageError(
+            f"{what} request_id={_brief(request_id)} must be a string of 1..{MAX_REQUEST_ID_CHARS}"
+            " characters without control characters"
+            + (" (empty only in an error reply to an unreadable request)" if allow_empty else "")
+        )
 
 
 # --------------------------------------------------------------------------------------------
@@ -762,7 +808,7 @@ def _check_request_id(request_id: object, what: str) -> None:
 def _check_int(value: object, what: str, lo: int, hi: int) -> int:
     """``value`` as a plain ``int`` if it is an integer in ``lo..hi``; bools are not integers."""
     if isinstance(value, bool | np.bool_) or not isinstance(value, int | np.integer):
-        raise MalformedMessageError(f"{what}={value!r} must be an integer")
+        raise MalformedMessageError(f"{what}={_brief(value)} must be an integer")
     number = int(value)
     if lo == 0 and number < 0:
         raise MalformedMessageError(f"{what}={number} must not be negative")
@@ -773,28 +819,33 @@ def _check_int(value: object, what: str, lo: int, hi: int) -> int:
 
 def _check_node_id(node_id: object, what: str) -> None:
     if not isinstance(node_id, str):
-        raise MalformedMessageError(f"{what} node_id={node_id!r} must be a string")
+        raise MalformedMessageError(f"{what} node_id={_brief(node_id)} must be a string")
     try:
         raw = node_id.encode("utf-8")
     except UnicodeEncodeError:
         raise MalformedMessageError(
-            f"{what} node_id={node_id!r} cannot be encoded as UTF-8"
+            f"{what} node_id={_brief(node_id)} cannot be encoded as UTF-8"
         ) from None
     if not 1 <= len(raw) <= MAX_NODE_ID_BYTES or "\0" in node_id:
         raise MalformedMessageError(
-            f"{what} node_id={node_id!r} must be 1..{MAX_NODE_ID_BYTES} UTF-8 bytes without NUL "
+            f"{what} node_id={_brief(node_id)} must be 1..{MAX_NODE_ID_BYTES} UTF-8 bytes "
+            "without NUL "
             f"(it is {len(raw)} bytes)"
         )
 
 
 def _check_choice(value: object, what: str, choices: tuple[str, ...]) -> None:
     if value not in choices:
-        raise MalformedMessageError(f"{what} {value!r} is unknown; valid: {', '.join(choices)}")
+        raise MalformedMessageError(
+            f"{what} {_brief(value)} is unknown; valid: {', '.join(choices)}"
+        )
 
 
 def _check_json_object(value: object, what: str) -> None:
     if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
-        raise MalformedMessageError(f"{what} must be a JSON object with string keys, got {value!r}")
+        raise MalformedMessageError(
+            f"{what} must be a JSON object with string keys, got {_brief(value)}"
+        )
     try:
         json.dumps(value, allow_nan=False)
     except (TypeError, ValueError) as exc:
@@ -808,7 +859,7 @@ _JSON_TYPE_NAMES = {str: "a string", int: "an integer", float: "a number", bool:
 def _get(d: Mapping[str, Any], key: str, kind: type, where: str, *, nullable: bool = False) -> Any:
     """``d[key]`` checked against a JSON type; missing keys are errors, extra keys are ignored."""
     if key not in d:
-        raise MalformedMessageError(f"{where}: missing field {key!r}")
+        raise MalformedMessageError(f"{where}: missing field {_brief(key)}")
     value = d[key]
     if value is None and nullable:
         return None
@@ -820,7 +871,9 @@ def _get(d: Mapping[str, Any], key: str, kind: type, where: str, *, nullable: bo
         ok = isinstance(value, kind)
     if not ok:
         expected = _JSON_TYPE_NAMES[kind] + (" or null" if nullable else "")
-        raise MalformedMessageError(f"{where}: field {key!r}={value!r} must be {expected}")
+        raise MalformedMessageError(
+            f"{where}: field {_brief(key)}={_brief(value)} must be {expected}"
+        )
     return value
 
 
@@ -857,6 +910,14 @@ def _load_json_object(buf: bytes | memoryview, what: str) -> dict[str, Any]:
         obj = json.loads(text, parse_constant=_reject_constant)
     except (ValueError, RecursionError) as exc:
         raise MalformedMessageError(f"{what} body is not valid JSON: {exc}") from None
+    if "\\u" in text:  # a "\ud800" escape decodes to a lone surrogate that cannot be re-sent
+        try:
+            json.dumps(obj, ensure_ascii=False).encode("utf-8")
+        except (UnicodeEncodeError, RecursionError):
+            raise MalformedMessageError(
+                f"{what} body holds an unpaired UTF-16 surrogate escape (like \\ud800), "
+                "which is not text"
+            ) from None
     if not isinstance(obj, dict):
         raise MalformedMessageError(
             f"{what} body is a JSON {type(obj).__name__}, expected a JSON object"

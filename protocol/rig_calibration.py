@@ -36,17 +36,16 @@ Every number keeps full precision (``repr`` of the float), so a write-read round
 
 from __future__ import annotations
 
-import math
 import time
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from protocol import __version__
 from protocol.camera import Camera, Intrinsics, Pose, Resolution
+from protocol.camera_toml import camera_lines, read_camera
+from protocol.camera_toml import toml_value as _v
 from protocol.errors import UserError
 
 CALIBRATION_FORMAT_VERSION = 1
@@ -115,22 +114,13 @@ class RigCalibration:
         if self.quality:
             lines += ["", "[quality]", *[f"{k} = {_v(v)}" for k, v in self.quality.items()]]
         for s in self.sensors:
-            i = s.intrinsics
             lines += [
                 "",
                 "[[sensors]]",
                 f"name = {_v(s.name)}",
                 f"camera_serial = {s.camera_serial}",
                 f"side = {_v(s.side)}",
-                f"width_px = {i.width_px}",
-                f"height_px = {i.height_px}",
-                f"fx_px = {_v(i.fx_px)}",
-                f"fy_px = {_v(i.fy_px)}",
-                f"cx_px = {_v(i.cx_px)}",
-                f"cy_px = {_v(i.cy_px)}",
-                f"dist = {_v(list(i.dist))}",
-                f"rotation = {_v([list(r) for r in s.pose.R])}",
-                f"translation_m = {_v(list(s.pose.t_m))}",
+                *camera_lines(s.intrinsics, s.pose, dist=True),
             ]
             if s.stats:
                 lines += ["", "[sensors.stats]", *[f"{k} = {_v(v)}" for k, v in s.stats.items()]]
@@ -170,28 +160,13 @@ class RigCalibration:
             sensors = []
             for k, t in enumerate(data.get("sensors", [])):
                 where = f"{source} [[sensors]] #{k + 1}"
-                R = np.asarray(t["rotation"], dtype=np.float64)
-                tr = np.asarray(t["translation_m"], dtype=np.float64)
-                if R.shape != (3, 3) or tr.shape != (3,):
-                    raise CalibrationFileError(f"{where}: rotation must be 3x3, translation 3")
-                try:
-                    pose = Pose(R=R, t_m=tr)
-                except ValueError as exc:
-                    raise CalibrationFileError(f"{where}: {exc}") from None
+                intrinsics, pose = read_camera(t, where, CalibrationFileError, dist=True)
                 sensors.append(
                     SensorCalibration(
                         name=str(t["name"]),
                         camera_serial=int(t["camera_serial"]),
                         side=str(t["side"]),
-                        intrinsics=Intrinsics(
-                            width_px=int(t["width_px"]),
-                            height_px=int(t["height_px"]),
-                            fx_px=float(t["fx_px"]),
-                            fy_px=float(t["fy_px"]),
-                            cx_px=float(t["cx_px"]),
-                            cy_px=float(t["cy_px"]),
-                            dist=tuple(float(d) for d in t["dist"]),  # type: ignore[arg-type]
-                        ),
+                        intrinsics=intrinsics,
                         pose=pose,
                         stats={str(a): b for a, b in t.get("stats", {}).items()},
                     )
@@ -210,21 +185,3 @@ class RigCalibration:
             quality=dict(data.get("quality", {})),
             metadata={k: v for k, v in data.items() if k not in skip},
         )
-
-
-def _v(value: Any) -> str:
-    """A TOML value with full float precision."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int | np.integer):
-        return str(int(value))
-    if isinstance(value, float | np.floating):
-        f = float(value)
-        if math.isnan(f) or math.isinf(f):
-            return "nan" if math.isnan(f) else ("inf" if f > 0 else "-inf")
-        return repr(f)
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(value, list | tuple | np.ndarray):
-        return "[" + ", ".join(_v(x) for x in value) + "]"
-    raise TypeError(f"cannot write {type(value).__name__} to TOML")

@@ -4,11 +4,13 @@
 the reconstructor. The full layout, written so anyone can read a session with plain h5py or
 ``h5dump``, is in ``docs/session.md``; in short::
 
-    /                 attrs: format="egosurg-session", format_version=1, session_name, ...
+    /                 attrs: format="egosurg-session", format_version=2, session_name, ...,
+                      previous_session_file, take_part (a take resumed after a kill)
     /cameras/<serial> attrs: the CameraInfo fields; 1-D tables, one row per frame:
                       capture_unix_ns, host_receive_unix_ns, recorder_receive_unix_ns,
                       frame_index, seq, ptp_offset_ns, ptp_locked,
-                      left_offset, left_length, right_offset, right_length
+                      left_offset, left_length, right_offset, right_length,
+                      left_xxh3_64, right_xxh3_64 (checksums of the images, version 2 on)
                       and the encoded images as received, end to end in left_bytes / right_bytes
     /sets             set_unix_ns (N,), members (N, C) row per camera or -1, spread_ns (N,)
     /gaps             camera_serial, kind, first_missing_frame_index, missing_count,
@@ -27,6 +29,10 @@ Speed. Image bytes are assembled into whole chunks and written past HDF5's chunk
 byte datasets grow geometrically (their extent is a capacity; the logical end is the last
 offset + length) and are trimmed at a clean close. The small tables are written once per flush.
 
+Damaged files give a ``SessionFormatError``, never a hang (``protocol.session_open``);
+``protocol.session_recover`` copies what is intact into a new file; files are owner-only and
+hold no keys (``protocol.session_privacy``).
+
 The code lives in three modules, all re-exported here: ``protocol.session_format`` (names,
 types, errors), ``protocol.session_write`` (``SessionWriter``) and ``protocol.session_read``
 (``SessionReader``).
@@ -36,6 +42,7 @@ from __future__ import annotations
 
 from protocol.session_format import (
     BLOB_CHUNK_BYTES,
+    CHECKSUM_COLUMNS,
     ENCODINGS,
     FORMAT,
     FORMAT_VERSION,
@@ -56,6 +63,7 @@ from protocol.session_write import SessionWriter
 
 __all__ = [
     "BLOB_CHUNK_BYTES",
+    "CHECKSUM_COLUMNS",
     "ENCODINGS",
     "FORMAT",
     "FORMAT_VERSION",

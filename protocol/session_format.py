@@ -16,11 +16,14 @@ import numpy as np
 from protocol.errors import UserError
 
 FORMAT = "egosurg-session"
-FORMAT_VERSION = 1
+# Version 2 added the per-frame checksums (required in a version-2 file: one that lacks them has
+# been damaged or edited, which only the version can tell) and the take links of a resumed take.
+FORMAT_VERSION = 2
+OLDEST_FORMAT_VERSION = 1  # every version a reader of this code still reads
 ENCODINGS = ("jpeg", "raw_bgr8")
 
-# Column name -> dtype of the per-camera frame table, in file order.
-FRAME_COLUMNS: dict[str, type[np.generic]] = {
+# Column name -> dtype of the per-camera frame table of version 1, in file order.
+FRAME_COLUMNS_V1: dict[str, type[np.generic]] = {
     "capture_unix_ns": np.int64,
     "host_receive_unix_ns": np.int64,
     "recorder_receive_unix_ns": np.int64,
@@ -33,6 +36,13 @@ FRAME_COLUMNS: dict[str, type[np.generic]] = {
     "right_offset": np.uint64,
     "right_length": np.uint32,
 }
+# xxHash's XXH3 (64-bit, seed 0) of each image exactly as stored, from format_version 2 on.
+CHECKSUM_COLUMNS: dict[str, type[np.generic]] = {
+    "left_xxh3_64": np.uint64,
+    "right_xxh3_64": np.uint64,
+}
+# The frame table this version writes.
+FRAME_COLUMNS: dict[str, type[np.generic]] = {**FRAME_COLUMNS_V1, **CHECKSUM_COLUMNS}
 GAP_COLUMNS: dict[str, type[np.generic]] = {
     "camera_serial": np.int64,
     "kind": np.uint8,
@@ -47,6 +57,11 @@ SUMMARY_COLUMNS = ("frames", "missing_frames", "gap_records", "image_bytes")
 # images are located by offset and length, whatever the chunking of the file.
 BLOB_CHUNK_BYTES = 1 << 20
 TABLE_CHUNK_ROWS = 4096  # 32 KiB of int64
+
+
+def frame_columns(format_version: int) -> dict[str, type[np.generic]]:
+    """The frame table's columns in a file of ``format_version``."""
+    return FRAME_COLUMNS if format_version >= 2 else FRAME_COLUMNS_V1
 
 
 class SessionFormatError(UserError, ValueError):
@@ -124,6 +139,15 @@ class SessionInfo:
     closed_cleanly: bool
     camera_serials: tuple[int, ...]  # the column order of the sets' members
     cameras: tuple[CameraInfo, ...] = field(default=())
+    # A take resumed after the recorder was killed continues in a new file: the earlier part's
+    # file name (same folder) and this file's part number, 1 for a take's first file.
+    previous_session_file: str = ""
+    take_part: int = 1
+
+    @property
+    def has_checksums(self) -> bool:
+        """Whether each image has its XXH3-64 stored (format_version 2 on)."""
+        return self.format_version >= 2
 
     def camera(self, serial: int) -> CameraInfo:
         for cam in self.cameras:

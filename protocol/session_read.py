@@ -3,15 +3,24 @@
 See ``protocol.session`` for the overview and ``docs/session.md`` for the layout. Readers locate
 every image by offset and length, so they read files of any blob chunking (1 MiB in the files of
 the first recorders, larger since).
+
+Damaged files. The file is checked against its superblock's end of file and opened so that no
+metadata read can hang (``protocol.session_open``); its layout (every dataset's presence, rank,
+type and a length the file can hold) is checked when it opens; and any error HDF5, numpy or JSON
+raise while reading it later becomes a ``SessionFormatError`` that names the file and the part
+(``_guarded``). Asking for a camera the session does not have (``KeyError``) or a row past the
+end (``IndexError``) stays the caller's error.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import h5py
 import numpy as np
@@ -19,8 +28,8 @@ import numpy as np
 from protocol.session_format import (
     FORMAT,
     FORMAT_VERSION,
-    FRAME_COLUMNS,
     GAP_COLUMNS,
+    OLDEST_FORMAT_VERSION,
     SUMMARY_COLUMNS,
     CameraInfo,
     GapKind,
@@ -29,12 +38,58 @@ from protocol.session_format import (
     SessionInfo,
     SessionNotFoundError,
     SetTable,
+    frame_columns,
 )
+from protocol.session_open import check_superblock, open_hdf5, read_superblock
+from protocol.session_verify import verify_session
+from protocol.set_counts import missing_in_sets
 
 logger = logging.getLogger(__name__)
 
 READ_CACHE_BYTES = 16 << 20  # per dataset: a few chunks of the byte datasets
-_JPEG_CHECK_BLOCK = 16 << 20
+# What reading a damaged file can raise, from h5py (OSError, RuntimeError, KeyError, ...), numpy
+# (ValueError, IndexError, MemoryError for an absurd shape) and json (ValueError).
+_READ_ERRORS = (
+    OSError,
+    RuntimeError,
+    KeyError,
+    ValueError,
+    TypeError,
+    IndexError,
+    MemoryError,
+    OverflowError,
+    AttributeError,
+)
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+class UnknownCameraError(KeyError):
+    """The caller asked for a camera the session does not have."""
+
+
+class FrameRowError(IndexError):
+    """The caller asked for a frame row past the end of a camera's table."""
+
+
+def _guarded(what: str) -> Callable[[_F], _F]:
+    """Turn any error reading the file into a ``SessionFormatError`` naming the file and part."""
+
+    def wrap(method: _F) -> _F:
+        @functools.wraps(method)
+        def guarded(self: SessionReader, *args: Any, **kwargs: Any) -> Any:
+            try:
+                return method(self, *args, **kwargs)
+            except (SessionFormatError, UnknownCameraError, FrameRowError):
+                raise
+            except _READ_ERRORS as exc:
+                raise SessionFormatError(
+                    f"{self.path}: cannot read {what} ({type(exc).__name__}: {exc}); the file is "
+                    "damaged. 'egosurg session recover' copies what is still intact"
+                ) from None
+
+        return guarded  # type: ignore[return-value]
+
+    return wrap
 
 
 class SessionReader:
@@ -45,11 +100,16 @@ class SessionReader:
     says so). Use it as a context manager. ``refresh()`` picks up rows a live writer flushed.
     """
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, allow_truncated: bool = False) -> None:
+        """``allow_truncated``: open a file shorter than the end its superblock records, for
+        ``protocol.session_recover`` (what is cut off then fails as ``SessionFormatError``)."""
         self._path = Path(path)
-        self._f = _open_session(self._path)
+        self._f, version = _open_session(self._path, allow_truncated)
+        self.columns = frame_columns(version)  # the frame table's columns in this file
         try:
-            self.info = self._read_info()
+            self._size_bytes = self._path.stat().st_size
+            self.info = self._read_info(version)
+            self._check_layout()
         except BaseException:
             self._f.close()
             raise
@@ -58,6 +118,11 @@ class SessionReader:
     @property
     def path(self) -> Path:
         return self._path
+
+    @property
+    def h5(self) -> h5py.File:
+        """The open file, for tools that read the layout directly (``session_recover``)."""
+        return self._f
 
     def close(self) -> None:
         self._f.close()
@@ -68,6 +133,7 @@ class SessionReader:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    @_guarded("the rows flushed since it was opened")
     def refresh(self) -> None:
         """See rows flushed by a live writer since opening (root attributes are not refreshed)."""
         if self._f.swmr_mode:
@@ -81,16 +147,20 @@ class SessionReader:
 
     # -- frames
 
+    @_guarded("a frame table")
     def frame_count(self, camera_serial: int) -> int:
         g = self._group(camera_serial)
-        return min(g[name].shape[0] for name in FRAME_COLUMNS)
+        return min(g[name].shape[0] for name in self.columns)
 
+    @_guarded("a frame table")
     def frame_table(self, camera_serial: int) -> dict[str, np.ndarray]:
-        """Every column of ``FRAME_COLUMNS`` for one camera, as numpy arrays of equal length."""
+        """Every column of the frame table (``self.columns``: ``FRAME_COLUMNS``, without the
+        checksums in a format_version 1 file) for one camera, as arrays of equal length."""
         g = self._group(camera_serial)
         n = self.frame_count(camera_serial)
-        return {name: g[name][:n] for name in FRAME_COLUMNS}
+        return {name: g[name][:n] for name in self.columns}
 
+    @_guarded("an image")
     def frame_bytes(self, camera_serial: int, row: int) -> tuple[bytes, bytes]:
         """The (left, right) encoded images of one frame, exactly as they were received."""
         view = self._views.get(camera_serial)
@@ -100,7 +170,7 @@ class SessionReader:
             )
         n = view.offsets.shape[0]
         if not 0 <= row < n:
-            raise IndexError(f"camera {camera_serial} has frames 0..{n - 1}, not {row}")
+            raise FrameRowError(f"camera {camera_serial} has frames 0..{n - 1}, not {row}")
         out = []
         for side in (0, 1):
             start = int(view.offsets[row, side])
@@ -117,11 +187,13 @@ class SessionReader:
 
     # -- sets, gaps, summary
 
+    @_guarded("the synchronised sets")
     def sets(self) -> SetTable:
         """The synchronised sets whose members are all in the file (see ``SetTable``)."""
         table, keep = self._sets_raw()
         return SetTable(table.set_unix_ns[keep], table.members[keep], table.spread_ns[keep])
 
+    @_guarded("the gap records")
     def gaps(self) -> list[GapRecord]:
         """Drop and gap records, in the order they were written; unknown kinds are skipped."""
         cols = self._gaps_raw()
@@ -144,6 +216,7 @@ class SessionReader:
             )
         return out
 
+    @_guarded("/summary")
     def summary(self) -> dict[str, Any]:
         """Per-camera totals written by a clean close: ``{serial: {frames, ...}}`` plus "extra".
 
@@ -158,194 +231,29 @@ class SessionReader:
             str(serial): {name: int(columns[name][i]) for name in SUMMARY_COLUMNS}
             for i, serial in enumerate(serials)
         }
+        # computed from /sets as the stop summary and 'egosurg session info' compute it
+        for serial, n in missing_in_sets(self.sets().members, self.info.camera_serials).items():
+            if str(serial) in out:
+                out[str(serial)]["missing_in_sets"] = n
         out["extra"] = json.loads(_str_attr(s.attrs, "summary_json", "{}"))
         return out
 
+    @_guarded("it to verify it")
     def verify(self, *, check_images: bool = True) -> list[str]:
         """Integrity problems, each a line starting "error:" or "note:"; empty means OK.
 
         A note is what a writer that was killed or is still writing leaves (unequal table
         lengths, sets ahead of their frames); on a cleanly closed file the same is an error.
-        ``check_images`` reads every image's first and last bytes (the whole byte datasets).
+        ``check_images`` reads every image: its checksum (format_version 2 on) and JPEG markers.
+        See ``protocol.session_verify``.
         """
-        clean = self.info.closed_cleanly
-        # What a killed or live writer leaves behind is expected there, and damage otherwise.
-        tail = "error" if clean else "note"
-        problems = []
-        if not clean:
-            problems.append(
-                "note: not closed cleanly (the writer was killed or is still writing); "
-                "everything up to its last flush() is readable"
-            )
-        groups = set(self._f["cameras"].keys())
-        expected = {str(s) for s in self.info.camera_serials}
-        if groups != expected:
-            problems.append(
-                f"error: /cameras holds {sorted(groups)} but camera_serials is {sorted(expected)}"
-            )
-        for serial in self.info.camera_serials:
-            problems += self._verify_camera(serial, tail, check_images)
-        problems += self._verify_sets(tail)
-        problems += self._verify_gaps(tail)
-        if clean:
-            problems += self._verify_summary()
-        return problems
-
-    def _verify_camera(self, serial: int, tail: str, check_images: bool) -> list[str]:
-        out = []
-        g = self._group(serial)
-        info = self.info.camera(serial)
-        lengths = [g[name].shape[0] for name in FRAME_COLUMNS]
-        t = self.frame_table(serial)
-        if len(set(lengths)) > 1:
-            out.append(
-                f"{tail}: camera {serial}: frame table columns have {min(lengths)} to "
-                f"{max(lengths)} rows; using the first {min(lengths)}"
-            )
-        cap = t["capture_unix_ns"]
-        bad = np.flatnonzero(np.diff(cap) <= 0) + 1
-        if bad.size:
-            out.append(
-                f"error: camera {serial}: capture_unix_ns does not increase at rows {_rows(bad)}"
-            )
-        for side in ("left", "right"):
-            ds = g[f"{side}_bytes"]
-            size = np.uint64(ds.shape[0])
-            off = t[f"{side}_offset"].astype(np.uint64)
-            length = t[f"{side}_length"].astype(np.uint64)
-            room = np.where(off <= size, size - np.minimum(off, size), np.uint64(0))
-            outside = (off > size) | (length > room)
-            if outside.any():
-                rows = _rows(np.flatnonzero(outside))
-                out.append(
-                    f"error: camera {serial}: {side} bytes of rows {rows} "
-                    f"lie past the end of {side}_bytes ({int(size)} bytes)"
-                )
-            inside = np.flatnonzero(~outside)
-            off_in = off[inside].astype(np.int64)
-            len_in = length[inside].astype(np.int64)
-            overlap = np.flatnonzero(off_in[1:] < off_in[:-1] + len_in[:-1]) + 1
-            if overlap.size:
-                out.append(
-                    f"error: camera {serial}: {side} bytes of rows {_rows(inside[overlap])} "
-                    "overlap the previous frame's"
-                )
-            if info.encoding == "raw_bgr8":
-                wrong = np.flatnonzero(len_in != info.width * info.height * 3)
-                if wrong.size:
-                    out.append(
-                        f"error: camera {serial}: {side} raw_bgr8 images of rows "
-                        f"{_rows(inside[wrong])} are not {info.width}x{info.height}x3 bytes"
-                    )
-            elif check_images:
-                wrong = np.flatnonzero(_bad_jpeg(ds, off_in, len_in))
-                if wrong.size:
-                    out.append(
-                        f"error: camera {serial}: {side} images of rows {_rows(inside[wrong])} "
-                        "are not JPEG (must start with FF D8 and end with FF D9)"
-                    )
-        return out
-
-    def _verify_sets(self, tail: str) -> list[str]:
-        out = []
-        s = self._f["sets"]
-        lengths = [s[name].shape[0] for name in ("set_unix_ns", "members", "spread_ns")]
-        if len(set(lengths)) > 1:
-            out.append(
-                f"{tail}: sets: columns have {min(lengths)} to {max(lengths)} rows; "
-                f"using the first {min(lengths)}"
-            )
-        n_cams = len(self.info.camera_serials)
-        if s["members"].ndim != 2 or s["members"].shape[1] != n_cams:
-            return [*out, f"error: sets/members has shape {s['members'].shape}, not (N, {n_cams})"]
-        table, keep = self._sets_raw()
-        members = table.members
-        counts = np.asarray([self.frame_count(c) for c in self.info.camera_serials])
-        invalid = np.flatnonzero(np.any(members < -1, axis=1) | np.all(members == -1, axis=1))
-        if invalid.size:
-            out.append(f"error: sets {_rows(invalid)} have members that are neither rows nor -1")
-        ahead = np.flatnonzero(np.any(members >= counts, axis=1))
-        if ahead.size:
-            out.append(
-                f"{tail}: sets {_rows(ahead)} have members past the end of a camera's frame "
-                "table; they are left out"
-            )
-        kept = np.flatnonzero(keep)
-        members = members[kept]
-        if members.shape[0] == 0:
-            return out
-        times = np.empty(members.shape, dtype=np.int64)
-        for c, serial in enumerate(self.info.camera_serials):
-            cap = self.frame_table(serial)["capture_unix_ns"]
-            col = members[:, c]
-            times[:, c] = np.where(col >= 0, cap[np.maximum(col, 0)] if cap.size else 0, 0)
-        present = members >= 0
-        big = np.iinfo(np.int64).max
-        t_max = np.where(present, times, -big).max(axis=1)
-        t_min = np.where(present, times, big).min(axis=1)
-        wrong = np.flatnonzero(table.spread_ns[kept] != t_max - t_min)
-        if wrong.size:
-            out.append(
-                f"error: sets {_rows(kept[wrong])}: spread_ns is not the max - min "
-                "capture_unix_ns of their members"
-            )
-        back = np.flatnonzero(np.diff(table.set_unix_ns[kept]) < 0) + 1
-        if back.size:
-            out.append(f"error: set_unix_ns decreases at sets {_rows(kept[back])}")
-        for c, serial in enumerate(self.info.camera_serials):
-            sets_with = np.flatnonzero(present[:, c])
-            reused = np.flatnonzero(np.diff(members[sets_with, c]) <= 0) + 1
-            if reused.size:
-                out.append(
-                    f"error: camera {serial}: sets {_rows(kept[sets_with[reused]])} reuse a frame "
-                    "or go back in time"
-                )
-        return out
-
-    def _verify_gaps(self, tail: str) -> list[str]:
-        out = []
-        g = self._f["gaps"]
-        lengths = [g[name].shape[0] for name in GAP_COLUMNS]
-        if len(set(lengths)) > 1:
-            out.append(
-                f"{tail}: gaps: columns have {min(lengths)} to {max(lengths)} rows; "
-                f"using the first {min(lengths)}"
-            )
-        cols = self._gaps_raw()
-        unknown = np.flatnonzero(~np.isin(cols["kind"], [int(k) for k in GapKind]))
-        if unknown.size:
-            out.append(f"error: gap records {_rows(unknown)} have an unknown kind")
-        strangers = np.flatnonzero(~np.isin(cols["camera_serial"], self.info.camera_serials))
-        if strangers.size:
-            out.append(f"error: gap records {_rows(strangers)} name a camera not in the session")
-        backwards = np.flatnonzero(cols["end_unix_ns"] < cols["start_unix_ns"])
-        if backwards.size:
-            out.append(f"error: gap records {_rows(backwards)} end before they start")
-        return out
-
-    def _verify_summary(self) -> list[str]:
-        out = []
-        summary = self.summary()
-        gap_serials = self._gaps_raw()["camera_serial"]
-        for serial in self.info.camera_serials:
-            totals = summary.get(str(serial))
-            if totals is None:
-                out.append(f"error: /summary has no totals for camera {serial}")
-                continue
-            if totals["frames"] != self.frame_count(serial):
-                out.append(
-                    f"error: camera {serial}: /summary counts {totals['frames']} frames, the "
-                    f"table holds {self.frame_count(serial)}"
-                )
-            if totals["gap_records"] != int(np.count_nonzero(gap_serials == serial)):
-                out.append(f"error: camera {serial}: /summary gap_records disagrees with /gaps")
-        return out
+        return verify_session(self, check_images=check_images)
 
     # -- internals
 
     def _group(self, camera_serial: int) -> h5py.Group:
         if camera_serial not in self.info.camera_serials:
-            raise KeyError(
+            raise UnknownCameraError(
                 f"{self._path}: no camera {camera_serial}; cameras are "
                 f"{list(self.info.camera_serials)}"
             )
@@ -365,10 +273,12 @@ class SessionReader:
         n = min(g[name].shape[0] for name in GAP_COLUMNS)
         return {name: g[name][:n] for name in GAP_COLUMNS}
 
-    def _read_info(self) -> SessionInfo:
+    def _read_info(self, version: int) -> SessionInfo:
         a = self._f.attrs
         try:
             serials = tuple(int(s) for s in np.asarray(a["camera_serials"]).reshape(-1))
+            if not serials or len(set(serials)) != len(serials):
+                raise ValueError(f"camera_serials {list(serials)} is empty or repeats a serial")
             cameras = []
             for serial in serials:
                 ga = self._f[f"cameras/{serial}"].attrs
@@ -384,18 +294,16 @@ class SessionReader:
                         factory_conf_text=_str_attr(ga, "factory_conf", ""),
                     )
                 )
-            for name in ("sets/set_unix_ns", "sets/members", "sets/spread_ns"):
-                self._f[name]
-            for name in GAP_COLUMNS:
-                self._f[f"gaps/{name}"]
-            for serial in serials:
-                for name in (*FRAME_COLUMNS, "left_bytes", "right_bytes"):
-                    self._f[f"cameras/{serial}/{name}"]
+            metadata = json.loads(_str_attr(a, "case_metadata_json", "{}"))
+            if not isinstance(metadata, dict) or not all(
+                isinstance(v, str) for v in metadata.values()
+            ):
+                raise ValueError("case_metadata_json is not a JSON object of text values")
             return SessionInfo(
                 path=self._path,
-                format_version=int(a["format_version"]),
+                format_version=version,
                 session_name=_str_attr(a, "session_name"),
-                case_metadata=json.loads(_str_attr(a, "case_metadata_json", "{}")),
+                case_metadata=metadata,
                 software_version=_str_attr(a, "software_version", ""),
                 rig_config_toml=_str_attr(a, "rig_config_toml", ""),
                 tolerance_ns=int(a["tolerance_ns"]),
@@ -404,13 +312,69 @@ class SessionReader:
                 closed_cleanly=bool(int(a["closed_cleanly"])),
                 camera_serials=serials,
                 cameras=tuple(cameras),
+                previous_session_file=_str_attr(a, "previous_session_file", ""),
+                take_part=int(a.get("take_part", 1)),
             )
-        except (KeyError, ValueError, TypeError) as exc:
+        except _READ_ERRORS as exc:
             raise SessionFormatError(
-                f"{self._path}: an EgoSurg session (format_version {FORMAT_VERSION}) with a "
-                f"missing or bad part: {exc}; the file is damaged or was not written by "
-                "SessionWriter, re-export it from the recording"
+                f"{self._path}: an EgoSurg session (format_version {version}) with a missing or "
+                f"bad part: {type(exc).__name__}: {exc}; the file is damaged or was not written "
+                "by SessionWriter, re-export it from the recording"
             ) from None
+
+    def _check_layout(self) -> None:
+        """Every dataset there, 1-D (members 2-D), of an integer type, and no longer than the
+        file can hold: a damaged shape fails here, not as a huge read later."""
+        n_cams = len(self.info.camera_serials)
+        wanted: list[tuple[str, int, int]] = [  # (name, rank, columns of a 2-D table)
+            ("sets/set_unix_ns", 1, 0),
+            ("sets/members", 2, n_cams),
+            ("sets/spread_ns", 1, 0),
+            *((f"gaps/{name}", 1, 0) for name in GAP_COLUMNS),
+        ]
+        for serial in self.info.camera_serials:
+            wanted += [(f"cameras/{serial}/{name}", 1, 0) for name in self.columns]
+        for name, rank, columns in wanted:
+            try:
+                ds = self._f[name]
+                if not isinstance(ds, h5py.Dataset):
+                    raise TypeError("is not a dataset")
+                shape, dtype = ds.shape, ds.dtype
+            except _READ_ERRORS as exc:
+                raise SessionFormatError(
+                    f"{self._path}: a session with a missing or bad part: no readable {name} "
+                    f"({exc}); the file is "
+                    "damaged or was not written by SessionWriter"
+                ) from None
+            if (
+                shape is None
+                or len(shape) != rank
+                or (rank == 2 and shape[1] != columns)
+                or dtype.kind not in "iu"
+            ):
+                raise SessionFormatError(
+                    f"{self._path}: {name} has shape {shape} and type {dtype}; a session's is "
+                    f"{'(rows,)' if rank == 1 else f'(rows, {columns})'} of integers. The file "
+                    "is damaged"
+                )
+            if shape[0] * dtype.itemsize * max(columns, 1) > self._size_bytes:
+                raise SessionFormatError(
+                    f"{self._path}: {name} claims {shape[0]} rows, more than a file of "
+                    f"{self._size_bytes} bytes can hold; the file is damaged"
+                )
+        for serial in self.info.camera_serials:
+            for side in ("left", "right"):
+                name = f"cameras/{serial}/{side}_bytes"
+                try:
+                    ds = self._f[name]
+                    ok = isinstance(ds, h5py.Dataset) and ds.ndim == 1 and ds.dtype.itemsize == 1
+                except _READ_ERRORS:
+                    ok = False
+                if not ok:
+                    raise SessionFormatError(
+                        f"{self._path}: {name} is missing or not a 1-D byte dataset; the file is "
+                        "damaged"
+                    )
 
 
 class _BlobView:
@@ -439,35 +403,6 @@ class _BlobView:
 _GAP_CODES = frozenset(int(k) for k in GapKind)
 
 
-def _rows(indices: np.ndarray, limit: int = 5) -> str:
-    shown = ", ".join(str(int(i)) for i in indices[:limit])
-    more = indices.size - limit
-    return f"{shown} and {more} more" if more > 0 else shown
-
-
-def _bad_jpeg(ds: h5py.Dataset, offsets: np.ndarray, lengths: np.ndarray) -> np.ndarray:
-    """Which images lack the JPEG start (FF D8) or end (FF D9) marker; reads in 16 MiB blocks."""
-    bad = lengths < 4
-    ok = ~bad
-    off, end = offsets[ok], offsets[ok] + lengths[ok]
-    pos = np.concatenate([off, off + 1, end - 2, end - 1])
-    order = np.argsort(pos, kind="stable")
-    sorted_pos = pos[order]
-    values = np.empty(pos.size, dtype=np.uint8)
-    align = ds.chunks[0] if ds.chunks else 1  # whole chunks: none is read twice
-    i = 0
-    while i < sorted_pos.size:
-        start = int(sorted_pos[i]) - int(sorted_pos[i]) % align
-        stop = min(start + max(_JPEG_CHECK_BLOCK, align), ds.shape[0])
-        j = int(np.searchsorted(sorted_pos, stop, side="left"))
-        block = ds[start:stop]
-        values[order[i:j]] = block[sorted_pos[i:j] - start]
-        i = j
-    v = values.reshape(4, -1)
-    bad[ok] = ~((v[0] == 0xFF) & (v[1] == 0xD8) & (v[2] == 0xFF) & (v[3] == 0xD9))
-    return bad
-
-
 def _str_attr(attrs: Any, name: str, default: str | None = None) -> str:
     if default is not None and name not in attrs:
         return default
@@ -479,29 +414,37 @@ def _str_attr(attrs: Any, name: str, default: str | None = None) -> str:
     return value
 
 
-def _open_session(path: Path) -> h5py.File:
+def _open_session(path: Path, allow_truncated: bool = False) -> tuple[h5py.File, int]:
+    """The open file and its format_version; see ``protocol.session_open`` for the order."""
     if not path.exists():
         raise SessionNotFoundError(
             f"{path}: no such session file; check the path (sessions are named "
             "<session_name>.h5 in the recorder's output directory)"
         )
-    if path.is_dir() or not h5py.is_hdf5(path):
+    if path.is_dir():
         raise SessionFormatError(
-            f"{path}: not an HDF5 file, so not an EgoSurg session; pass the .h5 file the "
-            "recorder wrote"
+            f"{path}: a directory, not an EgoSurg session; pass the .h5 file the recorder wrote"
         )
     try:
-        # swmr=True also opens files of live or killed writers; the cache holds a few chunks
-        f = h5py.File(path, "r", swmr=True, rdcc_nbytes=READ_CACHE_BYTES, rdcc_nslots=10007)
-    except OSError:
-        try:
-            f = h5py.File(path, "r")  # an HDF5 file older than the 1.10 format
-        except OSError as exc:
-            raise SessionFormatError(
-                f"{path}: HDF5 cannot open it ({exc}); copy it again from the recorder"
-            ) from None
+        if allow_truncated:
+            read_superblock(path)
+        else:  # before HDF5 sees it: SWMR reading skips HDF5's own check
+            check_superblock(path)
+    except PermissionError:
+        raise SessionFormatError(
+            f"{path}: no permission to read it (session files are owner-only, mode 0600); run "
+            "as the recorder's user"
+        ) from None
+    except OSError as exc:
+        raise SessionFormatError(f"{path}: cannot read it: {exc}") from None
+    f = open_hdf5(path, cache_bytes=READ_CACHE_BYTES, cache_slots=10007)
     try:
-        fmt = f.attrs.get("format")
+        try:
+            fmt = f.attrs.get("format")
+        except _READ_ERRORS as exc:
+            raise SessionFormatError(
+                f"{path}: HDF5 cannot read its root attributes ({exc}); the file is damaged"
+            ) from None
         if isinstance(fmt, bytes):
             fmt = fmt.decode("utf-8", "replace")
         if fmt != FORMAT:
@@ -511,7 +454,7 @@ def _open_session(path: Path) -> h5py.File:
             )
         try:
             version = int(f.attrs["format_version"])
-        except (KeyError, ValueError, TypeError):
+        except _READ_ERRORS:
             raise SessionFormatError(
                 f"{path}: an EgoSurg session without a valid format_version; the file is "
                 "damaged, copy it again from the recorder"
@@ -521,9 +464,9 @@ def _open_session(path: Path) -> h5py.File:
                 f"{path}: session format_version {version} was written by a newer EgoSurg; "
                 f"this one reads up to version {FORMAT_VERSION}. Upgrade egosurg."
             )
-        if version < 1:
+        if version < OLDEST_FORMAT_VERSION:
             raise SessionFormatError(f"{path}: invalid session format_version {version}")
     except BaseException:
         f.close()
         raise
-    return f
+    return f, version

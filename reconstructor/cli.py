@@ -47,10 +47,10 @@ from protocol.camera import Camera, Intrinsics, Pose
 from protocol.errors import UserError
 from protocol.rig_calibration import RigCalibration
 from reconstructor.config import ReconstructConfig
+from reconstructor.data.frames import load_timestamp
+from reconstructor.data.views import EYE_NEAR_M
 from reconstructor.errors import ReconstructError
-from reconstructor.frames import load_timestamp
-from reconstructor.train import StepStats
-from reconstructor.views import EYE_NEAR_M
+from reconstructor.splats.train import StepStats
 
 
 class ReconstructArgumentError(ReconstructError, ValueError):
@@ -157,7 +157,7 @@ def main_reconstruct(argv: list[str]) -> int:
             f"(t = {ts.t_s:.3f} s), {time.perf_counter() - t0:.0f} s"
         )
         if args.evaluate:
-            from reconstructor.evaluate import evaluate
+            from reconstructor.evaluation.held_out import evaluate
 
             evaluate(result, run_dir)
             print((run_dir / "eval.md").read_text())
@@ -247,9 +247,9 @@ def render_camera(
 ) -> np.ndarray:
     """(H, W, 3) uint8 RGB of the splat model seen by ``camera`` (pinhole), leaving out what is
     nearer than ``near_m`` or the model's near plane."""
-    from reconstructor import ply
-    from reconstructor.train import render
-    from reconstructor.views import novel_view
+    from reconstructor.data.views import novel_view
+    from reconstructor.splats import ply
+    from reconstructor.splats.train import render
 
     g = ply.read_ply(model_path)
     raster = _raster_config(model_path)

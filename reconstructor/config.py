@@ -30,22 +30,26 @@ import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
-from reconstructor.auxiliary import AuxiliaryConfig
-from reconstructor.depth_fill import FillConfig
+from reconstructor.depth.fill import FillConfig
+from reconstructor.depth.fusion import FusionConfig
+from reconstructor.depth.stereo_config import StereoConfig
 from reconstructor.errors import ReconstructConfigError
-from reconstructor.fusion import FusionConfig
-from reconstructor.gaussians import GaussianInitConfig
 from reconstructor.raster import RasterConfig
-from reconstructor.stereo import StereoConfig
-from reconstructor.train import TrainConfig
+from reconstructor.refine.auxiliary import AuxiliaryConfig
+from reconstructor.splats.gaussians import GaussianInitConfig
+from reconstructor.splats.train import TrainConfig
 
 CONFIG_FORMAT_VERSION = 1
-TRAIN_VIEWS = ("all", "left")
-INIT_METHODS = ("depth", "random")
+# "left": the near-field protocol (the right cameras held out)
+TrainViews = Literal["all", "left"]
+# "random": the image-only 3DGS baseline
+InitMethod = Literal["depth", "random"]
+TRAIN_VIEWS: tuple[TrainViews, ...] = typing.get_args(TrainViews)
+INIT_METHODS: tuple[InitMethod, ...] = typing.get_args(InitMethod)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -58,10 +62,10 @@ class ReconstructConfig:
     init: GaussianInitConfig = field(default_factory=GaussianInitConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     raster: RasterConfig = field(default_factory=RasterConfig)
-    train_views: str = "all"  # "left": the near-field protocol (right cameras held out)
+    train_views: TrainViews = "all"  # "left": the near-field protocol (right cameras held out)
     train_max_width_px: int = 960  # HD1200 images train at SVGA size, like the paper's GPU runs
     auxiliary: AuxiliaryConfig = field(default_factory=AuxiliaryConfig)
-    init_method: str = "depth"  # "random": the image-only 3DGS baseline
+    init_method: InitMethod = "depth"  # "random": the image-only 3DGS baseline
     random_init_count: int = 100_000  # Gaussians of init_method = "random"
     # (xmin, ymin, zmin, xmax, ymax, zmax) in world metres, or empty when unknown: the random
     # init's box, and where auxiliary cameras must stay

@@ -1,7 +1,7 @@
 """One timestamp, end to end: stereo depth -> fused points -> Gaussians -> training -> export.
 
 Training is the paper's two stages: warm-up on the input views, then refinement on the input
-views plus auxiliary views (``reconstructor/auxiliary.py``) made once after warm-up by the
+views plus auxiliary views (``reconstructor/refine/auxiliary.py``) made once after warm-up by the
 refiner ``config.auxiliary.refiner``. The refiner is loaded before stereo runs, so a missing
 plug-in or weights file fails in a second, not after minutes. A caller's ``refine`` hook, when
 given, replaces the auxiliary views.
@@ -27,10 +27,11 @@ Outputs, in the run's folder:
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,18 +40,24 @@ import numpy as np
 import open3d as o3d
 
 from protocol.rig_calibration import RigCalibration
-from reconstructor import ply
-from reconstructor.auxiliary import AuxiliaryConfig, Bounds, make_auxiliary_views
 from reconstructor.config import ReconstructConfig
-from reconstructor.depth_fill import fill_points_in_world
-from reconstructor.frames import Timestamp, calibration_at, right_from_left
-from reconstructor.fusion import FusedCloud, fuse
-from reconstructor.gaussians import Gaussians, init_from_points, init_random
-from reconstructor.refiners import Refiner, load_refiner
-from reconstructor.stereo import DepthMap, compute_depth
-from reconstructor.stereo_plugins import load_matcher
-from reconstructor.train import StepStats, Trainer, ViewGroup, scene_extent_m
-from reconstructor.views import View, view_from_image
+from reconstructor.data.frames import Timestamp, calibration_at, right_from_left
+from reconstructor.data.views import View, view_from_image
+from reconstructor.depth.fill import fill_points_in_world
+from reconstructor.depth.fusion import FusedCloud, fuse
+from reconstructor.depth.matchers import load_matcher
+from reconstructor.depth.stereo import DepthMap, compute_depth
+from reconstructor.refine.auxiliary import AuxiliaryConfig, Bounds, make_auxiliary_views
+from reconstructor.refine.base import Refiner
+from reconstructor.refine.refiners import load_refiner
+from reconstructor.splats import ply
+from reconstructor.splats.gaussians import (
+    Gaussians,
+    init_from_points,
+    init_random,
+    random_init_box,
+)
+from reconstructor.splats.train import StepStats, Trainer, ViewGroup, scene_extent_m
 
 log = logging.getLogger(__name__)
 
@@ -150,38 +157,6 @@ def world_bounds(config: ReconstructConfig, calibration: RigCalibration | None) 
     return None
 
 
-def random_init_box(
-    views: Sequence[View], bounds: Bounds | None, *, fallback_depth_m: float = 3.0
-) -> tuple[np.ndarray, np.ndarray]:
-    """(lo, hi) of the random init: the bounds where finite, else the box the cameras look into.
-
-    That box holds the cameras' centres and their frustums' centre and corner rays out to the
-    depth of the point closest to all optical axes (in the least-squares sense), or out to
-    ``fallback_depth_m`` when the axes do not converge (one camera, parallel axes).
-    """
-    centres = np.array([v.pose.centre_m for v in views])
-    forwards = np.array([v.pose.R[2] for v in views])
-    A = sum((np.eye(3) - np.outer(f, f) for f in forwards), np.zeros((3, 3)))
-    b = sum(((np.eye(3) - np.outer(f, f)) @ c for f, c in zip(forwards, centres, strict=True)))
-    depths = np.full(len(views), fallback_depth_m)
-    if len(views) > 1 and np.linalg.eigvalsh(A)[0] > 1e-2 * len(views):
-        meet = np.linalg.solve(A, b)
-        along = np.einsum("ij,ij->i", meet - centres, forwards)
-        depths = np.where(along > 0.5, along, fallback_depth_m)
-    points = [centres]
-    for v, d in zip(views, depths, strict=True):
-        w, h = v.width_px, v.height_px
-        px = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1], [w / 2, h / 2, 1]], float)
-        rays_cam = px @ np.linalg.inv(v.K.double().numpy()).T  # z = 1: camera-z depth d below
-        points.append(v.pose.centre_m + d * rays_cam @ v.pose.R)
-    cloud = np.concatenate(points)
-    lo, hi = cloud.min(axis=0), cloud.max(axis=0)
-    if bounds is not None:
-        lo = np.where(np.isfinite(bounds[0]), bounds[0], lo)
-        hi = np.where(np.isfinite(bounds[1]), bounds[1], hi)
-    return lo, hi
-
-
 def reconstruct(
     ts: Timestamp,
     config: ReconstructConfig,
@@ -191,121 +166,33 @@ def reconstruct(
     progress: Progress | None = None,
     refine: RefineHook | None = None,
 ) -> Reconstruction:
-    """Reconstruct one timestamp; write the outputs when ``out_dir`` is given."""
+    """Reconstruct one timestamp; write the outputs when ``out_dir`` is given.
+
+    The stages, in order: depth (stereo and hole filling), init (fusion and the Gaussians),
+    warm-up, auxiliary views (the refiner's, or the caller's ``refine`` hook), refinement, and
+    the outputs. ``timings_s`` of the result has one entry per stage.
+    """
     cfg = config.resolved(ts.frames[0].camera.intrinsics.width_px)
     timings: dict[str, float] = {}
     refiner = None
     if refine is None and cfg.auxiliary.enabled and cfg.train.refine_steps > 0:
         refiner = build_refiner(cfg.auxiliary)  # before stereo: a bad name fails at once
-    handler = None
-    if out_dir is not None:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        handler = logging.FileHandler(out_dir / "log.txt", mode="w")
-        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-        handler.setLevel(logging.INFO)
-        logging.getLogger("reconstructor").addHandler(handler)
-        logging.getLogger("reconstructor").setLevel(logging.INFO)
-        (out_dir / "config.toml").write_text(cfg.to_toml())
-        if calibration is not None:  # at the session's size, so sensors render at it by name
-            calibration_at(calibration, ts.resolution).write(out_dir / "calibration.toml")
-    try:
-        log.info(
-            "reconstructing %s at set %d (t = %.3f s) from %d sensors%s",
-            ts.session,
-            ts.set_index,
-            ts.t_s,
-            len(ts.frames),
-            (
-                f"; missing cameras {', '.join(f'SN{s}' for s in ts.missing_serials)}"
-                if ts.missing_serials
-                else ""
-            ),
-        )
-        t0 = time.perf_counter()
-        clouds, depths = stereo_clouds(ts, cfg)
-        timings["stereo"] = time.perf_counter() - t0
-
+    with _run_folder(out_dir, cfg, ts, calibration):
+        _log_start(ts)
+        with _timed(timings, "stereo"):
+            clouds, depths = stereo_clouds(ts, cfg)
         train_views, held_out = make_views(ts, cfg)
         bounds = world_bounds(cfg, calibration)
-        t0 = time.perf_counter()
-        fused = fuse(clouds, cfg.fusion)
-        log.info("fused points: %s", fused.stats)
-        if cfg.init_method == "random":
-            lo, hi = random_init_box(train_views, bounds)
-            gaussians = init_random(cfg.random_init_count, lo, hi, cfg.init, seed=cfg.train.seed)
-        else:
-            gaussians = init_from_points(fused.points_m, fused.colours, cfg.init)
-        timings["fusion_init"] = time.perf_counter() - t0
-
+        with _timed(timings, "fusion_init"):
+            fused, gaussians = _init_stage(clouds, train_views, bounds, cfg)
         trainer = Trainer(gaussians, cfg.train, cfg.raster, scene_extent_m(train_views))
-        t0 = time.perf_counter()
-        trainer.run(train_views, cfg.train.warmup_steps, stage="warm-up", progress=progress)
-        timings["warmup"] = time.perf_counter() - t0
-        refine_views: Sequence[View] = train_views
-        weights: list[float] | None = None
-        auxiliary: dict[str, Any] = {"enabled": False}
-        if refine is not None and cfg.train.refine_steps > 0:
-            t0 = time.perf_counter()
-            refine_views = refine(trainer, train_views)
-            timings["auxiliary_views"] = time.perf_counter() - t0
-            auxiliary = {"enabled": True, "refiner": "caller's refine hook"}
-            auxiliary["views"] = len(refine_views) - len(train_views)
-        elif refiner is not None:
-            t0 = time.perf_counter()
-            parts: dict[str, float] = {}
-            sheet = (
-                out_dir / "auxiliary_views.jpg"
-                if out_dir is not None and cfg.auxiliary.save_pictures
-                else None
-            )
-            aux_views = make_auxiliary_views(
-                gaussians,
-                train_views,
-                cfg.auxiliary,
-                cfg.raster,
-                refiner,
-                bounds_m=bounds,
-                sheet_path=sheet,
-                timings_s=parts,
-            )
-            timings["auxiliary_views"] = time.perf_counter() - t0
-            refine_views = [*train_views, *aux_views]
-            weights = [1.0] * len(train_views) + [cfg.auxiliary.aux_weight] * len(aux_views)
-            auxiliary = {
-                "enabled": True,
-                "refiner": refiner.describe(),
-                "views": len(aux_views),
-                "per_input_view": cfg.auxiliary.num_views,
-                "radius_m": cfg.auxiliary.radius_m,
-                "size_px": [train_views[0].width_px, train_views[0].height_px],
-                "seconds": round(timings["auxiliary_views"], 3),
-                "render_s": round(parts["render"], 3),
-                "refine_s": round(parts["refine"], 3),
-            }
-            del aux_views  # the trainer's list holds them until the stage ends
-        t0 = time.perf_counter()
-        share = cfg.auxiliary.input_share
-        if weights is not None and share > 0:
-            inputs, extra = refine_views[: len(train_views)], refine_views[len(train_views) :]
-            trainer.run_mixed(
-                [
-                    ViewGroup(inputs, share),
-                    ViewGroup(extra, 1.0 - share, cfg.auxiliary.aux_weight),
-                ],
-                cfg.train.refine_steps,
-                stage="refinement",
-                progress=progress,
-            )
-        else:
-            trainer.run(
-                refine_views,
-                cfg.train.refine_steps,
-                stage="refinement",
-                progress=progress,
-                weights=weights,
-            )
-        timings["refinement"] = time.perf_counter() - t0
-        del refine_views
+        with _timed(timings, "warmup"):
+            trainer.run(train_views, cfg.train.warmup_steps, stage="warm-up", progress=progress)
+        refinement = _auxiliary_stage(
+            trainer, train_views, cfg, refiner, refine, bounds, out_dir, timings
+        )
+        with _timed(timings, "refinement"):
+            _refinement_stage(trainer, train_views, refinement, cfg, progress)
         result = Reconstruction(
             timestamp=ts,
             config=cfg,
@@ -317,15 +204,174 @@ def reconstruct(
             trainer=trainer,
             out_dir=out_dir,
             timings_s=timings,
-            auxiliary=auxiliary,
+            auxiliary=refinement.summary,
         )
+        del refinement  # its auxiliary views: nothing needs them after the stage
         if out_dir is not None:
             write_outputs(result)
         return result
+
+
+@contextlib.contextmanager
+def _timed(timings: dict[str, float], stage: str) -> Iterator[None]:
+    """Adds the seconds the block took to ``timings[stage]``."""
+    t0 = time.perf_counter()
+    yield
+    timings[stage] = time.perf_counter() - t0
+
+
+@contextlib.contextmanager
+def _run_folder(
+    out_dir: Path | None,
+    cfg: ReconstructConfig,
+    ts: Timestamp,
+    calibration: RigCalibration | None,
+) -> Iterator[None]:
+    """The run's folder with its resolved config, calibration and ``log.txt`` (the
+    reconstructor's log while the block runs); nothing when ``out_dir`` is None."""
+    if out_dir is None:
+        yield
+        return
+    out_dir.mkdir(parents=True, exist_ok=True)
+    handler = logging.FileHandler(out_dir / "log.txt", mode="w")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    handler.setLevel(logging.INFO)
+    logger = logging.getLogger("reconstructor")
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        (out_dir / "config.toml").write_text(cfg.to_toml())
+        if calibration is not None:  # at the session's size, so sensors render at it by name
+            calibration_at(calibration, ts.resolution).write(out_dir / "calibration.toml")
+        yield
     finally:
-        if handler is not None:
-            logging.getLogger("reconstructor").removeHandler(handler)
-            handler.close()
+        logger.removeHandler(handler)
+        handler.close()
+
+
+def _log_start(ts: Timestamp) -> None:
+    missing = ", ".join(f"SN{s}" for s in ts.missing_serials)
+    log.info(
+        "reconstructing %s at set %d (t = %.3f s) from %d sensors%s",
+        ts.session,
+        ts.set_index,
+        ts.t_s,
+        len(ts.frames),
+        f"; missing cameras {missing}" if missing else "",
+    )
+
+
+def _init_stage(
+    clouds: list[tuple[np.ndarray, np.ndarray]],
+    train_views: Sequence[View],
+    bounds: Bounds | None,
+    cfg: ReconstructConfig,
+) -> tuple[FusedCloud, Gaussians]:
+    """The fused cloud and the initial Gaussians: from its points, or uniform in a box for
+    ``init_method = "random"`` (the fused cloud is still made: points.ply and the
+    depth-reprojection baseline need it)."""
+    fused = fuse(clouds, cfg.fusion)
+    log.info("fused points: %s", fused.stats)
+    if cfg.init_method == "random":
+        lo, hi = random_init_box(train_views, bounds)
+        gaussians = init_random(cfg.random_init_count, lo, hi, cfg.init, seed=cfg.train.seed)
+    else:
+        gaussians = init_from_points(fused.points_m, fused.colours, cfg.init)
+    return fused, gaussians
+
+
+@dataclass
+class _Refinement:
+    """What the refinement stage trains on: ``views`` (the inputs first), per-view loss
+    ``weights`` (None: all 1) and the summary's ``auxiliary`` entry."""
+
+    views: Sequence[View]
+    weights: list[float] | None
+    summary: dict[str, Any]
+
+
+def _auxiliary_stage(
+    trainer: Trainer,
+    train_views: list[View],
+    cfg: ReconstructConfig,
+    refiner: Refiner | None,
+    refine: RefineHook | None,
+    bounds: Bounds | None,
+    out_dir: Path | None,
+    timings: dict[str, float],
+) -> _Refinement:
+    """The views of the refinement stage: the caller's hook's, the input views plus the
+    refiner's auxiliary views, or the input views alone."""
+    if refine is not None and cfg.train.refine_steps > 0:
+        with _timed(timings, "auxiliary_views"):
+            views = refine(trainer, train_views)
+        summary = {"enabled": True, "refiner": "caller's refine hook"}
+        summary["views"] = len(views) - len(train_views)
+        return _Refinement(views, None, summary)
+    if refiner is None:
+        return _Refinement(train_views, None, {"enabled": False})
+    parts: dict[str, float] = {}
+    sheet = (
+        out_dir / "auxiliary_views.jpg"
+        if out_dir is not None and cfg.auxiliary.save_pictures
+        else None
+    )
+    with _timed(timings, "auxiliary_views"):
+        aux_views = make_auxiliary_views(
+            trainer.g,
+            train_views,
+            cfg.auxiliary,
+            cfg.raster,
+            refiner,
+            bounds_m=bounds,
+            sheet_path=sheet,
+            timings_s=parts,
+        )
+    summary = {
+        "enabled": True,
+        "refiner": refiner.describe(),
+        "views": len(aux_views),
+        "per_input_view": cfg.auxiliary.num_views,
+        "radius_m": cfg.auxiliary.radius_m,
+        "size_px": [train_views[0].width_px, train_views[0].height_px],
+        "seconds": round(timings["auxiliary_views"], 3),
+        "render_s": round(parts["render"], 3),
+        "refine_s": round(parts["refine"], 3),
+    }
+    weights = [1.0] * len(train_views) + [cfg.auxiliary.aux_weight] * len(aux_views)
+    return _Refinement([*train_views, *aux_views], weights, summary)
+
+
+def _refinement_stage(
+    trainer: Trainer,
+    train_views: list[View],
+    refinement: _Refinement,
+    cfg: ReconstructConfig,
+    progress: Progress | None,
+) -> None:
+    """Train on the refinement views: with ``auxiliary.input_share`` > 0 each step draws from
+    the input views with that probability, else from all views alike with their weights."""
+    share = cfg.auxiliary.input_share
+    views = refinement.views
+    if refinement.weights is not None and share > 0:
+        inputs, extra = views[: len(train_views)], views[len(train_views) :]
+        trainer.run_mixed(
+            [
+                ViewGroup(inputs, share),
+                ViewGroup(extra, 1.0 - share, cfg.auxiliary.aux_weight),
+            ],
+            cfg.train.refine_steps,
+            stage="refinement",
+            progress=progress,
+        )
+    else:
+        trainer.run(
+            views,
+            cfg.train.refine_steps,
+            stage="refinement",
+            progress=progress,
+            weights=refinement.weights,
+        )
 
 
 def write_outputs(result: Reconstruction) -> None:

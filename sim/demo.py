@@ -206,7 +206,7 @@ def stage_reconstruction(
     middle[: len(middle) // 3] = np.inf
     k = int(np.argmin(middle))
     # the room's box, as a site measures it once: blank walls no stereo matcher can match are
-    # seen through to it (reconstructor/depth_fill.py)
+    # seen through to it (reconstructor/depth/fill.py)
     config = recon / "site.toml"
     config.write_text(f"room_bounds_m = {list(room_bounds_m(world))}\n")
     done = _egosurg(

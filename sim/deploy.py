@@ -1,10 +1,11 @@
 """The simulated rig deployed as real processes: two capture agents and a recorder on loopback.
 
 ``write_sim_rig`` writes the ``node.toml`` of each simulated Jetson (two ZED X each, as on the
-real rig) and a ``rig.toml`` for the recorder; ``SimRig`` starts them as separate ``egosurg``
-processes, waits until every camera streams, and can kill and restart them for fault tests. The
-demo and the integration tests use it; it talks to the processes only through the ``egosurg``
-command and the control protocol, as an operator would.
+real rig) and a ``rig.toml`` for the recorder, with CURVE keys for every link (``keys/``: the
+recorder, each node and an operator, whose key the rig's clients use); ``SimRig`` starts them as
+separate ``egosurg`` processes, waits until every camera streams, and can kill and restart them
+for fault tests. The demo and the integration tests use it; it talks to the processes only
+through the ``egosurg`` command and the control protocol, as an operator would.
 
 Example::
 
@@ -64,6 +65,7 @@ class SimRigSpec:
         default_factory=lambda: {"source": "none", "require_lock": False}
     )
     faults: dict[int, list[dict[str, Any]]] = field(default_factory=dict)  # camera k -> faults
+    insecure: bool = False  # plaintext links (insecure = true): only to measure CURVE's cost
 
     def __post_init__(self) -> None:
         if self.cameras < 1:
@@ -81,6 +83,39 @@ class SimRigFiles:
     serials_by_node: dict[str, tuple[int, ...]]
     camera_index_by_serial: dict[int, int]
     spec: SimRigSpec
+
+    @property
+    def keys_dir(self) -> Path:
+        return self.directory / "keys"
+
+    def control_socket(self, ctx: Any) -> Any:
+        """A REQ socket that may talk to the recorder: a CURVE client with the operator's key."""
+        import zmq
+        import zmq.auth
+
+        sock = ctx.socket(zmq.REQ)
+        sock.setsockopt(zmq.LINGER, 0)
+        if not self.spec.insecure:
+            public, secret = zmq.auth.load_certificate(self.keys_dir / "operator.key_secret")
+            sock.curve_publickey, sock.curve_secretkey = public, secret
+            sock.curve_serverkey = zmq.auth.load_certificate(self.keys_dir / "recorder.key")[0]
+        return sock
+
+
+def write_keys(directory: Path, names: list[str]) -> None:
+    """A CURVE keypair per name (pyzmq's certificate files, the secret one mode 0600, the folder
+    0700), as ``egosurg keys generate`` makes them; existing keys are kept."""
+    import zmq.auth
+
+    directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+    directory.chmod(0o700)
+    old = os.umask(0o077)
+    try:
+        for name in names:
+            if not (directory / f"{name}.key_secret").exists():
+                zmq.auth.create_certificates(directory, name)
+    finally:
+        os.umask(old)
 
 
 def free_ports(n: int) -> list[int]:
@@ -133,6 +168,8 @@ def write_sim_rig(directory: Path | str, spec: SimRigSpec | None = None) -> SimR
     for k, (_, unit) in enumerate(units):
         nodes.setdefault(world.rig[unit.index].node_id, []).append(k)
     ports = free_ports(2 * len(nodes) + 1)
+    if not spec.insecure:
+        write_keys(out / "keys", ["recorder", "operator", *sorted(nodes)])
     node_paths: dict[str, Path] = {}
     agents_toml = []
     serials_by_node: dict[str, tuple[int, ...]] = {}
@@ -148,6 +185,16 @@ def write_sim_rig(directory: Path | str, spec: SimRigSpec | None = None) -> SimR
             "",
             "[ptp]",
             *[f"{key} = {_toml_value(v)}" for key, v in spec.ptp_table.items()],
+            "",
+            "[security]  # paths relative to this file",
+            *(
+                ["insecure = true"]
+                if spec.insecure
+                else [
+                    f'secret_key = "keys/{node}.key_secret"',
+                    'allowed_keys = ["keys/recorder.key", "keys/operator.key"]',
+                ]
+            ),
         ]
         for k in indices:
             seed, unit = units[k]
@@ -182,6 +229,7 @@ def write_sim_rig(directory: Path | str, spec: SimRigSpec | None = None) -> SimR
             f'frames = "tcp://127.0.0.1:{fport}"',
             f'control = "tcp://127.0.0.1:{cport}"',
             f"cameras = [{', '.join(str(s) for s in serials)}]",
+            *([] if spec.insecure else [f'public_key = "keys/{node}.key"']),
         ]
     control_port = ports[-1]
     session_dir = out / "sessions"
@@ -196,6 +244,17 @@ def write_sim_rig(directory: Path | str, spec: SimRigSpec | None = None) -> SimR
         f"max_wait_ms = {spec.max_wait_ms}",
         f"disk_reserve_gb = {spec.disk_reserve_gb}",
         f"planned_duration_min = {spec.planned_duration_min}",
+        "",
+        "[security]  # paths relative to this file",
+        *(
+            ["insecure = true"]
+            if spec.insecure
+            else [
+                'secret_key = "keys/recorder.key_secret"',
+                'operator_keys = ["keys/operator.key"]',
+                'operator_key = "keys/operator.key_secret"',
+            ]
+        ),
         *agents_toml,
     ]
     rig_path = out / "rig.toml"
@@ -260,8 +319,7 @@ class SimRig:
         from protocol.messages import ControlReply, ControlRequest
 
         ctx: zmq.Context = zmq.Context.instance()
-        sock = ctx.socket(zmq.REQ)
-        sock.setsockopt(zmq.LINGER, 0)
+        sock = self.files.control_socket(ctx)
         sock.setsockopt(zmq.RCVTIMEO, int(timeout_s * 1000))
         try:
             sock.connect(self.files.recorder_url)

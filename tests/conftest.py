@@ -2,14 +2,10 @@
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-from pathlib import Path
-
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+# capture tests import run_egosurg from here; the other tests from tests.helpers
+from tests.helpers import REPO, run_egosurg  # noqa: F401
 
 
 @pytest.fixture(scope="session")
@@ -24,19 +20,6 @@ def wand_world():
     from sim import World
 
     return World.from_seed(5, phase="wand")
-
-
-def run_egosurg(*args: str, timeout: float = 300.0, cwd: Path | None = None):
-    """Run the real ``egosurg`` command in a subprocess, as a user would."""
-    env = dict(os.environ)
-    return subprocess.run(
-        [sys.executable, "-m", "protocol.cli", *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        cwd=cwd or REPO,
-        env=env,
-    )
 
 
 @pytest.fixture(scope="session")

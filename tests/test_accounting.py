@@ -258,3 +258,71 @@ def test_jitter_alone_makes_no_time_gap():
     for seq, (t, i) in enumerate(zip(truth.capture_unix_ns, truth.frame_index, strict=True)):
         records += acc.observe(7, int(i), seq, int(t), "n")
     assert records == []
+
+
+# -- one count of cameras missing in sets, in every report of a session ----------------------
+
+
+def test_stop_summary_session_info_and_summary_count_missing_members_alike(tmp_path):
+    """An operator reads 'missing-in-sets' in the stop summary, in 'egosurg session info' and in
+    the file's /summary: all three count the sets in the file without a frame of the camera.
+
+    Camera 12 loses frame 20 (one set of the take lacks it) and stops one frame before camera 11
+    (the last window holds camera 11 alone: a partial window the take trims, so no set at all).
+    """
+    from capture_agent.recording import Recording
+    from capture_agent.session_cli import summarise
+    from capture_agent.sync import SyncConfig, Synchroniser
+    from protocol.messages import FrameMessage
+    from protocol.session import CameraInfo, SessionReader, SessionWriter
+
+    serials, jpeg = (11, 12), b"\xff\xd8" + bytes(64) + b"\xff\xd9"
+    t0 = 1_700_000_000_000_000_000
+    infos = [
+        CameraInfo(camera_serial=s, node_id="n0", resolution="SVGA", width=8, height=4,
+                   fps_nominal=FPS, encoding="jpeg")
+        for s in serials
+    ]  # fmt: skip
+    writer = SessionWriter(
+        tmp_path / "take.h5",
+        session_name="take",
+        case_metadata={},
+        cameras=infos,
+        tolerance_ns=P_NS // 2,
+        rig_config_text="",
+        software_version="test",
+        started_unix_ns=t0,
+    )
+    rec = Recording(
+        writer=writer,
+        sync=Synchroniser(SyncConfig(camera_serials=serials, fps=FPS, max_wait_ns=10**12)),
+        accounting=StreamAccounting(),
+        case="take",
+        started_unix_ns=t0,
+        started_monotonic=0.0,
+        serials=serials,
+    )
+    seq = 0
+    for k in range(41):
+        for serial, offset_ns in ((11, 0), (12, 2_000_000)):
+            if serial == 12 and k in (20, 40):
+                continue
+            cap = t0 + k * P_NS + offset_ns
+            msg = FrameMessage(
+                node_id="n0", camera_serial=serial, frame_index=k, seq=seq, capture_unix_ns=cap,
+                host_receive_unix_ns=cap, ptp_offset_ns=0, ptp_locked=True, encoding="jpeg",
+                width=8, height=4, left=jpeg, right=jpeg,
+            )  # fmt: skip
+            seq += 1
+            rec.write_frame(msg, cap)
+    stop = rec.finish("stopped by request", {})
+    with SessionReader(tmp_path / "take.h5") as reader:
+        info = {c["serial"]: c["missing_in_sets"] for c in summarise(reader)["cameras"]}
+        stored = reader.summary()
+        sets = reader.sets()
+    truth = {11: 0, 12: 1}  # frame 20 of camera 12; the trimmed last window is not a set
+    assert sets.members.shape == (40, 2)  # windows 0..39; window 40 (camera 11 alone) trimmed
+    assert {int(s): c["missing_in_sets"] for s, c in stop["cameras"].items()} == truth
+    assert info == truth
+    assert {s: stored[str(s)]["missing_in_sets"] for s in serials} == truth
+    assert {int(s): c["missing_in_sets"] for s, c in stored["extra"]["cameras"].items()} == truth

@@ -11,6 +11,7 @@ import zmq
 
 from capture_agent.agent import Agent
 from capture_agent.config import NodeConfig
+from protocol.agent_info import AgentStatusReply
 from protocol.errors import ConfigError
 from protocol.messages import (
     AgentStatus,
@@ -52,6 +53,7 @@ def _node(faults_cam1: list[dict]) -> NodeConfig:
         "status_interval_s": 0.25,
         "ptp": {"source": "none", "require_lock": False},
         "cameras": cams,
+        "security": {"insecure": True},  # the links are tests/test_security.py's
     }
     return NodeConfig.from_table(table, "test node.toml")
 
@@ -130,6 +132,9 @@ def test_agent_answers_status_and_refuses_recording_verbs():
         info = {c["camera_serial"]: c for c in reply.result["cameras_info"]}
         assert len(info) == 2
         assert all("[STEREO]" in c["factory_conf"] for c in info.values())
+        # our own agent keeps the documented contract (docs/capture.md, "The status reply")
+        checked = AgentStatusReply.from_json(reply.result, node_id=cfg.node_id)
+        assert {c.camera_serial for c in checked.cameras_info} == set(info)
         req.send(ControlRequest(verb="start", args={"case": "x"}).to_bytes())
         reply = ControlReply.from_bytes(req.recv())
         assert not reply.ok and "recorder" in reply.error

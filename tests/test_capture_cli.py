@@ -26,7 +26,13 @@ def test_missing_and_broken_config_files(tmp_path):
     _fails_clearly(run_egosurg("recorder", "--config", str(bad)), "[[agents]]")
 
 
-def test_no_recorder_answering(tmp_path):
+def test_no_recorder_answering(tmp_path, monkeypatch):
+    from capture_agent.keys_cli import generate
+
+    _, operator = generate(tmp_path / "keys", "operator")
+    recorder, _ = generate(tmp_path / "keys", "recorder")
+    monkeypatch.setenv("EGOSURG_KEY", str(operator))
+    monkeypatch.setenv("EGOSURG_RECORDER_KEY", str(recorder))
     port = free_ports(1)[0]
     out = run_egosurg("record", "start", "--case", "c1", "--recorder", f"tcp://127.0.0.1:{port}")
     _fails_clearly(out, "no recorder answered", "egosurg recorder")

@@ -1,11 +1,18 @@
-"""The architecture's dependency rules (DESIGN.md), checked on the source."""
+"""The architecture as a test (docs/architecture.md), checked on the source: which package may
+import which, which reconstructor stage may import which, no import cycle anywhere in the five
+packages, and every module the ``egosurg`` dispatcher names imports and has its function."""
 
 from __future__ import annotations
 
 import ast
+import importlib
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
+
+from protocol.cli import COMMANDS
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = {"protocol", "sim", "capture_agent", "calibration", "reconstructor"}
@@ -16,24 +23,158 @@ ALLOWED = {
     "calibration": {"protocol"},
     "reconstructor": {"protocol"},
 }
+# Inside reconstructor/: each part (a subpackage or a top-level module) and the other parts it
+# may import. The stages run data -> depth -> splats -> refine; pipeline and config tie them
+# together; evaluation judges the result and only the commands (cli) reach into it.
+_SHARED = {"errors", "plugins"}
+RECONSTRUCTOR_PARTS: dict[str, set[str]] = {
+    "errors": set(),
+    "plugins": set(),
+    "raster": set(),
+    "data": {"errors"},
+    "depth": {"data"} | _SHARED,
+    "splats": {"data", "raster"} | _SHARED,
+    "refine": {"data", "splats", "raster"} | _SHARED,
+    "config": {"data", "depth", "splats", "refine", "raster"} | _SHARED,
+    "pipeline": {"data", "depth", "splats", "refine", "raster", "config"} | _SHARED,
+    "evaluation": {"data", "depth", "splats", "refine", "raster", "config", "pipeline"} | _SHARED,
+    "cli": {"data", "depth", "splats", "refine", "raster", "config", "pipeline", "evaluation"}
+    | _SHARED,
+    "__init__": {"splats"},  # the CPU's denormal setting, before any worker thread starts
+}
 
 
-def _imports(path: Path) -> set[str]:
-    tree = ast.parse(path.read_text())
-    names = set()
-    for node in ast.walk(tree):
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(REPO).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _all_modules() -> dict[str, Path]:
+    return {_module_name(p): p for pkg in sorted(PACKAGES) for p in (REPO / pkg).rglob("*.py")}
+
+
+def _imported(path: Path, modules: dict[str, Path]) -> set[str]:
+    """The modules of the five packages that ``path`` imports, at the top or inside a function
+    (a lazy import still closes a cycle at run time); ``from a import b`` counts as ``a.b``
+    where that is a module, else as ``a`` (a package's own ``__init__`` runs before its
+    submodules, so the package a submodule sits in is not an edge)."""
+    name = _module_name(path)
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.Import):
-            names |= {a.name.split(".")[0] for a in node.names}
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names.add(node.module.split(".")[0])
-    return names & PACKAGES
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*anchor, base] if base else anchor)
+            subs = {f"{base}.{a.name}" for a in node.names}
+            found |= subs & modules.keys()
+            if not subs <= modules.keys():  # a name defined in base itself
+                found.add(base)
+    return {m for m in found if m in modules and m != name}
+
+
+def _graph() -> dict[str, set[str]]:
+    modules = _all_modules()
+    return {name: _imported(path, modules) for name, path in modules.items()}
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components with more than one module (Tarjan), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
 
 
 def test_packages_import_only_what_the_design_allows():
-    for pkg, allowed in ALLOWED.items():
-        for path in (REPO / pkg).rglob("*.py"):
-            bad = _imports(path) - allowed - {pkg}
-            assert not bad, f"{path.relative_to(REPO)} imports {sorted(bad)}"
+    for name, imports in _graph().items():
+        pkg = name.split(".")[0]
+        bad = {m.split(".")[0] for m in imports} - ALLOWED[pkg] - {pkg}
+        assert not bad, f"{name} imports {sorted(bad)}"
+
+
+def test_the_import_graph_of_the_five_packages_has_no_cycle():
+    cycles = _cycles(_graph())
+    assert not cycles, "import cycles (move the shared piece so imports run one way): " + (
+        "; ".join(" <-> ".join(c) for c in cycles)
+    )
+
+
+def test_the_cycle_finder_finds_a_cycle():
+    """The rule above can fail: a three-module loop and a self-contained chain."""
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}, "e": set()}
+    assert _cycles(graph) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
+
+
+def _part(module: str) -> str:
+    parts = module.split(".")
+    return "__init__" if len(parts) == 1 else parts[1]
+
+
+def test_each_reconstructor_stage_imports_only_the_stages_before_it():
+    graph = _graph()
+    seen = set()
+    for name, imports in graph.items():
+        if not name.startswith("reconstructor"):
+            continue
+        part = _part(name)
+        seen.add(part)
+        assert part in RECONSTRUCTOR_PARTS, (
+            f"{name} is in a part of reconstructor/ the rules do not know: add {part!r} to "
+            "RECONSTRUCTOR_PARTS here and to docs/architecture.md"
+        )
+        inner = {_part(m) for m in imports if m.startswith("reconstructor.")} - {part}
+        bad = inner - RECONSTRUCTOR_PARTS[part]
+        assert not bad, f"{name} imports reconstructor parts {sorted(bad)}"
+    assert {"data", "depth", "splats", "refine", "evaluation", "pipeline"} <= seen
+
+
+def test_nothing_outside_evaluation_imports_it_but_the_commands():
+    for name, imports in _graph().items():
+        if name.startswith("reconstructor.evaluation") or name == "reconstructor.cli":
+            continue
+        reached = sorted(m for m in imports if m.startswith("reconstructor.evaluation"))
+        assert not reached, f"{name} imports {reached}: training must not depend on its judge"
+
+
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_every_module_the_dispatcher_names_imports_and_has_its_function(command):
+    module_name, _, func_name = COMMANDS[command][0].partition(":")
+    module = importlib.import_module(module_name)
+    assert callable(getattr(module, func_name, None)), f"{module_name} has no {func_name}()"
 
 
 def test_protocol_and_the_command_import_without_heavy_libraries():

@@ -11,7 +11,7 @@ import pytest
 import zmq
 
 from capture_agent.accounting import StreamAccounting
-from capture_agent.config import AgentEndpoint, RigConfig
+from capture_agent.config import AgentEndpoint, RigConfig, SecurityConfig
 from capture_agent.control import format_status, format_summary
 from capture_agent.recorder import RECEIVE_QUEUE_S, CameraLive, Recorder, receive_hwm
 from capture_agent.recording import Recording
@@ -44,6 +44,7 @@ def _config(tmp_path, frames: str, cameras: tuple[int, ...] = SERIALS) -> RigCon
         ),
         require_ptp_lock=False,
         disk_reserve_gb=0.0,
+        security=SecurityConfig(insecure=True),  # the links are tests/test_security.py's
     )
 
 
@@ -77,11 +78,11 @@ def queued(tmp_path):
     recorder.open_sockets()
     try:
         deadline = time.monotonic() + 10
-        while not recorder.sub.poll(50):  # PUB/SUB joins late: probe with a camera not recorded
+        while not recorder.receive_published(50):  # PUB/SUB joins late: probe with camera 99
             assert time.monotonic() < deadline, "the SUB socket never connected"
             pub.send_multipart(_frame(99, 0, 0, time.time_ns()), copy=False)
-        while recorder.sub.poll(200):
-            recorder._on_published(recorder.sub.recv_multipart(copy=False))
+        while recorder.receive_published(200):
+            pass
         now = time.time_ns()
         infos = [
             CameraInfo(
@@ -130,8 +131,7 @@ def queued(tmp_path):
     finally:
         if recorder.recording is not None:
             recorder.recording.writer.abort()
-        recorder.sub.close(linger=0)
-        recorder.rep.close(linger=0)
+        recorder.close_sockets()
         pub.close(linger=0)
 
 
@@ -184,8 +184,8 @@ def _disk_full(monkeypatch) -> threading.Event:
 
 
 def _receive_all(recorder: Recorder) -> None:
-    while recorder.sub.poll(200):
-        recorder._on_published(recorder.sub.recv_multipart(copy=False))
+    while recorder.receive_published(200):
+        pass
 
 
 def test_a_disk_full_for_a_moment_loses_only_the_frames_it_refused(queued, monkeypatch):
@@ -196,8 +196,7 @@ def test_a_disk_full_for_a_moment_loses_only_the_frames_it_refused(queued, monke
     full = _disk_full(monkeypatch)
     rec = recorder.recording
     written = 10
-    for _ in range(written):
-        recorder._on_published(recorder.sub.recv_multipart(copy=False))
+    assert recorder.receive_published(1000, max_messages=written) == written
     full.set()
     rec.last_flush = 0.0
     recorder._periodic()  # a flush is due: it fails, the recording goes on
@@ -249,10 +248,19 @@ def test_a_recording_that_cannot_write_for_long_stops_with_the_reason(queued, mo
         assert all(line.startswith("note:") for line in r.verify())
 
 
-def test_the_receive_queue_holds_seconds_of_the_busiest_agent(tmp_path):
+def test_the_receive_queue_is_bounded_in_bytes_and_holds_seconds_where_it_can(tmp_path):
+    """What queued frames may take in the recorder never exceeds receive_buffer_mb, counting
+    each message at two raw HD1200 images; a budget that allows it holds RECEIVE_QUEUE_S."""
+    import dataclasses
+
+    raw_pair = 2 * 1920 * 1200 * 3  # the largest legal frame message's images
     cfg = _config(tmp_path, "tcp://127.0.0.1:1", cameras=(1, 2, 3, 4, 5, 6))
-    hwm = receive_hwm(cfg)
-    assert hwm >= RECEIVE_QUEUE_S * FPS * 6  # frames of 6 cameras for RECEIVE_QUEUE_S
-    assert hwm < 10 * RECEIVE_QUEUE_S * FPS * 6  # and not unbounded: about 2 s of 6 cameras
-    few = _config(tmp_path, "tcp://127.0.0.1:1", cameras=(1,))
-    assert receive_hwm(few) >= 100
+    hwm = receive_hwm(cfg, cfg.agents[0])
+    assert hwm * raw_pair <= cfg.receive_buffer_mb * 1e6
+    assert hwm >= 8
+    roomy = dataclasses.replace(cfg, receive_buffer_mb=100_000.0)
+    hwm = receive_hwm(roomy, roomy.agents[0])
+    assert RECEIVE_QUEUE_S * FPS * 6 <= hwm < 2 * RECEIVE_QUEUE_S * FPS * 6
+    jpeg = dataclasses.replace(cfg, max_image_bytes=500_000)  # a JPEG-only rig says so
+    hwm = receive_hwm(jpeg, jpeg.agents[0])
+    assert hwm >= RECEIVE_QUEUE_S * FPS * 6 and hwm * 1e6 <= jpeg.receive_buffer_mb * 1e6

@@ -186,7 +186,7 @@ def test_round_trip_keeps_every_byte_and_field(session):
         with pytest.raises(IndexError):
             r.frame_bytes(101, 30)
     with h5py.File(path, "r") as f:  # plain h5py, as docs/session.md describes
-        assert f.attrs["format"] == "egosurg-session" and f.attrs["format_version"] == 1
+        assert f.attrs["format"] == "egosurg-session" and f.attrs["format_version"] == 2
         assert f["cameras/101/left_bytes"].shape[0] == sum(
             len(a) for a, _ in expected["frames"][101]
         )
@@ -459,11 +459,11 @@ def test_clear_errors_for_files_that_are_not_sessions(tmp_path, session):
         SessionReader(other)
     path, _ = session
     with h5py.File(path, "r+") as f:
-        f.attrs["format_version"] = 2
-    with pytest.raises(SessionFormatError, match=r"version 2 was written by a newer.*Upgrade"):
+        f.attrs["format_version"] = 3
+    with pytest.raises(SessionFormatError, match=r"version 3 was written by a newer.*Upgrade"):
         SessionReader(path)
     with h5py.File(path, "r+") as f:
-        f.attrs["format_version"] = 1
+        f.attrs["format_version"] = 2
         del f["gaps/kind"]
     with pytest.raises(SessionFormatError, match="missing or bad part"):
         SessionReader(path)

@@ -7,11 +7,14 @@ Units live in the names: ``_m`` metres (camera z), ``_px`` pixels, ``_px2`` squa
 from __future__ import annotations
 
 import math
+import typing
 from dataclasses import dataclass
+from typing import Literal
 
 from torch import Tensor
 
-BACKENDS = ("numba", "torch")
+RasterBackend = Literal["numba", "torch"]
+BACKENDS: tuple[RasterBackend, ...] = typing.get_args(RasterBackend)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -45,7 +48,7 @@ class RasterConfig:
     alpha_max: float = 0.99
     transmittance_min: float = 1e-4
     sigma_extent: float = 3.0
-    backend: str = "numba"
+    backend: RasterBackend = "numba"
 
     def __post_init__(self) -> None:
         if isinstance(self.tile_px, bool) or not isinstance(self.tile_px, int):

@@ -1,0 +1,275 @@
+"""``SessionReader.verify()``: every integrity check of a session file, one line per problem.
+
+The checks are listed in ``docs/session.md`` ("verify()"). Content damage (an image whose bytes
+no longer match their checksum, a set pointing at a missing frame, ...) is reported as
+``error:`` lines; a file whose structure cannot be read at all raises ``SessionFormatError``
+from the reader instead. Images are read once, in blocks of ``_CHECK_BLOCK`` bytes.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import h5py
+import numpy as np
+import xxhash
+
+from protocol.session_format import GAP_COLUMNS, GapKind
+
+# The SessionReader being verified (not imported: session_read imports this module).
+SessionReader = Any
+
+_CHECK_BLOCK = 16 << 20
+
+
+def verify_session(r: SessionReader, *, check_images: bool = True) -> list[str]:
+    """Integrity problems, each a line starting "error:" or "note:"; empty means OK.
+
+    A note is what a writer that was killed or is still writing leaves (unequal table
+    lengths, sets ahead of their frames); on a cleanly closed file the same is an error.
+    ``check_images`` reads every image once (the whole byte datasets, in 16 MiB blocks): its
+    XXH3-64 against the stored one (format_version 2 on) and a JPEG's start and end markers.
+    """
+    clean = r.info.closed_cleanly
+    # What a killed or live writer leaves behind is expected there, and damage otherwise.
+    tail = "error" if clean else "note"
+    problems = []
+    if not clean:
+        problems.append(
+            "note: not closed cleanly (the writer was killed or is still writing); "
+            "everything up to its last flush() is readable"
+        )
+    groups = set(r._f["cameras"].keys())
+    expected = {str(s) for s in r.info.camera_serials}
+    if groups != expected:
+        problems.append(
+            f"error: /cameras holds {sorted(groups)} but camera_serials is {sorted(expected)}"
+        )
+    if not r.info.has_checksums:
+        problems.append(
+            f"note: no checksums (format version {r.info.format_version}): images are checked "
+            "for their JPEG markers and sizes only"
+        )
+    for serial in r.info.camera_serials:
+        problems += _verify_camera(r, serial, tail, check_images)
+    problems += _verify_sets(r, tail)
+    problems += _verify_gaps(r, tail)
+    if clean:
+        problems += _verify_summary(r)
+    return problems
+
+
+def _verify_camera(r: SessionReader, serial: int, tail: str, check_images: bool) -> list[str]:
+    out = []
+    g = r._group(serial)
+    info = r.info.camera(serial)
+    lengths = [g[name].shape[0] for name in r.columns]
+    t = r.frame_table(serial)
+    if len(set(lengths)) > 1:
+        out.append(
+            f"{tail}: camera {serial}: frame table columns have {min(lengths)} to "
+            f"{max(lengths)} rows; using the first {min(lengths)}"
+        )
+    cap = t["capture_unix_ns"]
+    bad = np.flatnonzero(np.diff(cap) <= 0) + 1
+    if bad.size:
+        out.append(
+            f"error: camera {serial}: capture_unix_ns does not increase at rows {_rows(bad)}"
+        )
+    for side in ("left", "right"):
+        ds = g[f"{side}_bytes"]
+        size = np.uint64(ds.shape[0])
+        off = t[f"{side}_offset"].astype(np.uint64)
+        length = t[f"{side}_length"].astype(np.uint64)
+        room = np.where(off <= size, size - np.minimum(off, size), np.uint64(0))
+        outside = (off > size) | (length > room)
+        if outside.any():
+            rows = _rows(np.flatnonzero(outside))
+            out.append(
+                f"error: camera {serial}: {side} bytes of rows {rows} "
+                f"lie past the end of {side}_bytes ({int(size)} bytes)"
+            )
+        inside = np.flatnonzero(~outside)
+        off_in = off[inside].astype(np.int64)
+        len_in = length[inside].astype(np.int64)
+        overlap = np.flatnonzero(off_in[1:] < off_in[:-1] + len_in[:-1]) + 1
+        if overlap.size:
+            out.append(
+                f"error: camera {serial}: {side} bytes of rows {_rows(inside[overlap])} "
+                "overlap the previous frame's"
+            )
+        if info.encoding == "raw_bgr8":
+            wrong = np.flatnonzero(len_in != info.width * info.height * 3)
+            if wrong.size:
+                out.append(
+                    f"error: camera {serial}: {side} raw_bgr8 images of rows "
+                    f"{_rows(inside[wrong])} are not {info.width}x{info.height}x3 bytes"
+                )
+        elif check_images:
+            wrong = np.flatnonzero(_bad_jpeg(ds, off_in, len_in))
+            if wrong.size:
+                out.append(
+                    f"error: camera {serial}: {side} images of rows {_rows(inside[wrong])} "
+                    "are not JPEG (must start with FF D8 and end with FF D9)"
+                )
+        if check_images and r.info.has_checksums:
+            stored = t[f"{side}_xxh3_64"][inside]
+            wrong = _bad_checksums(ds, off_in, len_in, stored)
+            if wrong.size:
+                out.append(
+                    f"error: camera {serial}: {side} images of rows "
+                    f"{_rows(inside[wrong], limit=1000)} do not match their checksums "
+                    "(xxh3_64): their bytes changed after they were recorded"
+                )
+    return out
+
+
+def _verify_sets(r: SessionReader, tail: str) -> list[str]:
+    out = []
+    s = r._f["sets"]
+    lengths = [s[name].shape[0] for name in ("set_unix_ns", "members", "spread_ns")]
+    if len(set(lengths)) > 1:
+        out.append(
+            f"{tail}: sets: columns have {min(lengths)} to {max(lengths)} rows; "
+            f"using the first {min(lengths)}"
+        )
+    n_cams = len(r.info.camera_serials)
+    if s["members"].ndim != 2 or s["members"].shape[1] != n_cams:
+        return [*out, f"error: sets/members has shape {s['members'].shape}, not (N, {n_cams})"]
+    table, keep = r._sets_raw()
+    members = table.members
+    counts = np.asarray([r.frame_count(c) for c in r.info.camera_serials])
+    invalid = np.flatnonzero(np.any(members < -1, axis=1) | np.all(members == -1, axis=1))
+    if invalid.size:
+        out.append(f"error: sets {_rows(invalid)} have members that are neither rows nor -1")
+    ahead = np.flatnonzero(np.any(members >= counts, axis=1))
+    if ahead.size:
+        out.append(
+            f"{tail}: sets {_rows(ahead)} have members past the end of a camera's frame "
+            "table; they are left out"
+        )
+    kept = np.flatnonzero(keep)
+    members = members[kept]
+    if members.shape[0] == 0:
+        return out
+    times = np.empty(members.shape, dtype=np.int64)
+    for c, serial in enumerate(r.info.camera_serials):
+        cap = r.frame_table(serial)["capture_unix_ns"]
+        col = members[:, c]
+        times[:, c] = np.where(col >= 0, cap[np.maximum(col, 0)] if cap.size else 0, 0)
+    present = members >= 0
+    big = np.iinfo(np.int64).max
+    t_max = np.where(present, times, -big).max(axis=1)
+    t_min = np.where(present, times, big).min(axis=1)
+    wrong = np.flatnonzero(table.spread_ns[kept] != t_max - t_min)
+    if wrong.size:
+        out.append(
+            f"error: sets {_rows(kept[wrong])}: spread_ns is not the max - min "
+            "capture_unix_ns of their members"
+        )
+    back = np.flatnonzero(np.diff(table.set_unix_ns[kept]) < 0) + 1
+    if back.size:
+        out.append(f"error: set_unix_ns decreases at sets {_rows(kept[back])}")
+    for c, serial in enumerate(r.info.camera_serials):
+        sets_with = np.flatnonzero(present[:, c])
+        reused = np.flatnonzero(np.diff(members[sets_with, c]) <= 0) + 1
+        if reused.size:
+            out.append(
+                f"error: camera {serial}: sets {_rows(kept[sets_with[reused]])} reuse a frame "
+                "or go back in time"
+            )
+    return out
+
+
+def _verify_gaps(r: SessionReader, tail: str) -> list[str]:
+    out = []
+    g = r._f["gaps"]
+    lengths = [g[name].shape[0] for name in GAP_COLUMNS]
+    if len(set(lengths)) > 1:
+        out.append(
+            f"{tail}: gaps: columns have {min(lengths)} to {max(lengths)} rows; "
+            f"using the first {min(lengths)}"
+        )
+    cols = r._gaps_raw()
+    unknown = np.flatnonzero(~np.isin(cols["kind"], [int(k) for k in GapKind]))
+    if unknown.size:
+        out.append(f"error: gap records {_rows(unknown)} have an unknown kind")
+    strangers = np.flatnonzero(~np.isin(cols["camera_serial"], r.info.camera_serials))
+    if strangers.size:
+        out.append(f"error: gap records {_rows(strangers)} name a camera not in the session")
+    backwards = np.flatnonzero(cols["end_unix_ns"] < cols["start_unix_ns"])
+    if backwards.size:
+        out.append(f"error: gap records {_rows(backwards)} end before they start")
+    return out
+
+
+def _verify_summary(r: SessionReader) -> list[str]:
+    out = []
+    summary = r.summary()
+    gap_serials = r._gaps_raw()["camera_serial"]
+    for serial in r.info.camera_serials:
+        totals = summary.get(str(serial))
+        if totals is None:
+            out.append(f"error: /summary has no totals for camera {serial}")
+            continue
+        if totals["frames"] != r.frame_count(serial):
+            out.append(
+                f"error: camera {serial}: /summary counts {totals['frames']} frames, the "
+                f"table holds {r.frame_count(serial)}"
+            )
+        if totals["gap_records"] != int(np.count_nonzero(gap_serials == serial)):
+            out.append(f"error: camera {serial}: /summary gap_records disagrees with /gaps")
+    return out
+
+
+def _bad_checksums(
+    ds: h5py.Dataset, offsets: np.ndarray, lengths: np.ndarray, stored: np.ndarray
+) -> np.ndarray:
+    """Indices of the images whose XXH3-64 differs from ``stored``; reads in 16 MiB blocks."""
+    bad = []
+    order = np.argsort(offsets, kind="stable")
+    ends = offsets + lengths
+    i = 0
+    while i < order.size:
+        start = int(offsets[order[i]])
+        j = i + 1  # a block holds consecutive images, at least one, within _CHECK_BLOCK
+        while j < order.size and int(ends[order[j]]) - start <= _CHECK_BLOCK:
+            j += 1
+        stop = int(ends[order[i:j]].max())
+        block = ds[start:stop] if stop > start else np.empty(0, np.uint8)
+        for k in order[i:j]:
+            o = int(offsets[k]) - start
+            image = np.ascontiguousarray(block[o : o + int(lengths[k])])
+            if xxhash.xxh3_64_intdigest(image.data) != int(stored[k]):
+                bad.append(int(k))
+        i = j
+    return np.asarray(sorted(bad), dtype=np.int64)
+
+
+def _rows(indices: np.ndarray, limit: int = 5) -> str:
+    shown = ", ".join(str(int(i)) for i in indices[:limit])
+    more = indices.size - limit
+    return f"{shown} and {more} more" if more > 0 else shown
+
+
+def _bad_jpeg(ds: h5py.Dataset, offsets: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """Which images lack the JPEG start (FF D8) or end (FF D9) marker; reads in 16 MiB blocks."""
+    bad = lengths < 4
+    ok = ~bad
+    off, end = offsets[ok], offsets[ok] + lengths[ok]
+    pos = np.concatenate([off, off + 1, end - 2, end - 1])
+    order = np.argsort(pos, kind="stable")
+    sorted_pos = pos[order]
+    values = np.empty(pos.size, dtype=np.uint8)
+    align = ds.chunks[0] if ds.chunks else 1  # whole chunks: none is read twice
+    i = 0
+    while i < sorted_pos.size:
+        start = int(sorted_pos[i]) - int(sorted_pos[i]) % align
+        stop = min(start + max(_CHECK_BLOCK, align), ds.shape[0])
+        j = int(np.searchsorted(sorted_pos, stop, side="left"))
+        block = ds[start:stop]
+        values[order[i:j]] = block[sorted_pos[i:j] - start]
+        i = j
+    v = values.reshape(4, -1)
+    bad[ok] = ~((v[0] == 0xFF) & (v[1] == 0xD8) & (v[2] == 0xFF) & (v[3] == 0xD9))
+    return bad

@@ -1,0 +1,142 @@
+"""The built-in stereo matcher: OpenCV SGBM with a right-view matcher and a WLS filter (CPU only,
+no weights), with the checks that decide which of its disparities to keep."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from reconstructor.depth.matcher import StereoMatcher
+from reconstructor.depth.stereo_config import StereoConfig
+
+
+class SgbmWlsMatcher(StereoMatcher):
+    """OpenCV SGBM (3-way) with a right-view matcher and a WLS filter; CPU only, no weights.
+
+    A pixel keeps its WLS-filtered disparity only where all of these hold (measured on the sim,
+    each removes a kind of error the others miss):
+    - left-right check: the raw left disparity and the raw right one at the matched pixel agree
+      within ``lr_max_diff_px`` (occlusions, mismatches);
+    - photometric check: high-passed ``zncc_window_px``-square patches at the match correlate
+      (ZNCC) at least ``min_zncc``. On a blank wall only sensor noise is left after the
+      high-pass, and noise does not correlate between two sensors; SGBM's smoothness term
+      otherwise paints such walls at a consistent but wrong depth that passes the left-right
+      check;
+    - WLS agreement: the filtered disparity is within ``wls_max_change_px`` of the raw one
+      (the halo SGBM's blocks fatten around foreground edges, and WLS's over-smoothed slopes).
+    """
+
+    name = "sgbm"
+    needs_weights = False
+
+    def __init__(self, config: StereoConfig | None = None) -> None:
+        self.config = StereoConfig() if config is None else config
+
+    def match(
+        self,
+        left_rgb: np.ndarray,
+        right_rgb: np.ndarray,
+        *,
+        min_disparity_px: float,
+        max_disparity_px: float,
+    ) -> np.ndarray:
+        cfg = self.config
+        w = cfg.block_size_px
+        channels = left_rgb.shape[2] if left_rgb.ndim == 3 else 1
+        min_d = max(0, math.floor(min_disparity_px) - 1)
+        num_d = 16 * math.ceil((math.ceil(max_disparity_px) + 1 - min_d) / 16)
+        left_matcher = cv2.StereoSGBM.create(
+            minDisparity=min_d,
+            numDisparities=num_d,
+            blockSize=w,
+            P1=8 * channels * w * w,
+            P2=32 * channels * w * w,
+            disp12MaxDiff=-1,  # the explicit left-right check below replaces SGBM's own
+            uniquenessRatio=cfg.uniqueness_ratio,
+            speckleWindowSize=cfg.speckle_window_px,
+            speckleRange=cfg.speckle_range_px,
+            mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+        )
+        right_matcher = cv2.ximgproc.createRightMatcher(left_matcher)
+        # SGBM leaves the first min_d + num_d columns unmatched; black padding on the left lets
+        # it match every pixel whose partner is inside the right image (~9% more points).
+        pad = min_d + num_d
+        lp = cv2.copyMakeBorder(left_rgb, 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0)
+        rp = cv2.copyMakeBorder(right_rgb, 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0)
+        disp_left = left_matcher.compute(lp, rp)
+        disp_right = right_matcher.compute(rp, lp)
+        wls = cv2.ximgproc.createDisparityWLSFilter(left_matcher)
+        wls.setLambda(cfg.wls_lambda)
+        wls.setSigmaColor(cfg.wls_sigma_color)
+        filtered = wls.filter(disp_left, lp, disparity_map_right=disp_right)[:, pad:]
+        disp_left = disp_left[:, pad:]
+        disp_right = disp_right[:, pad:]
+        raw_l = disp_left.astype(np.float32) / 16.0  # SGBM's fixed point: 1/16 px
+        raw_r = -disp_right.astype(np.float32) / 16.0  # the right matcher's disparities are < 0
+        out = filtered.astype(np.float32) / 16.0
+        ok = lr_consistent(raw_l, raw_r, cfg.lr_max_diff_px) & (raw_l >= min_d)
+        ok &= np.abs(out - raw_l) <= cfg.wls_max_change_px
+        ok &= (
+            zncc_at_disparity(
+                _grey(left_rgb), _grey(right_rgb), np.where(ok, raw_l, 0.0), cfg.zncc_window_px
+            )
+            >= cfg.min_zncc
+        )
+        out[~ok] = np.nan
+        return out
+
+
+HIGHPASS_SIGMA_PX = 3.0  # removes shading gradients, which correlate at any disparity
+
+
+def lr_consistent(disp_left: np.ndarray, disp_right: np.ndarray, max_diff_px: float) -> np.ndarray:
+    """(H, W) bool: the left disparity ``d`` at ``x`` and the right one at ``x - d`` agree.
+
+    Both maps are positive disparities (``x_left - x_right``), each in its own image.
+    """
+    w = disp_left.shape[1]
+    xs = np.arange(w, dtype=np.float32)[None, :]
+    with np.errstate(invalid="ignore"):
+        x_r = np.rint(xs - disp_left)
+        inside = np.isfinite(disp_left) & (disp_left > 0) & (x_r >= 0) & (x_r <= w - 1)
+    x_ri = np.where(inside, x_r, 0).astype(np.intp)
+    d_r = np.take_along_axis(disp_right, x_ri, axis=1)
+    return inside & (d_r > 0) & (np.abs(disp_left - d_r) <= max_diff_px)
+
+
+def zncc_at_disparity(
+    left_grey: np.ndarray, right_grey: np.ndarray, disp_px: np.ndarray, window_px: int
+) -> np.ndarray:
+    """(H, W) float32 zero-mean normalised cross-correlation of ``window_px`` square patches of
+    the high-passed left image and the right image sampled at ``x - disp_px`` (bilinear)."""
+    h, w = left_grey.shape
+    map_x = np.arange(w, dtype=np.float32)[None, :] - disp_px.astype(np.float32)
+    map_y = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w))
+    a = _highpass(left_grey)
+    b = _highpass(
+        cv2.remap(
+            right_grey,
+            map_x,
+            np.ascontiguousarray(map_y),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
+    )
+    k = (window_px, window_px)
+    ma, mb = cv2.blur(a, k), cv2.blur(b, k)
+    var_a = cv2.blur(a * a, k) - ma * ma
+    var_b = cv2.blur(b * b, k) - mb * mb
+    cov = cv2.blur(a * b, k) - ma * mb
+    return cov / np.sqrt(np.maximum(var_a * var_b, 1e-6))
+
+
+def _grey(rgb: np.ndarray) -> np.ndarray:
+    if rgb.ndim == 2:
+        return rgb.astype(np.float32)
+    return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
+
+
+def _highpass(img: np.ndarray) -> np.ndarray:
+    return img - cv2.GaussianBlur(img, (0, 0), HIGHPASS_SIGMA_PX)

@@ -1,0 +1,196 @@
+"""The methods of the paper's Tables 3 and 4, and the settings of an evaluation run.
+
+Methods (``--methods`` keys), each a switch of ``ReconstructConfig`` (see config.py):
+
+- ``depth-reprojection``: the fused stereo points drawn straight into the target camera
+  (``baselines.reproject_points``); no training. It reuses the fused cloud of a depth-initialised
+  run of the same timestamp, or runs stereo and fusion alone;
+- ``image-only``: "image-only 3DGS": ``init_method = "random"``, no auxiliary views;
+- ``no-refinement``: "EgoSurg w/o refinement" (the paper's "w/o diffusion"): depth init,
+  ``auxiliary.enabled = false``;
+- ``egosurg``: the full method: depth init and auxiliary views refined by ``--refiner``.
+
+``--steps`` is the total schedule, split 25 % warm-up and 75 % refinement like the paper's
+500 + 1500.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+import torch
+
+from reconstructor.config import ReconstructConfig, apply_overrides
+from reconstructor.data.views import View
+from reconstructor.depth.fusion import FusedCloud
+from reconstructor.errors import ReconstructError
+from reconstructor.evaluation.baselines import reproject_points
+from reconstructor.pipeline import Reconstruction
+from reconstructor.splats.train import render
+
+
+class EvaluationArgumentError(ReconstructError, ValueError):
+    """An evaluation setting that cannot work; the message names the option and the value."""
+
+
+@dataclass(frozen=True)
+class Method:
+    key: str  # the ``--methods`` name
+    label: str  # the paper's row name
+    overrides: dict[str, Any] | None  # config changes; None: no training (depth reprojection)
+
+    @property
+    def trained(self) -> bool:
+        return self.overrides is not None
+
+    @property
+    def depth_init(self) -> bool:
+        return self.overrides is not None and self.overrides.get("init_method", "depth") == "depth"
+
+
+METHODS: dict[str, Method] = {
+    m.key: m
+    for m in (
+        Method("depth-reprojection", "Depth reprojection", None),
+        Method(
+            "image-only",
+            "Image-only 3DGS",
+            {"init_method": "random", "auxiliary": {"enabled": False}},
+        ),
+        Method(
+            "no-refinement",
+            "EgoSurg w/o refinement",
+            {"init_method": "depth", "auxiliary": {"enabled": False}},
+        ),
+        Method("egosurg", "EgoSurg", {"init_method": "depth", "auxiliary": {"enabled": True}}),
+    )
+}
+PAPER_ORDER = tuple(METHODS)  # worst to best, as the paper reports them
+ProtocolName = Literal["near-field", "egocentric", "temporal", "phases"]
+PROTOCOLS: tuple[ProtocolName, ...] = typing.get_args(ProtocolName)
+
+
+@dataclass(frozen=True, kw_only=True)
+class EvalSettings:
+    """Everything that decides an evaluation's numbers; printed in every table's header.
+
+    The scenes, their instants and the reference views come from the evaluation set
+    (``protocol.eval_set``); ``scenes`` and ``phases`` only choose among its scenes.
+    """
+
+    eval_set: str = ""  # the evaluation set's folder, as given
+    eval_set_description: str = ""  # its manifest's description: how it was made
+    protocols: tuple[ProtocolName, ...] = ("near-field",)
+    methods: tuple[str, ...] = PAPER_ORDER
+    scenes: tuple[str, ...] = ()  # scene names to use; () = every scene of the set
+    phases: tuple[str, ...] = ()  # phases to use; () = every phase
+    steps: int = 2000
+    train_width_px: int = 960
+    refiner: str = "guided"
+    refiner_weights: str = ""
+    lpips_weights: str = ""
+    config: str = ""  # a reconstruction config (TOML) every method starts from; "" = defaults
+
+    def __post_init__(self) -> None:
+        def bad(option: str, value: object, why: str) -> EvaluationArgumentError:
+            return EvaluationArgumentError(f"{option} {value}: {why}")
+
+        for p in self.protocols:
+            if p not in PROTOCOLS:
+                raise bad("--protocol", p, f"choose from {', '.join(PROTOCOLS)} or all")
+        if not self.methods:
+            raise bad("--methods", "(none)", f"name at least one of {', '.join(METHODS)}")
+        for m in self.methods:
+            if m not in METHODS:
+                raise bad("--methods", m, f"choose from {', '.join(METHODS)}")
+        if self.steps < 1:
+            raise bad("--steps", self.steps, "must be at least 1 (the paper uses 2000)")
+        if self.train_width_px < 64:
+            raise bad("--train-width", self.train_width_px, "must be at least 64 px")
+
+    @property
+    def warmup_steps(self) -> int:
+        return int(0.25 * self.steps + 0.5)  # half up: 10 steps are 3 + 7, not 2 + 8
+
+    @property
+    def refine_steps(self) -> int:
+        return self.steps - self.warmup_steps
+
+    @property
+    def uses_refiner(self) -> bool:
+        return "egosurg" in self.methods
+
+    def label(self, key: str) -> str:
+        if key == "egosurg":
+            return f"EgoSurg ({self.refiner} refiner)"
+        return METHODS[key].label
+
+    def describe(self) -> str:
+        """One line with every setting a reader needs to interpret the numbers."""
+        refiner = self.refiner if self.uses_refiner else "n/a (EgoSurg not run)"
+        lpips = self.lpips_weights or "n/a (no --lpips-weights)"
+        chosen = [
+            f"scenes {', '.join(self.scenes)}" if self.scenes else "",
+            f"phases {', '.join(self.phases)}" if self.phases else "",
+        ]
+        chosen = [c for c in chosen if c] or ["every scene"]
+        which = "; ".join(c for c in [self.eval_set_description, *chosen] if c)
+        return (
+            f"steps {self.steps} ({self.warmup_steps} warm-up + {self.refine_steps} refinement), "
+            f"training width {self.train_width_px} px, refiner {refiner}, "
+            f"evaluation set {self.eval_set or '?'} ({which}), LPIPS weights {lpips}, "
+            f"base config {self.config or 'the defaults'}"
+        )
+
+    def as_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def method_config(
+    settings: EvalSettings, key: str, train_views: str, room_bounds_m: tuple[float, ...]
+) -> ReconstructConfig:
+    """The reconstruction config of one trained method."""
+    overrides = METHODS[key].overrides
+    if overrides is None:
+        raise ValueError(f"{key} is not trained")
+    base: dict[str, Any] = {
+        "train_views": train_views,
+        "train_max_width_px": settings.train_width_px,
+        "room_bounds_m": list(room_bounds_m),
+        "train": {"warmup_steps": settings.warmup_steps, "refine_steps": settings.refine_steps},
+        "auxiliary": {
+            "refiner": settings.refiner,
+            "refiner_weights": settings.refiner_weights,
+            "save_pictures": False,
+        },
+    }
+    start = ReconstructConfig.read(settings.config) if settings.config else ReconstructConfig()
+    cfg = apply_overrides(start, base, "evaluation settings")
+    return apply_overrides(cfg, overrides, f"method {key}")
+
+
+def render_splats(recon: Reconstruction, view: View, near_m: float = 0.0) -> np.ndarray:
+    """(H, W, 3) float32 in [0, 1]: the model seen from ``view`` over black, leaving out what
+    is nearer than ``near_m`` (or the model's own near plane, whichever is further)."""
+    raster = recon.config.raster
+    if near_m > raster.near_m:
+        raster = dataclasses.replace(raster, near_m=near_m)
+    with torch.no_grad():
+        out = render(recon.gaussians, view, raster)
+    return out.image.clamp(0, 1).numpy()
+
+
+def render_points(fused: FusedCloud, view: View, voxel_m: float, near_m: float = 0.0) -> np.ndarray:
+    """(H, W, 3) float32 in [0, 1]: the depth-reprojection baseline seen from ``view``."""
+    image, _ = reproject_points(
+        fused.points_m,
+        fused.colours,
+        view.camera,
+        point_size_m=max(voxel_m, fused.spacing_m),
+        near_m=near_m,
+    )
+    return image

@@ -1,0 +1,68 @@
+"""Running a whole evaluation plan: check it against the sessions, then run every job.
+
+``plan.py`` makes the plan, ``runner.py`` runs one job; this module is the only one that needs
+both, so the imports run one way (plan <- runner <- run).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+from protocol.eval_set import EvalSet, EvalSetError
+from reconstructor.evaluation.lpips import Lpips
+from reconstructor.evaluation.methods import METHODS, EvalSettings
+from reconstructor.evaluation.plan import Job, plan
+from reconstructor.evaluation.runner import EvalSource, JobRunner
+from reconstructor.evaluation.tables import EvalResults
+
+log = logging.getLogger(__name__)
+
+
+def check_plan(jobs: list[Job], source: EvalSource) -> None:
+    """Every planned set must exist in its session, and every calibration must fit its
+    session: a bad evaluation set fails here, before hours of work, not at its turn."""
+    highest: dict[str, int] = {}
+    for j in jobs:
+        highest[j.scene.name] = max(highest.get(j.scene.name, -1), j.scene.set_index)
+    for name, k in highest.items():
+        count = source.set_count(name)
+        if k >= count:
+            raise EvalSetError(
+                f"{source.eval_set.root}: scene '{name}' asks for set {k} but its session "
+                f"{source.scene(name).session} holds {count} sets (0 to {count - 1})"
+            )
+
+
+def run_evaluation(
+    settings: EvalSettings,
+    eval_set: EvalSet,
+    out_dir: Path,
+    lpips_model: Lpips | None = None,
+    jobs: list[Job] | None = None,
+    source: EvalSource | None = None,
+) -> EvalResults:
+    """Run every planned reconstruction (``plan(settings, eval_set)`` unless given), score it
+    for each protocol, and return the scores."""
+    jobs = plan(settings, eval_set) if jobs is None else jobs
+    source = EvalSource(eval_set) if source is None else source
+    trained = [m for m in settings.methods if METHODS[m].trained]
+    depth_only = "depth-reprojection" in settings.methods and not any(
+        METHODS[m].depth_init for m in trained
+    )
+    units = len(jobs) * (len(trained) + (1 if depth_only else 0))
+    log.info(
+        "evaluation plan: %d timestamp(s), %d reconstruction(s) (%s); %s",
+        len(jobs),
+        units,
+        ", ".join(settings.protocols),
+        settings.describe(),
+    )
+    results = EvalResults(settings=settings)
+    runner = JobRunner(settings, source, out_dir, results, lpips_model, total_units=units)
+    for job in jobs:
+        runner.run(job)
+    runner.finish_temporal()
+    results.wall_s = time.perf_counter() - runner.started
+    return results

@@ -1,0 +1,283 @@
+"""Running one planned timestamp of an evaluation: read it from the evaluation set,
+reconstruct it once per method, render every target the protocols asked for, score the
+renders, and keep temporal frames for later.
+
+Progress: one log line per reconstruction with its time, the elapsed time and an ETA from the
+mean time per reconstruction so far (the first timestamp also pays for compiling kernels, so
+the first ETA is pessimistic).
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from protocol.eval_set import EvalScene, EvalSet, ReferenceView
+from protocol.rig_calibration import RigCalibration
+from protocol.session import SessionReader
+from reconstructor.data.frames import Timestamp, check_calibration, load_timestamp
+from reconstructor.data.views import EYE_NEAR_M, View, novel_view
+from reconstructor.depth.fusion import fuse
+from reconstructor.evaluation.lpips import Lpips
+from reconstructor.evaluation.methods import (
+    METHODS,
+    EvalSettings,
+    method_config,
+    render_points,
+    render_splats,
+)
+from reconstructor.evaluation.metrics import psnr, ssim_value
+from reconstructor.evaluation.plan import Job
+from reconstructor.evaluation.tables import (
+    RECORDED,
+    EvalResults,
+    ImageScore,
+    TemporalScore,
+    filmstrip,
+    side_by_side,
+)
+from reconstructor.evaluation.temporal import temporal_scores
+from reconstructor.pipeline import make_views, reconstruct, stereo_clouds
+
+log = logging.getLogger(__name__)
+
+FILMSTRIP_TILE_PX = 240
+
+
+class EvalSource:
+    """What a run reads from the evaluation set, each file once: every scene's calibration for
+    the whole run, and the last timestamp read (the plan runs a timestamp's jobs one after
+    another; keeping more would hold ~15 MB of images per timestamp)."""
+
+    def __init__(self, eval_set: EvalSet) -> None:
+        self.eval_set = eval_set
+        self._scenes = {s.name: s for s in eval_set.scenes}
+        self._calibrations: dict[str, RigCalibration] = {}
+        self._last: tuple[tuple[str, int], Timestamp] | None = None
+
+    def scene(self, name: str) -> EvalScene:
+        return self._scenes[name]
+
+    def calibration(self, name: str) -> RigCalibration:
+        if name not in self._calibrations:
+            path = self.eval_set.path(self.scene(name).calibration)
+            self._calibrations[name] = RigCalibration.read(path)
+        return self._calibrations[name]
+
+    def set_count(self, name: str) -> int:
+        """The number of sets in the scene's session, after checking its calibration fits."""
+        scene = self.scene(name)
+        with SessionReader(self.eval_set.path(scene.session)) as reader:
+            check_calibration(reader.info, self.calibration(name), scene.calibration)
+            return len(reader.sets().set_unix_ns)
+
+    def timestamp(self, name: str, set_index: int) -> Timestamp:
+        key = (name, set_index)
+        if self._last is None or self._last[0] != key:
+            scene = self.scene(name)
+            ts = load_timestamp(
+                self.eval_set.path(scene.session),
+                self.calibration(name),
+                f"set:{set_index}",
+                calibration_source=str(self.eval_set.path(scene.calibration)),
+            )
+            self._last = (key, ts)
+        return self._last[1]
+
+    def image(self, view: ReferenceView) -> np.ndarray:
+        return self.eval_set.image(view)
+
+
+def _clock(seconds: float) -> str:
+    s = round(seconds)
+    return (
+        f"{s // 3600}h{s % 3600 // 60:02d}m{s % 60:02d}s"
+        if s >= 3600
+        else f"{s // 60}m{s % 60:02d}s"
+    )
+
+
+def _file_name(label: str) -> str:
+    """A PNG name for a label like ``intraoperative@set0_SN123-right`` (scene names are free
+    text in the set's manifest)."""
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in label.replace("@", "_"))
+    return f"{safe}.png"
+
+
+def _u8(image: np.ndarray) -> np.ndarray:
+    return (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+class JobRunner:
+    def __init__(
+        self,
+        settings: EvalSettings,
+        source: EvalSource,
+        out_dir: Path,
+        results: EvalResults,
+        lpips_model: Lpips | None,
+        *,
+        total_units: int,
+    ) -> None:
+        self.settings = settings
+        self.source = source
+        self.out_dir = out_dir
+        self.results = results
+        self.lpips = lpips_model
+        self.total = total_units
+        self.done = 0
+        self.started = time.perf_counter()
+        # (sequence, camera, method) -> frame index -> uint8 render
+        self.frames: dict[tuple[str, str, str], dict[int, np.ndarray]] = {}
+        self.sequence_phase: dict[str, str] = {}
+
+    def _tick(self, what: str, job: Job, seconds: float) -> None:
+        self.done += 1
+        elapsed = time.perf_counter() - self.started
+        eta = elapsed / self.done * (self.total - self.done)
+        log.info(
+            "[%d/%d] %s at %s (%s views): %.1f s; elapsed %s, ETA %s",
+            self.done,
+            self.total,
+            what,
+            job.scene.label,
+            job.train_views,
+            seconds,
+            _clock(elapsed),
+            _clock(eta),
+        )
+
+    def _save_config(self, name: str, text: str) -> None:
+        """A method's resolved config, as a reconstruction run saves it (the first scene's,
+        when the scenes' room bounds differ)."""
+        path = self.out_dir / "configs" / f"{name}.toml"
+        if not path.exists():
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(text)
+
+    def run(self, job: Job) -> None:
+        s, scene = self.settings, job.scene
+        ts = self.source.timestamp(scene.name, scene.set_index)
+        calibration = self.source.calibration(scene.name)
+        bounds = self.source.scene(scene.name).room_bounds_m  # () = unknown: the cameras' box
+        probe = method_config(s, "no-refinement", job.train_views, bounds).resolved(
+            ts.resolution.width
+        )
+        held_out = make_views(ts, probe)[1] if job.held_out_protocols or job.temporal else []
+        targets: list[View] = [*held_out, *(novel_view(v.camera) for v in job.ego_views)]
+        # an egocentric view is seen from a person's eye: their own head is left out
+        near = [0.0] * len(held_out) + [EYE_NEAR_M] * len(job.ego_views)
+
+        renders: dict[str, list[np.ndarray]] = {}
+        fused, voxel_m = None, probe.fusion.voxel_m
+        for key in (m for m in s.methods if METHODS[m].trained):
+            t0 = time.perf_counter()
+            cfg = method_config(s, key, job.train_views, bounds)
+            self._save_config(
+                f"{key}-{job.train_views}", cfg.resolved(ts.resolution.width).to_toml()
+            )
+            recon = reconstruct(ts, cfg, calibration=calibration)
+            renders[key] = [render_splats(recon, v, n) for v, n in zip(targets, near, strict=True)]
+            if METHODS[key].depth_init and fused is None:
+                fused, voxel_m = recon.fused, recon.config.fusion.voxel_m
+            if key == "egosurg":
+                self.results.refiner = str(recon.auxiliary.get("refiner", s.refiner))
+            del recon
+            seconds = time.perf_counter() - t0
+            self.results.recon_seconds.setdefault(key, []).append(seconds)
+            self._tick(key, job, seconds)
+        if "depth-reprojection" in s.methods:
+            if fused is None:
+                t0 = time.perf_counter()
+                fused = fuse(stereo_clouds(ts, probe)[0], probe.fusion)
+                self._tick("stereo + fusion for depth reprojection", job, time.perf_counter() - t0)
+            renders["depth-reprojection"] = [
+                render_points(fused, v, voxel_m, n) for v, n in zip(targets, near, strict=True)
+            ]
+        methods = [m for m in s.methods if m in renders]
+        self._score_held_out(job, held_out, methods, renders)
+        self._score_ego(job, len(held_out), methods, renders)
+
+    def _scores(self, img: np.ndarray, truth: np.ndarray, mask: np.ndarray | None) -> tuple:
+        lp = None if self.lpips is None else self.lpips.distance(img, truth, mask)
+        return psnr(img, truth, mask), ssim_value(img, truth, mask), lp
+
+    def _score_held_out(self, job: Job, views: list[View], methods: list[str], renders) -> None:
+        for i, view in enumerate(views):
+            truth, mask = view.image.numpy(), view.mask.numpy() > 0.5
+            if job.held_out_protocols:
+                for m in methods:
+                    p, q, lp = self._scores(renders[m][i], truth, mask)
+                    for protocol in job.held_out_protocols:
+                        self.results.image_scores.append(
+                            ImageScore(
+                                protocol, m, job.scene.phase, job.scene.label, view.name, p, q, lp
+                            )
+                        )
+                tiles = [
+                    ("recorded", truth),
+                    *((self.settings.label(m), renders[m][i]) for m in methods),
+                ]
+                for protocol in job.held_out_protocols:
+                    name = _file_name(f"{job.scene.label}_{view.name}")
+                    side_by_side(self.out_dir / protocol / "png" / name, tiles)
+            for sequence, k in job.temporal:
+                self.sequence_phase[sequence] = job.scene.phase
+                self.frames.setdefault((sequence, view.name, RECORDED), {})[k] = _u8(truth)
+                for m in methods:
+                    self.frames.setdefault((sequence, view.name, m), {})[k] = _u8(renders[m][i])
+
+    def _score_ego(self, job: Job, offset: int, methods: list[str], renders) -> None:
+        for i, view in enumerate(job.ego_views):
+            truth = self.source.image(view).astype(np.float32) / 255.0
+            scene = f"{job.scene.label}/{view.name}"
+            tiles = [(f"reference ({view.role or view.name})", truth)]
+            for m in methods:
+                img = renders[m][offset + i]
+                p, q, lp = self._scores(img, truth, None)
+                self.results.image_scores.append(
+                    ImageScore("egocentric", m, job.scene.phase, scene, view.name, p, q, lp)
+                )
+                tiles.append((self.settings.label(m), img))
+            name = _file_name(f"{job.scene.label}_{view.name}")
+            side_by_side(self.out_dir / "egocentric" / "png" / name, tiles)
+
+    def finish_temporal(self) -> None:
+        """Temporal scores of every complete sequence, and one filmstrip per sequence."""
+        strips: dict[tuple[str, str], list[tuple[str, list[np.ndarray]]]] = {}
+        for (sequence, view, method), by_frame in self.frames.items():
+            frames = [by_frame[k] for k in sorted(by_frame)]
+            sc = temporal_scores(frames)
+            t_lpips = None
+            if self.lpips is not None:
+                pairs = itertools.pairwise(frames)
+                t_lpips = float(np.mean([self.lpips.distance(a, b) for a, b in pairs]))
+            self.results.temporal_scores.append(
+                TemporalScore(
+                    method,
+                    self.sequence_phase[sequence],
+                    f"{sequence} {view}",
+                    view,
+                    sc.t_psnr_db,
+                    sc.t_ssim,
+                    t_lpips,
+                    sc.flicker,
+                    sc.pairs,
+                )
+            )
+            strips.setdefault((sequence, view), []).append(
+                (self.settings.label(method) if method != RECORDED else "recorded", frames)
+            )
+        shown: set[str] = set()
+        for (sequence, view), rows in strips.items():
+            if sequence in shown:  # one camera per sequence is enough to see flicker
+                continue
+            shown.add(sequence)
+            width = min(FILMSTRIP_TILE_PX, rows[0][1][0].shape[1])
+            name = _file_name(f"{sequence}_{view}")
+            filmstrip(self.out_dir / "temporal" / "png" / name, rows, width)
+        self.frames.clear()

@@ -1,0 +1,412 @@
+"""The evaluation: temporal metrics, LPIPS, reading an evaluation set and planning the protocols
+on it, and ``egosurg evaluate`` end to end at tiny settings on a small set that the real
+``egosurg sim eval-set`` writes once for this module."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import importlib.util
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from protocol.cli import main as egosurg
+from protocol.eval_set import EvalSet, EvalSetError
+from protocol.rig_calibration import RigCalibration
+from reconstructor.evaluation.doc import measured_order, order_holds
+from reconstructor.evaluation.lpips import LpipsWeightsError, backbone_state_dict, load_lpips
+from reconstructor.evaluation.methods import PROTOCOLS, EvalSettings, EvaluationArgumentError
+from reconstructor.evaluation.plan import plan
+from reconstructor.evaluation.run import check_plan
+from reconstructor.evaluation.runner import EvalSource
+from reconstructor.evaluation.temporal import pair_flicker, pair_psnr, pair_ssim, temporal_scores
+from tests.helpers import run_egosurg
+
+PHASE = "intraoperative"
+
+
+@pytest.fixture(scope="module")
+def eval_set(tmp_path_factory) -> EvalSet:
+    """One scene, three sets (the temporal protocol's smallest useful sequence), egocentric
+    reference views at set 0, small enough to render in a blink."""
+    out = tmp_path_factory.mktemp("evalset")
+    done = run_egosurg(
+        "sim", "eval-set", "--out", str(out), "--phases", PHASE, "--sets", "3",
+        "--eval-sets", "0", "--resolution", "SVGA", "--view-size", "160x100",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    return EvalSet.read(out)
+
+
+def _texture(h: int = 64, w: int = 96, seed: int = 0) -> np.ndarray:
+    """A smooth, textured uint8 image with values in [20, 200] (no clipping when brightened)."""
+    rng = np.random.default_rng(seed)
+    small = rng.uniform(20, 200, (h // 8, w // 8, 3)).astype(np.float32)
+    return cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC).clip(20, 200).astype(np.uint8)
+
+
+# ---- temporal metrics ------------------------------------------------------------------------
+
+
+def test_identical_frames_are_perfectly_stable():
+    img = _texture()
+    assert pair_psnr(img, img) == math.inf
+    assert pair_ssim(img, img) == pytest.approx(1.0, abs=1e-6)
+    assert pair_flicker(img, img) == 0.0
+    sc = temporal_scores([img, img.copy(), img.copy()])
+    assert (sc.t_psnr_db, sc.flicker, sc.pairs) == (math.inf, 0.0, 2)
+    assert sc.t_ssim == pytest.approx(1.0, abs=1e-6)
+
+
+def test_a_uniform_brightness_change_gives_the_hand_computed_scores():
+    img = _texture()
+    brighter = img + np.uint8(10)
+    # every pixel differs by 10/255: MSE = (10/255)², PSNR = 20 log10(255 / 10) = 28.13 dB
+    assert pair_psnr(img, brighter) == pytest.approx(28.1308, abs=1e-3)
+    # luminance rises by 10/255 in every block (the weights sum to 1), contrast is unchanged:
+    # flicker = (10/255) / 2
+    assert pair_flicker(img, brighter) == pytest.approx(0.5 * 10 / 255, rel=1e-9)
+    # float images: 0.5 -> 0.6 is an MSE of 0.01, 20 dB
+    grey = np.full((16, 16, 3), 0.5)
+    assert pair_psnr(grey, grey + 0.1) == pytest.approx(20.0, abs=1e-9)
+
+
+def test_flicker_counts_a_change_of_local_structure():
+    flat = np.full((16, 16, 3), 0.5)
+    checker = flat.copy()
+    checker[::2, ::2] = checker[1::2, 1::2] = 0.6
+    checker[::2, 1::2] = checker[1::2, ::2] = 0.4
+    # same block means; the contrast (SD) rises from 0 to 0.1 in every 8x8 block: flicker 0.1
+    assert pair_flicker(flat, checker) == pytest.approx(0.1, abs=1e-9)
+
+
+def _moving_square(frames: int, flicker_amplitude: float) -> list[np.ndarray]:
+    base = _texture().astype(np.float64) / 255
+    seq = []
+    for k in range(frames):
+        img = base.copy()
+        img[24:40, 8 + 4 * k : 24 + 4 * k] = 0.95  # a person-sized object walking across
+        img = img + (flicker_amplitude if k % 2 else -flicker_amplitude)
+        seq.append(img.clip(0, 1))
+    return seq
+
+
+def test_flicker_orders_a_flickering_sequence_above_a_steady_one():
+    steady = temporal_scores(_moving_square(8, 0.0))
+    flickering = temporal_scores(_moving_square(8, 0.03))
+    assert flickering.flicker > 2 * steady.flicker
+    assert flickering.t_psnr_db < steady.t_psnr_db and flickering.t_ssim < steady.t_ssim
+
+
+def test_temporal_scores_refuse_too_short_or_mismatched_sequences():
+    with pytest.raises(ValueError, match="at least two frames"):
+        temporal_scores([_texture()])
+    with pytest.raises(ValueError, match="differ in shape"):
+        pair_flicker(_texture(), _texture(32, 48))
+
+
+# ---- LPIPS -----------------------------------------------------------------------------------
+
+needs_lpips = pytest.mark.skipif(
+    importlib.util.find_spec("lpips") is None, reason="the lpips package (linear heads) is absent"
+)
+
+
+@needs_lpips
+def test_lpips_is_zero_for_identical_images_and_grows_with_distortion(tmp_path):
+    # AlexNet only: a random VGG16 is 59 MB to write and read for the same code path
+    torch.manual_seed(0)
+    weights = tmp_path / "alex.pth"
+    torch.save(backbone_state_dict("alex"), weights)  # torchvision's layout, random values
+    model = load_lpips(weights)
+    assert model.net == "alex"
+    img = _texture(64, 96).astype(np.float32) / 255
+    rng = np.random.default_rng(1)
+    assert model.distance(img, img) == pytest.approx(0.0, abs=1e-7)
+    d = [
+        model.distance(img, (img + rng.normal(0, s, img.shape)).clip(0, 1).astype(np.float32))
+        for s in (0.02, 0.08, 0.3)
+    ]
+    assert 0 < d[0] < d[1] < d[2]
+    # uint8 input is the same image scaled by 1/255
+    u8 = (img * 255 + 0.5).astype(np.uint8)
+    assert model.distance(u8, u8) == pytest.approx(0.0, abs=1e-7)
+
+
+@needs_lpips
+def test_lpips_refuses_weights_that_are_not_alexnet_or_vgg(tmp_path):
+    with pytest.raises(LpipsWeightsError, match="does not exist"):
+        load_lpips(tmp_path / "missing.pth")
+    partial = {k: v for k, v in backbone_state_dict("alex").items() if k.startswith("features.0")}
+    torch.save(partial, tmp_path / "partial.pth")
+    with pytest.raises(LpipsWeightsError, match="AlexNet"):
+        load_lpips(tmp_path / "partial.pth")
+
+
+# ---- the evaluation set: reading it, and planning the protocols on it -----------------------
+
+
+def test_a_timestamp_is_the_session_s_set_with_its_calibration(eval_set):
+    scene = eval_set.scenes[0]
+    source = EvalSource(eval_set)
+    calibration = RigCalibration.read(eval_set.path(scene.calibration))
+    ts = source.timestamp(scene.name, 2)
+    assert ts.set_index == 2 and ts.missing_serials == ()
+    assert ts.t_s == pytest.approx(2.0 + 2 / 15, abs=1e-6)  # session time is sim time
+    assert len(ts.frames) == 8 and len(ts.stereo_pairs()) == 4
+    for frame in ts.frames:
+        sensor = calibration.sensor(frame.camera_serial, frame.side)
+        np.testing.assert_allclose(frame.camera.pose.matrix, sensor.pose.matrix, atol=1e-12)
+        assert frame.image_rgb.shape == (600, 960, 3) and frame.image_rgb.dtype == np.uint8
+    assert source.timestamp(scene.name, 2) is ts  # read once for the jobs of one timestamp
+    assert source.timestamp(scene.name, 0).set_index == 0
+    assert source.set_count(scene.name) == 3
+
+
+def test_plan_reuses_reconstructions_across_protocols(eval_set):
+    s = EvalSettings(protocols=("near-field", "phases", "temporal"))
+    jobs = plan(s, eval_set)
+    # sets 0, 1, 2 of the one scene; set 0 serves near-field, phases and the sequence's start
+    assert [(j.scene.label, j.train_views) for j in jobs] == [
+        (f"{PHASE}@set0", "left"), (f"{PHASE}@set1", "left"), (f"{PHASE}@set2", "left")
+    ]  # fmt: skip
+    first = jobs[0]
+    assert first.scene.phase == PHASE
+    assert first.held_out_protocols == ["near-field", "phases"]
+    assert [j.temporal for j in jobs] == [[(f"{PHASE}@set0", k)] for k in range(3)]
+    assert jobs[1].held_out_protocols == [] and jobs[2].ego_views == []
+
+
+def test_plan_egocentric_takes_every_reference_view_of_the_set(eval_set):
+    scene = eval_set.scenes[0]
+    jobs = plan(EvalSettings(protocols=PROTOCOLS), eval_set)
+    # a timestamp's jobs run one after the other: left (held out, temporal), then all (views)
+    assert [(j.scene.set_index, j.train_views) for j in jobs] == [
+        (0, "left"), (0, "all"), (1, "left"), (2, "left")
+    ]  # fmt: skip
+    ego = jobs[1]
+    assert ego.ego_views == scene.views_at(0) and len(ego.ego_views) >= 2
+    assert {v.role for v in ego.ego_views} >= {"surgeon", "anaesthetist"}
+
+
+def test_a_protocol_the_set_cannot_serve_is_refused_by_name(eval_set):
+    bare = dataclasses.replace(
+        eval_set,
+        scenes=tuple(
+            dataclasses.replace(sc, views=(), temporal_sets=(0,), phase="")
+            for sc in eval_set.scenes
+        ),
+    )
+    for protocol, words in (
+        ("egocentric", "reference views"),
+        ("temporal", "at least two temporal_sets"),
+        ("phases", "a phase"),
+    ):
+        with pytest.raises(EvaluationArgumentError, match=f"--protocol {protocol}: .*{words}"):
+            plan(EvalSettings(protocols=(protocol,)), bare)
+    assert len(plan(EvalSettings(protocols=("near-field",)), bare)) == 1
+
+
+def test_scenes_and_phases_choose_among_the_set_s_scenes(eval_set):
+    with pytest.raises(EvaluationArgumentError, match=f"--scenes nope: .* it has {PHASE}"):
+        plan(EvalSettings(scenes=("nope",)), eval_set)
+    with pytest.raises(EvaluationArgumentError, match=f"--phases empty: .*phases: {PHASE}"):
+        plan(EvalSettings(phases=("empty",)), eval_set)
+    assert len(plan(EvalSettings(scenes=(PHASE,), phases=(PHASE,)), eval_set)) == 1
+
+
+def test_a_set_index_the_session_lacks_fails_before_any_work(eval_set):
+    late = dataclasses.replace(
+        eval_set, scenes=(dataclasses.replace(eval_set.scenes[0], eval_sets=(0, 7)),)
+    )
+    jobs = plan(EvalSettings(), late)
+    with pytest.raises(EvalSetError, match=f"scene '{PHASE}' asks for set 7 .* holds 3 sets"):
+        check_plan(jobs, EvalSource(late))
+
+
+def test_steps_split_like_the_papers_500_plus_1500():
+    for steps, warmup, refine in ((2000, 500, 1500), (8, 2, 6), (10, 3, 7), (1, 0, 1)):
+        s = EvalSettings(steps=steps)
+        assert (s.warmup_steps, s.refine_steps) == (warmup, refine)
+
+
+@pytest.mark.parametrize(
+    ("given", "protocols"),
+    [
+        (["egocentric", "near-field"], ("near-field", "egocentric")),  # the paper's order
+        (["phases", "phases"], ("phases",)),
+        (["near-field", "all"], PROTOCOLS),
+    ],
+)
+def test_several_protocols_can_be_chosen_at_once(given, protocols):
+    from reconstructor.evaluation.cli import build_parser, settings_from_args
+
+    args = build_parser().parse_args(["set", "--out", "o", "--protocol", *given])
+    assert settings_from_args(args).protocols == protocols
+
+
+def test_ordering_check_on_the_papers_own_tables():
+    # Table 3A PSNR follows depth reprojection < image-only < w/o diffusion < EgoSurg
+    psnr_3a = {
+        "depth-reprojection": 16.4,
+        "image-only": 18.0,
+        "no-refinement": 24.3,
+        "egosurg": 26.8,
+    }
+    assert order_holds(psnr_3a, "psnr_db")
+    # LPIPS is lower-is-better: the same ordering with falling values
+    lpips_3a = {"depth-reprojection": 0.8, "image-only": 0.416, "no-refinement": 0.182}
+    assert order_holds(lpips_3a, "lpips")
+    # Table 4 SSIM does not: image-only .694 is above w/o diffusion .641
+    ssim_4 = {
+        "depth-reprojection": 0.239,
+        "image-only": 0.694,
+        "no-refinement": 0.641,
+        "egosurg": 0.766,
+    }
+    assert not order_holds(ssim_4, "ssim")
+    assert measured_order(ssim_4, "ssim") == [
+        "depth-reprojection", "no-refinement", "image-only", "egosurg"
+    ]  # fmt: skip
+    assert order_holds({"egosurg": 20.0}, "psnr_db") is None  # one method: nothing to order
+
+
+# ---- the command -----------------------------------------------------------------------------
+
+
+@pytest.mark.slow  # the whole reconstruction chain
+def test_evaluate_command_writes_tables_pictures_and_the_report(eval_set, tmp_path, caplog):
+    out, doc = tmp_path / "eval", tmp_path / "EVALUATION.md"
+    args = [
+        "evaluate", str(eval_set.root), "--out", str(out), "--steps", "8", "--train-width", "160",
+        "--methods", "depth-reprojection", "no-refinement", "--write-doc", str(doc),
+    ]  # fmt: skip
+    caplog.set_level("INFO", logger="reconstructor.evaluation.runner")
+    assert egosurg(args) == 0  # in this process: the fixture ran the command as a subprocess
+    assert "[1/1] no-refinement" in caplog.text and "ETA" in caplog.text
+
+    with open(out / "near-field" / "scores.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 4 * 2  # four held-out right cameras, two methods
+    assert {r["method"] for r in rows} == {"depth-reprojection", "no-refinement"}
+    calibration = RigCalibration.read(eval_set.path(eval_set.scenes[0].calibration))
+    assert {r["view"] for r in rows} == {f"SN{s}-right" for s in calibration.camera_serials}
+    assert {(r["phase"], r["scene"]) for r in rows} == {(PHASE, f"{PHASE}@set0")}
+    for r in rows:
+        assert 5.0 < float(r["psnr_db"]) < 40.0 and 0.0 < float(r["ssim"]) < 1.0
+        assert r["lpips"] == ""
+    # even 8 steps of training beat drawing the fused points (measured: 11.9 dB against 9.7)
+    by_method = {m: np.mean([float(r["psnr_db"]) for r in rows if r["method"] == m]) for m in
+                 ("depth-reprojection", "no-refinement")}  # fmt: skip
+    assert by_method["no-refinement"] > by_method["depth-reprojection"] + 1.0, by_method
+    table = (out / "near-field" / "table.md").read_text()
+    assert "steps 8 (2 warm-up + 6 refinement), training width 160 px" in table
+    assert eval_set.description in table
+    assert "| EgoSurg w/o refinement |" in table and "n/a (no --lpips-weights)" in table
+    pngs = sorted((out / "near-field" / "png").glob("*.png"))
+    assert len(pngs) == 4
+    img = cv2.imread(str(pngs[0]))
+    assert img.shape == (100, 3 * 160, 3)  # recorded | depth reprojection | w/o refinement
+    assert (out / "configs" / "no-refinement-left.toml").exists()
+    settings = json.loads((out / "settings.json").read_text())
+    assert settings["eval_set"] == str(eval_set.root)
+    assert settings["eval_set_description"] == eval_set.description
+
+    report = doc.read_text()
+    # both steps that made it: the evaluation set, with every option the fixture gave it (its
+    # description carries the command), and the evaluation
+    made = next(x for x in report.splitlines() if "egosurg sim eval-set --out" in x)
+    command = made.split("#")[0].split()
+    assert command[:4] == ["egosurg", "sim", "eval-set", "--out"]
+    given = {"--out": str(eval_set.root), "--phases": PHASE, "--sets": "3", "--eval-sets": "0",
+             "--resolution": "SVGA", "--view-size": "160x100"}  # fmt: skip
+    for option, value in given.items():
+        assert command[command.index(option) + 1] == value, made
+    assert "egosurg evaluate " + " ".join(args[1:]) in report
+    assert "Table 3A" in report and "16.4 ± 0.2" in report  # the paper's number beside ours
+    assert "PSNR (dB) ↑: the paper's ordering" in report
+    assert "Not run in this evaluation (add `--protocol egocentric`" in report
+
+
+@pytest.mark.slow  # the whole reconstruction chain
+def test_egocentric_scores_renders_against_the_set_s_reference_views(eval_set, tmp_path, capsys):
+    out = tmp_path / "ego"
+    args = ["evaluate", str(eval_set.root), "--out", str(out), "--protocol", "egocentric"]
+    assert egosurg([*args, "--methods", "depth-reprojection", "--train-width", "160"]) == 0
+    views = eval_set.scenes[0].views_at(0)
+    with open(out / "egocentric" / "scores.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert sorted(r["view"] for r in rows) == sorted(v.name for v in views)
+    assert len({r["scene"] for r in rows}) == len(views)  # mean ± SD over views
+    for r in rows:
+        # the fused points seen from a person's eyes resemble the reference only roughly
+        assert 3.0 < float(r["psnr_db"]) < 30.0 and -0.2 < float(r["ssim"]) < 1.0, r
+    pngs = sorted((out / "egocentric" / "png").glob("*.png"))
+    assert len(pngs) == len(views)
+    # the reference view at its own size (160 x 100) beside the render at the same camera
+    assert cv2.imread(str(pngs[0])).shape == (100, 2 * 160, 3)
+    assert "| Depth reprojection |" in capsys.readouterr().out
+
+
+def test_a_missing_or_bad_evaluation_set_is_one_line(eval_set, tmp_path, capsys):
+    assert egosurg(["evaluate", str(tmp_path / "nowhere"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert err.startswith("egosurg evaluate: error: ") and "egosurg sim eval-set" in err
+    # a set whose scenes have no reference views cannot serve the egocentric protocol
+    bare = dataclasses.replace(
+        eval_set, scenes=tuple(dataclasses.replace(sc, views=()) for sc in eval_set.scenes)
+    )
+    manifest = eval_set.root / "no_views.toml"  # beside the set: its paths are relative
+    manifest.write_text(bare.to_toml())
+    args = ["evaluate", str(manifest), "--out", str(tmp_path / "o"), "--protocol", "egocentric"]
+    assert egosurg(args) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert "--protocol egocentric" in err and "reference views" in err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(
+    ("extra", "words"),
+    [
+        (["--protocol", "sideways"], ["--protocol", "sideways"]),
+        (["--methods", "nerf"], ["--methods nerf", "depth-reprojection"]),
+        (["--steps", "0"], ["--steps 0"]),
+        (["--steps", "many"], ["--steps", "many"]),
+        (["--phases", "wand"], ["--phases wand", PHASE]),
+        (["--scenes", "or-2"], ["--scenes or-2", PHASE]),
+        (["--lpips-weights", "/nonexistent/alexnet.pth"], ["/nonexistent/alexnet.pth"]),
+        (["--refiner", "no-such-refiner"], ["no-such-refiner"]),
+    ],
+)
+def test_bad_arguments_give_one_line_errors(extra, words, eval_set, tmp_path, capsys):
+    assert egosurg(["evaluate", str(eval_set.root), "--out", str(tmp_path / "o"), *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith("egosurg evaluate: error:")
+    for w in words:
+        assert w in err
+    assert not (tmp_path / "o").exists()  # nothing written before the arguments are good
+
+
+def test_a_bad_value_is_named_in_exactly_one_line(eval_set, tmp_path, capsys):
+    assert egosurg(["evaluate", str(eval_set.root), "--out", str(tmp_path), "--steps", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err == "egosurg evaluate: error: --steps 0: must be at least 1 (the paper uses 2000)\n"
+
+
+def test_the_evaluation_set_and_out_are_required(tmp_path, capsys):
+    assert egosurg(["evaluate", "--out", str(tmp_path / "o")]) == 2
+    assert "EVALSET" in capsys.readouterr().err
+    target = tmp_path / "file.txt"
+    target.write_text("x")
+    assert egosurg(["evaluate", str(tmp_path), "--out", str(target)]) == 2
+    assert "is a file" in capsys.readouterr().err
+    assert Path(target).read_text() == "x"

@@ -1,0 +1,213 @@
+"""Fuzzing, a bounded sample in the test pass (``bench/bench_fuzz.py`` runs 100k+ cases): what
+arrives from the network or lies on a damaged disk is rejected with the project's named error,
+never a crash or a hang, and the daemons answer every control request and keep serving.
+
+The mutators and checks are ``tests/fuzzing.py``'s; hypothesis draws every choice, so a failure
+shrinks to a small message or a single damaged offset."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from capture_agent.config import AgentEndpoint, NodeConfig, RigConfig, SecurityConfig
+from sim.deploy import free_ports
+from tests import fuzzing
+from tests.fuzzing import DataChooser
+
+# No example database: the test pass must not write into the checkout.
+FAST = settings(max_examples=300, deadline=None, database=None)
+SOCKET = settings(
+    max_examples=150,
+    deadline=None,
+    database=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+
+
+# -- decoders -----------------------------------------------------------------------------------
+@FAST
+@given(st.data())
+def test_a_receiver_gets_a_message_or_a_malformed_error_from_any_published_parts(data):
+    """Mutated frames (part counts, header fields, lengths, bodies) and status messages."""
+    parts = fuzzing.frame_case(DataChooser(data))
+    assert fuzzing.decode_frame_or_status(parts) in ("accepted", "rejected")
+
+
+@FAST
+@given(st.data())
+def test_a_frame_with_any_header_field_changed_is_read_or_rejected(data):
+    c = DataChooser(data)
+    parts = fuzzing.valid_frame_parts(c)
+    parts[0] = fuzzing.mutate_header(c, parts[0])
+    assert fuzzing.decode_frame_or_status(parts) in ("accepted", "rejected")
+
+
+@FAST
+@given(st.data())
+def test_any_agent_status_body_is_read_or_rejected(data):
+    assert fuzzing.decode_control(fuzzing.status_case(DataChooser(data)), "status") in (
+        "accepted",
+        "rejected",
+    )
+
+
+@FAST
+@given(st.data())
+def test_any_control_request_or_reply_is_read_or_rejected(data):
+    c = DataChooser(data)
+    assert fuzzing.decode_control(fuzzing.control_case(c)[0], "request") in ("accepted", "rejected")
+    assert fuzzing.decode_control(fuzzing.reply_case(c), "reply") in ("accepted", "rejected")
+
+
+@FAST
+@given(st.binary(max_size=300), st.sampled_from(["request", "reply", "status"]))
+def test_random_bytes_are_rejected_by_every_json_decoder(raw, kind):
+    assert fuzzing.decode_control(raw, kind) == "rejected"
+
+
+# -- the daemons' control sockets -------------------------------------------------------------
+@pytest.fixture(scope="module")
+def recorder_control(tmp_path_factory):
+    """A real recorder, its I/O thread running, plaintext links, no agent streaming."""
+    from capture_agent.recorder import Recorder
+
+    control, frames, agent_control = free_ports(3)
+    cfg = RigConfig(
+        rig_name="fuzz",
+        fps=30.0,
+        control_bind=f"tcp://127.0.0.1:{control}",
+        output_dir=str(tmp_path_factory.mktemp("fuzz-rec") / "sessions"),
+        agents=(
+            AgentEndpoint(
+                node_id="n0",
+                frames=f"tcp://127.0.0.1:{frames}",
+                control=f"tcp://127.0.0.1:{agent_control}",
+                cameras=(11,),
+            ),
+        ),
+        require_ptp_lock=False,
+        disk_reserve_gb=0.0,
+        security=SecurityConfig(insecure=True),  # the links are tests/test_security.py's
+    )
+    recorder = Recorder(cfg)
+    recorder.start()
+    probe = fuzzing.ControlProbe(cfg.control_bind)
+    try:
+        yield recorder, probe
+    finally:
+        probe.close()
+        recorder.stop()
+
+
+@pytest.fixture(scope="module")
+def agent_control():
+    """A real agent with one simulated camera, plaintext links."""
+    from capture_agent.agent import Agent
+
+    fport, cport = free_ports(2)
+    table = {
+        "node_id": "orin-f",
+        "frames_bind": f"tcp://127.0.0.1:{fport}",
+        "control_bind": f"tcp://127.0.0.1:{cport}",
+        "ptp": {"source": "none", "require_lock": False},
+        "cameras": [
+            {
+                "source": "sim",
+                "seed": 2,
+                "camera_index": 0,
+                "fps": 5.0,
+                "epoch_unix_ns": (time.time_ns() // 10**9 - 1) * 10**9,
+                "content_fps": 0.5,
+                "prerender_s": 2.0,
+                "pre_encode": "jpeg",
+            }
+        ],
+        "security": {"insecure": True},
+    }
+    agent = Agent(NodeConfig.from_table(table, "fuzz node.toml"))
+    agent.start()
+    probe = fuzzing.ControlProbe(f"tcp://127.0.0.1:{cport}")
+    try:
+        yield agent, probe
+    finally:
+        probe.close()
+        agent.stop()
+
+
+@SOCKET
+@given(st.data())
+def test_the_recorder_answers_every_control_request_once_and_keeps_serving(recorder_control, data):
+    recorder, probe = recorder_control
+    reply = probe.send(fuzzing.control_case(DataChooser(data)))
+    assert reply.ok or reply.error
+    assert recorder.recording is None  # no fuzzed start got a take going without cameras
+    assert recorder._thread is not None and recorder._thread.is_alive()
+
+
+@SOCKET
+@given(st.data())
+def test_the_agent_answers_every_control_request_once_and_keeps_serving(agent_control, data):
+    agent, probe = agent_control
+    reply = probe.send(fuzzing.control_case(DataChooser(data)))
+    assert reply.ok or reply.error
+    assert all(t.is_alive() for t in agent._threads)
+
+
+def test_the_hostile_requests_of_issue_24_are_answered(recorder_control, agent_control):
+    """The exact inputs that used to stop the daemons: 'hello', a version-2 envelope, an unknown
+    verb, two parts, a case of 520k backslashes."""
+    from protocol.messages import MAX_JSON_BYTES
+
+    hostile = [
+        [b"hello"],
+        [b'{"egosurg":"control","version":2,"verb":"status","args":{},"request_id":"x"}'],
+        [b'{"egosurg":"control","version":1,"verb":"reboot","args":{},"request_id":"x"}'],
+        [b"hello", b"world"],
+        [
+            b'{"egosurg":"control","version":1,"verb":"start","args":{"case":"'
+            + b"\\\\" * 260_000
+            + b'"},"request_id":"x"}'
+        ],
+    ]
+    for _daemon, probe in (recorder_control, agent_control):
+        for parts in hostile:
+            reply = probe.send(parts)
+            assert not reply.ok and len(reply.to_bytes()) < MAX_JSON_BYTES // 100
+
+
+# -- the session reader on damaged files ------------------------------------------------------
+@pytest.fixture(scope="module")
+def small_session(tmp_path_factory):
+    path = fuzzing.write_small_session(tmp_path_factory.mktemp("fuzz-session") / "fuzz.h5")
+    worker = fuzzing.ReaderWorker()
+    try:
+        assert worker.read(path)["outcome"] == "accepted"  # the undamaged file reads
+        original = path.read_bytes()
+        yield path, original, fuzzing.live_ranges(original), worker
+    finally:
+        worker.close()
+
+
+@settings(
+    max_examples=120,
+    deadline=None,
+    database=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+@given(st.data())
+def test_a_damaged_session_is_read_or_refused_with_a_session_format_error(
+    small_session, tmp_path_factory, data
+):
+    """Truncated anywhere, bytes flipped or zeroed anywhere: the reader (in a child process,
+    killed after READ_LIMIT_S) reads it or raises SessionFormatError, never hangs or crashes."""
+    path, original, live, worker = small_session
+    damaged, what = fuzzing.damage(DataChooser(data), original, live)
+    target = Path(path).with_name("damaged.h5")
+    target.write_bytes(damaged)
+    result = worker.read(target)
+    assert result["outcome"] in ("accepted", "rejected"), f"{what}: {result}"
