@@ -25,6 +25,7 @@ import logging
 import os
 import stat
 import threading
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -322,7 +323,7 @@ class LinkGuard:
                 s.close(linger=0)
             self._monitors.clear()
 
-    def _on_event(self, domain: str, event: dict[str, Any]) -> None:
+    def _on_event(self, domain: str, event: Mapping[str, Any]) -> None:
         if event["event"] == zmq.EVENT_HANDSHAKE_FAILED_AUTH or not (
             event["event"] & _HANDSHAKE_FAILED
         ):

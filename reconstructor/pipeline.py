@@ -64,6 +64,9 @@ log = logging.getLogger(__name__)
 Progress = Callable[[str, int, int, StepStats], None]
 # called after warm-up with the trainer and the input views; returns the views for refinement
 RefineHook = Callable[[Trainer, Sequence[View]], Sequence[View]]
+# called after fusion with the timestamp, its fused cloud and depth maps; returns the Gaussians
+# training starts from (a case's warm start: the previous timestamp's model, updated)
+InitHook = Callable[[Timestamp, FusedCloud, "dict[str, DepthMap]"], Gaussians]
 
 
 @dataclass
@@ -165,12 +168,14 @@ def reconstruct(
     calibration: RigCalibration | None = None,
     progress: Progress | None = None,
     refine: RefineHook | None = None,
+    init: InitHook | None = None,
 ) -> Reconstruction:
     """Reconstruct one timestamp; write the outputs when ``out_dir`` is given.
 
     The stages, in order: depth (stereo and hole filling), init (fusion and the Gaussians),
     warm-up, auxiliary views (the refiner's, or the caller's ``refine`` hook), refinement, and
-    the outputs. ``timings_s`` of the result has one entry per stage.
+    the outputs. ``timings_s`` of the result has one entry per stage. A caller's ``init`` hook
+    replaces the initial Gaussians (the fused cloud is still made and passed to it).
     """
     cfg = config.resolved(ts.frames[0].camera.intrinsics.width_px)
     timings: dict[str, float] = {}
@@ -185,6 +190,8 @@ def reconstruct(
         bounds = world_bounds(cfg, calibration)
         with _timed(timings, "fusion_init"):
             fused, gaussians = _init_stage(clouds, train_views, bounds, cfg)
+            if init is not None:
+                gaussians = init(ts, fused, depths)
         trainer = Trainer(gaussians, cfg.train, cfg.raster, scene_extent_m(train_views))
         with _timed(timings, "warmup"):
             trainer.run(train_views, cfg.train.warmup_steps, stage="warm-up", progress=progress)

@@ -184,16 +184,33 @@ def test_the_hostile_requests_of_issue_24_are_answered(recorder_control, agent_c
 
 
 # -- the session reader on damaged files ------------------------------------------------------
+class _Session:
+    """The small session, its bytes and the reader's worker (a short repr: hypothesis prints
+    its arguments when a case fails)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.original = path.read_bytes()
+        self.live = fuzzing.live_ranges(self.original)
+        self.worker = fuzzing.ReaderWorker()
+
+    def read(self, data: bytes, name: str) -> dict:
+        target = self.path.with_name(name)
+        target.write_bytes(data)
+        return self.worker.read(target, READ_LIMIT_S)
+
+    def __repr__(self) -> str:
+        return f"<session {self.path.name}, {len(self.original)} bytes>"
+
+
 @pytest.fixture(scope="module")
 def small_session(tmp_path_factory):
-    path = fuzzing.write_small_session(tmp_path_factory.mktemp("fuzz-session") / "fuzz.h5")
-    worker = fuzzing.ReaderWorker()
+    session = _Session(fuzzing.write_small_session(tmp_path_factory.mktemp("fuzz") / "fuzz.h5"))
     try:
-        assert worker.read(path)["outcome"] == "accepted"  # the undamaged file reads
-        original = path.read_bytes()
-        yield path, original, fuzzing.live_ranges(original), worker
+        assert session.read(session.original, "copy.h5")["outcome"] == "accepted"  # it reads
+        yield session
     finally:
-        worker.close()
+        session.worker.close()
 
 
 @settings(
@@ -205,16 +222,11 @@ def small_session(tmp_path_factory):
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )
 @given(st.data())
-def test_a_damaged_session_is_read_or_refused_with_a_session_format_error(
-    small_session, tmp_path_factory, data
-):
+def test_a_damaged_session_is_read_or_refused_with_a_session_format_error(small_session, data):
     """Truncated anywhere, bytes flipped or zeroed anywhere: the reader (in a child process,
     killed after READ_LIMIT_S) reads it or raises SessionFormatError, never hangs or crashes."""
-    path, original, live, worker = small_session
-    damaged, what = fuzzing.damage(DataChooser(data), original, live)
-    target = Path(path).with_name("damaged.h5")
-    target.write_bytes(damaged)
-    result = worker.read(target, READ_LIMIT_S)
+    damaged, what = fuzzing.damage(DataChooser(data), small_session.original, small_session.live)
+    result = small_session.read(damaged, "damaged.h5")
     assert result["outcome"] in ("accepted", "rejected"), f"{what}: {result}"
 
 
@@ -222,13 +234,11 @@ def test_a_damaged_global_heap_length_is_refused_without_hanging(small_session):
     """Found by bench_fuzz.py: the length of the variable-length string holding the summary
     JSON, cut from 24 to 15 bytes in HDF5's global heap, made opening the file hang in HDF5
     (reading the root attributes) for minutes."""
-    path, original, _live, worker = small_session
+    original = small_session.original
     text = b'{"rejected_messages": 0}'
     at = original.index(text) - 8  # the heap object's 8-byte size field precedes its data
     assert int.from_bytes(original[at : at + 8], "little") == len(text)
     damaged = bytearray(original)
     damaged[at : at + 8] = (15).to_bytes(8, "little")
-    target = Path(path).with_name("heap.h5")
-    target.write_bytes(bytes(damaged))
-    result = worker.read(target, READ_LIMIT_S)
+    result = small_session.read(bytes(damaged), "heap.h5")
     assert result["outcome"] in ("accepted", "rejected"), result

@@ -402,10 +402,10 @@ def test_a_rig_config_needs_every_agents_key(keys):
 
 
 def test_insecure_links_warn_at_every_start(keys, caplog):
-    table = _rig_table(keys, "tcp://127.0.0.1:1", "tcp://127.0.0.1:2", [1])
-    table["security"] = {"insecure": True}
-    cfg = RigConfig.from_table(table, str(keys.parent / "rig.toml"))
     for _ in range(2):
+        table = _rig_table(keys, "tcp://127.0.0.1:1", "tcp://127.0.0.1:2", [1])  # a new port
+        table["security"] = {"insecure": True}
+        cfg = RigConfig.from_table(table, str(keys.parent / "rig.toml"))
         caplog.clear()
         recorder = Recorder(cfg)
         recorder.open_sockets()

@@ -60,23 +60,24 @@ class SgbmWlsMatcher(StereoMatcher):
             mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
         )
         right_matcher = cv2.ximgproc.createRightMatcher(left_matcher)
-        # SGBM leaves the first min_d + num_d columns unmatched; black padding on the left lets
-        # it match every pixel whose partner is inside the right image (~9% more points).
+        # SGBM leaves the first min_d + num_d columns of the left view unmatched, and the right
+        # view's matcher (which searches rightwards) the last ones. Black padding on both sides
+        # lets each match every pixel whose partner is inside the other image; padding only on
+        # the left emptied the right-most ~max_disparity columns through the left-right check.
         pad = min_d + num_d
-        lp = cv2.copyMakeBorder(left_rgb, 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0)
-        rp = cv2.copyMakeBorder(right_rgb, 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0)
+        lp = cv2.copyMakeBorder(left_rgb, 0, 0, pad, pad, cv2.BORDER_CONSTANT, value=0)
+        rp = cv2.copyMakeBorder(right_rgb, 0, 0, pad, pad, cv2.BORDER_CONSTANT, value=0)
         disp_left = left_matcher.compute(lp, rp)
         disp_right = right_matcher.compute(rp, lp)
         wls = cv2.ximgproc.createDisparityWLSFilter(left_matcher)
         wls.setLambda(cfg.wls_lambda)
         wls.setSigmaColor(cfg.wls_sigma_color)
-        filtered = wls.filter(disp_left, lp, disparity_map_right=disp_right)[:, pad:]
-        disp_left = disp_left[:, pad:]
-        disp_right = disp_right[:, pad:]
-        raw_l = disp_left.astype(np.float32) / 16.0  # SGBM's fixed point: 1/16 px
-        raw_r = -disp_right.astype(np.float32) / 16.0  # the right matcher's disparities are < 0
+        crop = slice(pad, pad + left_rgb.shape[1])
+        filtered = wls.filter(disp_left, lp, disparity_map_right=disp_right)[:, crop]
+        raw_l = sgbm_disparity(disp_left[:, crop], min_d, num_d)
+        raw_r = sgbm_disparity(disp_right[:, crop], min_d, num_d, right_view=True)
         out = filtered.astype(np.float32) / 16.0
-        ok = lr_consistent(raw_l, raw_r, cfg.lr_max_diff_px) & (raw_l >= min_d)
+        ok = lr_consistent(raw_l, raw_r, cfg.lr_max_diff_px)
         ok &= np.abs(out - raw_l) <= cfg.wls_max_change_px
         ok &= (
             zncc_at_disparity(
@@ -89,6 +90,22 @@ class SgbmWlsMatcher(StereoMatcher):
 
 
 HIGHPASS_SIGMA_PX = 3.0  # removes shading gradients, which correlate at any disparity
+
+
+def sgbm_disparity(
+    fixed_point: np.ndarray, min_d: int, num_d: int, *, right_view: bool = False
+) -> np.ndarray:
+    """(H, W) float32 positive disparities in px from OpenCV's int16 1/16-px output, NaN where
+    OpenCV wrote its invalid code or anything outside the searched range.
+
+    The left matcher searches ``[min_d, min_d + num_d)``; the right-view matcher (from
+    ``createRightMatcher``) searches the negated range ``[-(min_d + num_d) + 1, -min_d]``.
+    OpenCV's invalid code is ``(minDisparity - 1) * 16``, which for the right view negates to
+    ``min_d + num_d``: a plausible-looking disparity unless it is masked here.
+    """
+    disp = fixed_point.astype(np.float32) / (-16.0 if right_view else 16.0)
+    searched = (disp >= min_d) & (disp <= min_d + num_d - 1)
+    return np.where(searched, disp, np.float32(np.nan)).astype(np.float32)
 
 
 def lr_consistent(disp_left: np.ndarray, disp_right: np.ndarray, max_diff_px: float) -> np.ndarray:

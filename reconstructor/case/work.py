@@ -1,0 +1,197 @@
+"""One chain of a case's timestamps, run where a worker runs it (this process, a pool process
+or a Ray task): read each set from the session on shared storage, reconstruct it, publish its
+model atomically, and say what was made. Only the runner writes the index.
+
+A model is published as ``models/<name>.ply``: written to ``.<name>.ply.<pid>.partial`` beside
+it, fsynced, then renamed, so a reader (and the index) sees the whole file or none. Its
+quaternions are normalised on the way out: viewers assume unit length, and training leaves them
+between about 0.74 and 1.06. The run folder (log, summary, config) goes to ``runs/<name>/``.
+
+This module imports torch only inside functions, so a spawned worker can set its thread count
+(``limit_threads``) before torch or numba start their pools.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from reconstructor.case.index import fsync_dir
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class StepJob:
+    name: str
+    set_index: int
+    warm_from: str = ""  # the name of the timestamp this one starts from ("": cold)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ChainJob:
+    """Everything a worker needs, as plain values (it crosses process and machine borders)."""
+
+    case_dir: str
+    session: str
+    calibration: str
+    config_toml: str  # the cold config
+    warm_toml: str  # the warm timestamps' config ("" without warm start)
+    warm: dict[str, Any] = field(default_factory=dict)  # WarmStartConfig fields
+    steps: tuple[StepJob, ...] = ()
+    threads: int = 0  # 0: leave torch's and numba's defaults
+
+
+@dataclass(frozen=True, kw_only=True)
+class StepResult:
+    name: str
+    ok: bool
+    model: str = ""
+    xxh3_64: str = ""
+    bytes: int = 0
+    seconds: float = 0.0
+    cpu_s: float = 0.0
+    gaussians: int = 0
+    warm_from: str = ""
+    error: str = ""
+    counts: dict[str, int] = field(default_factory=dict)
+
+
+def limit_threads(threads: int) -> None:
+    """At most ``threads`` compute threads in this process (torch, numba, OpenMP, BLAS)."""
+    if threads <= 0:
+        return
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[var] = str(threads)
+    os.environ.setdefault("NUMBA_NUM_THREADS", str(threads))
+    import numba
+    import torch
+
+    torch.set_num_threads(threads)
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+
+
+def run_chain(job: ChainJob, progress: Any = None, on_done: Any = None) -> list[StepResult]:
+    """Reconstruct the chain's timestamps in order; a failed one is reported, and the ones
+    after it that would start from it start cold instead. ``on_done(result)`` is called after
+    each (the in-process runner updates the index there)."""
+    limit_threads(job.threads)
+    results = []
+    previous_failed = ""
+    for step in job.steps:
+        warm_from = "" if step.warm_from == previous_failed else step.warm_from
+        result = run_step(job, step, warm_from, progress)
+        previous_failed = "" if result.ok else step.name
+        results.append(result)
+        if on_done is not None:
+            on_done(result)
+    return results
+
+
+def run_step(job: ChainJob, step: StepJob, warm_from: str, progress: Any) -> StepResult:
+    from protocol.errors import UserError
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    try:
+        made = _reconstruct(job, step, warm_from, progress)
+    except UserError as exc:
+        return StepResult(name=step.name, ok=False, error=str(exc))
+    except Exception as exc:  # a bug in one timestamp must not lose the others
+        log.exception("timestamp %s failed", step.name)
+        return StepResult(name=step.name, ok=False, error=f"{type(exc).__name__}: {exc}")
+    return StepResult(
+        name=step.name,
+        ok=True,
+        seconds=round(time.perf_counter() - t0, 3),
+        cpu_s=round(time.process_time() - c0, 3),
+        warm_from=warm_from,
+        **made,
+    )
+
+
+def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) -> dict[str, Any]:
+    from protocol.rig_calibration import RigCalibration
+    from reconstructor.case.warm import WarmStartConfig, warm_seed
+    from reconstructor.config import ReconstructConfig
+    from reconstructor.data.frames import load_timestamp
+    from reconstructor.pipeline import reconstruct
+    from reconstructor.splats import ply
+
+    case = Path(job.case_dir)
+    calibration = RigCalibration.read(job.calibration)
+    ts = load_timestamp(job.session, calibration, f"set:{step.set_index}")
+    init = None
+    counts: dict[str, int] = {}
+    if warm_from:
+        config = ReconstructConfig.from_toml(job.warm_toml, "the case's warm config")
+        previous = ply.read_ply(case / "models" / f"{warm_from}.ply")
+        warm = WarmStartConfig(**job.warm)
+
+        def init(ts_, fused, depths):  # type: ignore[no-untyped-def]
+            g, c = warm_seed(previous, ts_, fused, depths, warm, config.init)
+            counts.update(c)
+            return g
+    else:
+        config = ReconstructConfig.from_toml(job.config_toml, "the case's config")
+    work = case / ".work" / f"{step.name}.{os.getpid()}"
+    shutil.rmtree(work, ignore_errors=True)
+    result = reconstruct(ts, config, work, calibration=calibration, progress=progress, init=init)
+    model = publish_model(result.gaussians, case / "models" / f"{step.name}.ply")
+    digest, size = _checksum(model)
+    _keep_run_folder(work, case / "runs" / step.name)
+    return {
+        "model": f"models/{step.name}.ply",
+        "xxh3_64": digest,
+        "bytes": size,
+        "gaussians": result.gaussians.num,
+        "counts": counts,
+    }
+
+
+def publish_model(gaussians: Any, path: Path) -> Path:
+    """Write the model with unit quaternions to ``path`` atomically."""
+    from reconstructor.splats import ply
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    ply.write_ply(tmp, unit_quaternions(gaussians))
+    with tmp.open("rb") as f:
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    fsync_dir(path.parent)
+    return path
+
+
+def unit_quaternions(gaussians: Any) -> Any:
+    """The same Gaussians with each quaternion scaled to length 1 (the rotation is unchanged;
+    a zero quaternion becomes the identity)."""
+    import torch
+
+    from reconstructor.splats.gaussians import Gaussians
+
+    q = gaussians.quats_wxyz.detach()
+    norm = q.norm(dim=1, keepdim=True)
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=q.dtype)
+    unit = torch.where(norm > 1e-12, q / norm.clamp_min(1e-12), identity)
+    return Gaussians(**{**gaussians.parameters_dict(), "quats_wxyz": unit})
+
+
+def _checksum(path: Path) -> tuple[str, int]:
+    from reconstructor.case.index import checksum_file
+
+    return checksum_file(path)
+
+
+def _keep_run_folder(work: Path, target: Path) -> None:
+    """The run's log, summary and config move to ``runs/<name>/``; its splats.ply (the
+    published model holds it) and points.ply (the fused cloud, as large again) do not."""
+    for name in ("splats.ply", "points.ply"):
+        (work / name).unlink(missing_ok=True)
+    shutil.rmtree(target, ignore_errors=True)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    os.replace(work, target)

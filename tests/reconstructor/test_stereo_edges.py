@@ -1,0 +1,74 @@
+"""The SGBM+WLS matcher answers up to the right edge of the image: a user's depth maps are not
+missing the right-most ``max_disparity`` columns of every camera (issue 22, part 0)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from reconstructor.depth.sgbm import SgbmWlsMatcher, sgbm_disparity
+from reconstructor.depth.stereo_config import StereoConfig
+
+TRUE_DISPARITY_PX = 21.5
+
+
+def _rectified_pair(height: int = 160, width: int = 480, seed: int = 0):
+    """A textured plane at one known disparity, seen by a rectified pair: the left image at
+    ``x`` shows what the right one shows at ``x - d``. The texture fills both images to their
+    right edges, so every left pixel from ``x = d`` on has its partner inside the right image."""
+    rng = np.random.default_rng(seed)
+    scene = cv2.GaussianBlur(
+        rng.uniform(0, 255, (height, width + 40, 3)).astype(np.float32), (0, 0), 1.0
+    )
+    left = scene[:, :width]
+    shift = np.float32([[1, 0, -TRUE_DISPARITY_PX], [0, 1, 0]])
+    right = cv2.warpAffine(scene, shift, (width, height), flags=cv2.INTER_LINEAR)
+
+    def sensor(img: np.ndarray) -> np.ndarray:  # independent noise in each sensor
+        return np.clip(img + rng.normal(0, 2, img.shape), 0, 255).astype(np.uint8)
+
+    return sensor(left), sensor(right)
+
+
+def test_a_known_disparity_is_recovered_in_the_right_most_columns():
+    """The last 60 columns are as dense and as accurate as the centre. Before the fix (padding
+    on the left only) the right-view matcher could not search there, its invalid code read as a
+    disparity, and the left-right check emptied the last ~45 columns of this pair."""
+    left, right = _rectified_pair()
+    disp = SgbmWlsMatcher(StereoConfig()).match(
+        left, right, min_disparity_px=4.0, max_disparity_px=60.0
+    )
+    rows = slice(10, -10)  # the block's own top and bottom border
+    for name, cols in (("centre", slice(200, 280)), ("right edge", slice(-60, None))):
+        d = disp[rows, cols]
+        valid = np.isfinite(d)
+        err = np.abs(d[valid] - TRUE_DISPARITY_PX)
+        assert valid.mean() >= 0.9, f"{name}: only {valid.mean():.0%} of pixels matched"
+        assert np.median(err) < 0.3, f"{name}: median error {np.median(err):.2f} px"
+        assert np.mean(err <= 1.0) > 0.98, f"{name}: {np.mean(err > 1.0):.1%} off by > 1 px"
+    last = disp[rows, -10:]
+    assert np.isfinite(last).mean() >= 0.8  # up to the very last columns
+
+
+def test_opencv_invalid_codes_are_never_read_as_disparities():
+    """OpenCV writes (minDisparity - 1) * 16 where it has no match; for the right-view matcher
+    that negates to min_d + num_d, a plausible disparity unless masked."""
+    min_d, num_d = 3, 64
+    left_codes = np.array([[(min_d - 1) * 16, min_d * 16, (min_d + num_d - 1) * 16, 40 * 16 + 8]])
+    right_codes = np.array(
+        [[-(min_d + num_d) * 16, -min_d * 16, -(min_d + num_d - 1) * 16, -(40 * 16 + 8)]]
+    )
+    expected = np.array([[np.nan, min_d, min_d + num_d - 1, 40.5]], np.float32)
+    np.testing.assert_array_equal(
+        sgbm_disparity(left_codes.astype(np.int16), min_d, num_d), expected
+    )
+    np.testing.assert_array_equal(
+        sgbm_disparity(right_codes.astype(np.int16), min_d, num_d, right_view=True), expected
+    )
+    # and what OpenCV itself writes for the right view where it has no match
+    right_matcher = cv2.ximgproc.createRightMatcher(
+        cv2.StereoSGBM.create(minDisparity=min_d, numDisparities=num_d, blockSize=5)
+    )
+    blank = np.zeros((40, 120), np.uint8)
+    raw = right_matcher.compute(blank, blank)
+    assert np.isnan(sgbm_disparity(raw, min_d, num_d, right_view=True)[:, -10:]).all()
