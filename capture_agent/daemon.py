@@ -69,6 +69,9 @@ class SystemdNotifier:
         if path.startswith(("/", "@")):
             self.address = "\0" + path[1:] if path.startswith("@") else path
             self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+            # A receiver that does not read (its queue holds net.unix.max_dgram_qlen datagrams)
+            # must not block the daemon: a message that does not fit is dropped.
+            self._sock.setblocking(False)
         elif path:
             log.warning("NOTIFY_SOCKET=%r is not a unix socket path; not notifying systemd", path)
         usec = environ.get("WATCHDOG_USEC", "")

@@ -34,6 +34,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "reconstructor.cli:main_reconstruct",
         "3D Gaussian splats of chosen timestamps of a session",
     ),
+    "case": ("reconstructor.case.cli:main", "a batch-reconstructed case: info, export"),
     "render": ("reconstructor.cli:main_render", "render a splat model from any viewpoint"),
     "evaluate": (
         "reconstructor.evaluation.cli:main",

@@ -9,6 +9,7 @@ Examples::
         --refiner-weights ~/weights/difix_ref
     egosurg reconstruct case.h5 --at 12.5 --out ablation/ --no-refinement
     egosurg reconstruct case.h5 --at 12.5 --out baseline/ --init random --no-refinement
+    egosurg reconstruct case.h5 --every 1s --out case/ --workers 2     # a whole case
     egosurg render recon/t0012.500/splats.ply --camera SN41234567-left --out view.png
     egosurg render recon/t0012.500/splats.ply --camera "eye=2.0,-1.5,1.7 target=0,0,1" \\
         --hfov 80 --size 960x600 --out view.png
@@ -95,9 +96,19 @@ def reconstruct_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("session", help="a session recorded by 'egosurg record'")
     parser.add_argument("--calibration", help="calibration.toml (default: beside the session)")
-    parser.add_argument(
-        "--at", required=True, action="append", help="time in s, or set:N (repeatable)"
+    parser.add_argument("--at", action="append", help="time in s, or set:N (repeatable)")
+    case = parser.add_argument_group("a whole case (docs/case.md)")
+    case.add_argument("--every", help="one timestamp per this interval: 1s, 0.5s, 500ms")
+    case.add_argument("--from", dest="from_s", type=float, help="first time, s (default: start)")
+    case.add_argument("--to", dest="to_s", type=float, help="last time, s (default: end)")
+    case.add_argument("--workers", type=int, default=1, help="processes, one timestamp each")
+    case.add_argument("--ray", metavar="auto|ADDRESS", help="run the timestamps as Ray tasks")
+    case.add_argument(
+        "--warm-start", action="store_true", help="start each timestamp from the one before it"
     )
+    case.add_argument("--warm-steps", type=int, help="training steps of a warm timestamp (250)")
+    case.add_argument("--keyframe-every", type=int, help="a cold timestamp every N (10)")
+    case.add_argument("--force", action="store_true", help="redo a case made with other settings")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--config", help="a config TOML with settings to change")
     parser.add_argument("--steps", type=int, help="total training steps (default 2000)")
@@ -137,6 +148,16 @@ def main_reconstruct(argv: list[str]) -> int:
     calibration, cal_path = find_calibration(session, args.calibration)
     config = ReconstructConfig.read(args.config) if args.config else ReconstructConfig()
     config = _with_options(config, args)
+    if bool(args.at) == bool(args.every):
+        raise ReconstructArgumentError(
+            "give --at TIME (single timestamps) or --every INTERVAL (a whole case), not both"
+            if args.at
+            else "give --at TIME for single timestamps or --every INTERVAL for a whole case"
+        )
+    if args.every:
+        from reconstructor.case.cli import reconstruct_case
+
+        return reconstruct_case(args, session, cal_path, config)
     out = Path(args.out)
     for at in args.at:
         from reconstructor.pipeline import reconstruct

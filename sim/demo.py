@@ -17,7 +17,9 @@ Stages so far:
 5. evaluate that timestamp as the paper does (``egosurg evaluate``): stage 2's session, the
    calibration and every person's true egocentric view at that instant become an evaluation set
    (``protocol/eval_set.py``), and the table compares depth reprojection, EgoSurg without
-   refinement and EgoSurg against those views.
+   refinement and EgoSurg against those views;
+6. batch-reconstruct three consecutive timestamps from there as a case (``egosurg reconstruct
+   --every ... --warm-start``, a short schedule) and print its summary (``egosurg case info``).
 
 Each stage runs through the ``egosurg`` command as a user would run it.
 """
@@ -46,7 +48,7 @@ from sim.timing import ClockSpec
 from sim.truth import align_to_truth, calibration_errors, content_time_s, true_rig_calibration
 from sim.world import World
 
-STAGES = 5
+STAGES = 6
 
 
 def _stage(k: int, text: str) -> None:
@@ -305,6 +307,27 @@ def stage_evaluation(out: Path, seed: int, phase: str, stamp: DemoTimestamp, ste
         print("      evaluation failed; see the message above")
 
 
+def stage_batch(out: Path, stamp: DemoTimestamp, steps: int) -> None:
+    _stage(6, "batch: three consecutive timestamps as a case, warm-started, then its summary")
+    with SessionReader(stamp.session) as reader:
+        started = reader.info.started_unix_ns
+        set_ns = reader.sets().set_unix_ns
+    t_s = (int(set_ns[stamp.set_index]) - started) / 1e9
+    t_s = min(t_s, (int(set_ns[-1]) - started) / 1e9 - 0.45)  # room for three at 0.2 s
+    case = out / "case"
+    done = _egosurg(
+        "reconstruct", str(stamp.session), "--calibration", str(stamp.calibration),
+        "--config", str(stamp.config), "--every", "0.2s", "--from", f"{t_s:.3f}",
+        "--to", f"{t_s + 0.4:.3f}", "--out", str(case), "--steps", str(max(steps // 4, 1)),
+        "--train-views", "left", "--no-refinement", "--warm-start",
+        "--warm-steps", str(max(steps // 32, 1)),
+    )  # fmt: skip
+    if done.returncode != 0:
+        print("      batch reconstruction failed; see the message above")
+        return
+    _egosurg("case", "info", str(case))
+
+
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(
         prog="egosurg demo",
@@ -330,5 +353,6 @@ def main(argv: list[str]) -> int:
     stamp = stage_reconstruction(out, args.seed, session, files, calibration, args.steps)
     if stamp is not None:
         stage_evaluation(out, args.seed, files.spec.phase, stamp, args.steps)
+        stage_batch(out, stamp, args.steps)
     print(f"demo finished in {time.perf_counter() - t0:.0f} s; everything is under {out}/")
     return 0

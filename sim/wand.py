@@ -4,11 +4,14 @@ sinusoids with seeded frequencies and phases: smooth, deterministic, and defined
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
+from protocol.camera import Camera
 from protocol.wand import WandSpec
+from sim.wand_tour import Tour, coverage_tour
 
 HANDLE_M = 0.25  # rod beyond the first sphere, where the operator holds it
 ROD_RADIUS_M = 0.006
@@ -24,6 +27,16 @@ class WandMotion:
     # the volume the rig must reconstruct, seen by all four cameras at 2.5-4.5 m
     centre_m: tuple[float, float, float] = (0.0, 0.0, 1.45)
     half_extent_m: tuple[float, float, float] = (1.3, 1.0, 0.4)
+    # the rig's (left) cameras: when given, the operator takes the wand through every camera's
+    # view (sim/wand_tour.py) instead of only over the table, as the calibration report asks
+    cameras: tuple[Camera, ...] = ()
+    half_room_m: tuple[float, float] = (3.5, 3.0)
+
+    @functools.cached_property
+    def tour(self) -> Tour | None:
+        if not self.cameras:
+            return None
+        return coverage_tour(self.cameras, self.half_room_m, np.asarray(self.centre_m))
 
     def _params(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         rng = np.random.default_rng([self.seed, 0xA4D])
@@ -37,9 +50,12 @@ class WandMotion:
         freqs, phases, weights = self._params()
         w = weights / weights.sum(axis=0)
         wave = (w * np.sin(freqs * t_s + phases)).sum(axis=0)
-        centre = np.asarray(self.centre_m) + np.asarray(self.half_extent_m) * np.clip(
-            wave * 1.6, -1, 1
-        )
+        if self.tour is None:
+            centre = np.asarray(self.centre_m) + np.asarray(self.half_extent_m) * np.clip(
+                wave * 1.6, -1, 1
+            )
+        else:  # the tour, with the seeded wave as a small hand tremor around it
+            centre = self.tour.position(t_s - self.floor_lie_s) + 0.06 * wave
         yaw = 0.9 * t_s + phases[0, 0]
         pitch = 0.9 * np.sin(0.53 * t_s + phases[1, 1])  # mostly horizontal, sometimes steep
         direction = np.array(

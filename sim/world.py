@@ -81,7 +81,18 @@ class World:
         )
         self.rig: tuple[ZedUnit, ...] = build_rig(cfg.seed, cfg.room)
         self.wand_motion = WandMotion(
-            spec=cfg.wand, seed=cfg.seed, floor_lie_s=cfg.wand_floor_lie_s
+            spec=cfg.wand,
+            seed=cfg.seed,
+            floor_lie_s=cfg.wand_floor_lie_s,
+            cameras=tuple(
+                Camera(
+                    name=f"SN{u.serial}",
+                    intrinsics=u.factory.stereo("HD1200").left,
+                    pose=u.left_pose,
+                )
+                for u in self.rig
+            ),
+            half_room_m=(cfg.room.length_x_m / 2, cfg.room.width_y_m / 2),
         )
         self.show_wand = self.script.with_wand if cfg.show_wand is None else cfg.show_wand
         self._scene_cache = functools.lru_cache(maxsize=2)(self._build_scene)

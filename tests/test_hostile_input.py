@@ -592,30 +592,41 @@ def test_both_daemons_report_the_age_of_each_loops_progress(rig):
     assert all(age < 5 for age in reply.result["progress_age_s"].values())
 
 
-def _notify_socket() -> tuple[socket.socket, str]:
-    path = str(Path(tempfile.mkdtemp(prefix="egs-", dir="/tmp")) / "notify")
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    sock.bind(path)
-    sock.settimeout(0.2)
-    return sock, path
+class Notifications:
+    """Reads the datagrams sent to a real AF_UNIX socket, as systemd would, in a thread (the
+    socket's queue holds only a few datagrams)."""
 
+    def __init__(self) -> None:
+        self.path = str(Path(tempfile.mkdtemp(prefix="egs-", dir="/tmp")) / "notify")
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(self.path)
+        self.sock.settimeout(0.1)
+        self.got: list[str] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
 
-def _datagrams(sock: socket.socket, until, timeout_s: float) -> list[str]:
-    got: list[str] = []
-    deadline = time.monotonic() + timeout_s
-    while not until(got):
-        assert time.monotonic() < deadline, f"no such notification within {timeout_s} s: {got}"
-        try:
-            got.append(sock.recv(4096).decode())
-        except TimeoutError:
-            pass
-    return got
+    def _read(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.got.append(self.sock.recv(4096).decode())
+            except TimeoutError:
+                pass
+
+    def wait_for(self, until, timeout_s: float) -> list[str]:
+        _wait_until(lambda: until(list(self.got)), timeout_s, f"a notification in {self.got}")
+        return list(self.got)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.sock.close()
 
 
 def test_a_loop_that_stops_making_progress_stops_the_daemon_for_systemd(monkeypatch):
     """A thread alive but stuck is a stall: the watchdog pings stop and the daemon exits 1."""
-    sock, path = _notify_socket()
-    monkeypatch.setenv("NOTIFY_SOCKET", path)
+    notes = Notifications()
+    monkeypatch.setenv("NOTIFY_SOCKET", notes.path)
     monkeypatch.setenv("WATCHDOG_USEC", "200000")
     progress = Progress("io")
     hang, done = threading.Event(), threading.Event()
@@ -637,10 +648,10 @@ def test_a_loop_that_stops_making_progress_stops_the_daemon_for_systemd(monkeypa
             stall_limit_s=0.5,
         )
         assert code == 1
-        got = _datagrams(sock, lambda g: any("STOPPING=1" in m for m in g), 5)
+        got = notes.wait_for(lambda g: "STOPPING=1" in g, 5)
     finally:
         timer.cancel()
-        sock.close()
+        notes.close()
     assert got[0].splitlines() == ["READY=1", "STATUS=toy daemon"]
     stalled = next(i for i, m in enumerate(got) if m.startswith("STATUS=stalled"))
     assert "no progress in io" in got[stalled]
@@ -669,8 +680,8 @@ frames = "tcp://127.0.0.1:{frames}"
 control = "tcp://127.0.0.1:{agent_control}"
 """
     )
-    sock, path = _notify_socket()
-    env = {"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "400000", "PATH": "/usr/bin:/bin"}
+    notes = Notifications()
+    env = {"NOTIFY_SOCKET": notes.path, "WATCHDOG_USEC": "400000", "PATH": "/usr/bin:/bin"}
     log_path = tmp_path / "recorder.log"
     proc = subprocess.Popen(
         [sys.executable, "-m", "protocol.cli", "recorder", "--config", str(rig_toml)],
@@ -679,18 +690,18 @@ control = "tcp://127.0.0.1:{agent_control}"
         stderr=log_path.open("wb"),
     )
     try:
-        got = _datagrams(sock, lambda g: sum(m == "WATCHDOG=1" for m in g) >= 3, 60)
+        got = notes.wait_for(lambda g: g.count("WATCHDOG=1") >= 3, 60)
         assert got[0].startswith("READY=1\nSTATUS=egosurg recorder notify")
         assert _request(f"tcp://127.0.0.1:{control}", "heartbeat").ok
-        got += _datagrams(sock, lambda g: any(m.startswith("STATUS=idle") for m in g), 30)
+        notes.wait_for(lambda g: any(m.startswith("STATUS=idle") for m in g), 30)
         proc.send_signal(signal.SIGTERM)
-        got += _datagrams(sock, lambda g: "STOPPING=1" in g, 20)
+        notes.wait_for(lambda g: "STOPPING=1" in g, 20)
         assert proc.wait(timeout=30) == 0
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait(timeout=10)
-        sock.close()
+        notes.close()
     assert "Traceback" not in log_path.read_text(errors="replace")
 
 

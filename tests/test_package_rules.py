@@ -38,7 +38,9 @@ RECONSTRUCTOR_PARTS: dict[str, set[str]] = {
     "config": {"data", "depth", "splats", "refine", "raster"} | _SHARED,
     "pipeline": {"data", "depth", "splats", "refine", "raster", "config"} | _SHARED,
     "evaluation": {"data", "depth", "splats", "refine", "raster", "config", "pipeline"} | _SHARED,
+    "case": {"data", "depth", "splats", "refine", "raster", "config", "pipeline"} | _SHARED,
     "cli": {"data", "depth", "splats", "refine", "raster", "config", "pipeline", "evaluation"}
+    | {"case"}
     | _SHARED,
     "__init__": {"splats"},  # the CPU's denormal setting, before any worker thread starts
 }

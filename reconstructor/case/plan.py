@@ -85,7 +85,7 @@ def plan_timestamps(
             raise CasePlanError(f"{name} {value:g} is outside the session: {valid}")
     if lo > hi:
         raise CasePlanError(f"--from {lo:g} is after --to {hi:g}; {valid}")
-    count = int(math.floor((hi - lo) / every_s + 1e-6)) + 1
+    count = math.floor((hi - lo) / every_s + 1e-6) + 1
     wanted = lo + every_s * np.arange(count)
     out: dict[int, PlannedTimestamp] = {}
     for w in wanted:

@@ -21,7 +21,9 @@ def test_sphere_centres_project_to_where_the_spheres_appear(wand_world):
     radius = world.config.wand.radius_m
     checked = 0
     errors: list[float] = []
-    for t in (5.0, 7.5, 10.0):
+    # the operator's tour takes the wand near each camera too; the check below is for 2.5 m
+    # and beyond, where the ellipse bias is small (it grows as a sphere comes near, off-axis)
+    for t in (5.0, 7.5, 10.0, 12.5, 15.0):
         centres = world.wand_centres(t)
         for unit in world.rig:
             view = world.render_sensor(unit.index, "left", t, "HD1200")
@@ -29,10 +31,13 @@ def test_sphere_centres_project_to_where_the_spheres_appear(wand_world):
             for k in range(3):
                 expected_area = np.pi * (view.camera.intrinsics.fx_px * radius / depth[k]) ** 2
                 seen = (view.object_index == SPHERE_OBJECT_BASE + k).sum()
-                if seen < 0.9 * expected_area:  # occluded or out of view: nothing to check
+                if seen < 0.9 * expected_area or depth[k] < 2.5:  # occluded, out of view, near
                     continue
                 u, v = np.round(px[k]).astype(int)
                 half = int(np.ceil(view.camera.intrinsics.fx_px * radius / depth[k])) + 3
+                others = np.delete(px, k, axis=0)
+                if (np.abs(others - px[k]).max(axis=1) < 2 * half + 1).any():
+                    continue  # another sphere in the window: the silhouette is not this one's
                 win = view.image_rgb[v - half : v + half + 1, u - half : u + half + 1]
                 w = _silhouette(win)
                 ys, xs = np.mgrid[v - half : v + half + 1, u - half : u + half + 1]

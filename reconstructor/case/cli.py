@@ -1,0 +1,203 @@
+"""``egosurg reconstruct ... --every`` (a whole case) and ``egosurg case info|export``.
+
+Examples::
+
+    egosurg reconstruct CASE.h5 --calibration calibration.toml --every 1s --out case/
+    egosurg reconstruct CASE.h5 --from 60 --to 120 --every 0.5s --out case/ --workers 2
+    egosurg reconstruct CASE.h5 --every 1s --out case/ --ray auto
+    egosurg reconstruct CASE.h5 --every 1s --out case/ --warm-start
+    egosurg case info case/
+    egosurg case export case/ --out ply/ [--at t00060.000] [--format splat]
+
+Rerunning the same ``reconstruct`` command resumes: finished timestamps are checked by checksum
+and skipped; the rest are (re)done. docs/case.md describes the folder and its index.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+from typing import Any
+
+from reconstructor.case.index import INDEX_NAME, CaseFolderError, CaseIndex, verify
+from reconstructor.case.plan import (
+    config_hash,
+    parse_duration_s,
+    plan_timestamps,
+    session_times,
+)
+from reconstructor.case.runner import CaseRequest, run_case
+from reconstructor.case.warm import WarmStartConfig
+from reconstructor.config import ReconstructConfig
+
+
+def warm_config(config: ReconstructConfig, warm: WarmStartConfig) -> ReconstructConfig:
+    """A warm timestamp's settings: ``warm.steps`` on the input views, no auxiliary views."""
+    train = dataclasses.replace(config.train, warmup_steps=warm.steps, refine_steps=0)
+    aux = dataclasses.replace(config.auxiliary, enabled=False)
+    return dataclasses.replace(config, train=train, auxiliary=aux)
+
+
+def reconstruct_case(
+    args: argparse.Namespace, session: Path, cal_path: Path, config: ReconstructConfig
+) -> int:
+    """The ``--every`` form of ``egosurg reconstruct``."""
+    every_s = parse_duration_s(args.every)
+    times = session_times(session)
+    planned = plan_timestamps(times, every_s, args.from_s, args.to_s)
+    if args.workers < 1:
+        raise CaseFolderError(f"--workers {args.workers}: give 1 or more processes")
+    warm_toml, warm_fields = "", {}
+    if args.warm_start:
+        warm = WarmStartConfig(
+            steps=args.warm_steps or WarmStartConfig.steps,
+            keyframe_every=args.keyframe_every or WarmStartConfig.keyframe_every,
+        )
+        warm_toml = warm_config(config, warm).to_toml()
+        warm_fields = dataclasses.asdict(warm)
+    calibration_text = cal_path.read_text()
+    req = CaseRequest(
+        case_dir=Path(args.out),
+        session=session.resolve(),
+        session_started_unix_ns=times.started_unix_ns,
+        calibration_text=calibration_text,
+        config_toml=config.to_toml(),
+        warm_toml=warm_toml,
+        warm=warm_fields,
+        config_hash=config_hash(config.to_toml(), calibration_text, warm_toml),
+        planned=tuple(planned),
+        workers=args.workers,
+        ray=args.ray or "",
+        force=args.force,
+    )
+    index = run_case(req, step_progress=_StepBar() if args.workers <= 1 and not args.ray else None)
+    print(summary_line(req.case_dir, index))
+    failed = [e for e in index.timestamps if e.status == "failed"]
+    for e in failed:
+        print(f"{e.name}: failed: {e.error}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+class _StepBar:
+    """A second progress bar over the steps of the timestamp being trained (one worker)."""
+
+    def __init__(self) -> None:
+        self.bar: Any = None
+        self.stage = ""
+
+    def __call__(self, stage: str, k: int, n: int, stats: Any) -> None:
+        from tqdm import tqdm
+
+        if self.bar is None or stage != self.stage:
+            if self.bar is not None:
+                self.bar.close()
+            self.bar = tqdm(total=n, desc=stage, unit="step", position=1, leave=False)
+            self.stage = stage
+        self.bar.update(k - self.bar.n)
+        self.bar.set_postfix(loss=f"{stats.loss:.4f}", refresh=False)
+        if k == n:
+            self.bar.close()
+            self.bar = None
+
+
+def summary_line(folder: Path, index: CaseIndex) -> str:
+    c = index.counts()
+    size = sum(e.bytes for e in index.timestamps if e.status == "done")
+    return (
+        f"{folder}: {c['done']} done, {c['pending']} pending, {c['failed']} failed; "
+        f"{size / 1e6:.1f} MB of models"
+    )
+
+
+def info(folder: Path) -> str:
+    index = _read(folder)
+    c = index.counts()
+    done = [e for e in index.timestamps if e.status == "done"]
+    lines = [
+        f"case {folder}  session {index.session}",
+        f"config hash {index.config_hash}  warm start {'on' if index.warm_start else 'off'}",
+        f"timestamps {len(index.timestamps)}: {c['done']} done, {c['pending']} pending, "
+        f"{c['failed']} failed",
+    ]
+    if done:
+        total_mb = sum(e.bytes for e in done) / 1e6
+        secs = [e.seconds for e in done]
+        lines.append(
+            f"models {total_mb:.1f} MB ({total_mb / len(done):.2f} MB per timestamp); "
+            f"seconds per timestamp: mean {sum(secs) / len(secs):.1f}, min {min(secs):.1f}, "
+            f"max {max(secs):.1f}; total {sum(secs):.0f} s"
+        )
+    lines.append(f"{'name':<12} {'set':>6} {'status':<8} {'MB':>7} {'s':>7} {'gaussians':>9} from")
+    for e in index.timestamps:
+        lines.append(
+            f"{e.name:<12} {e.set_index:>6} {e.status:<8} {e.bytes / 1e6:>7.2f} "
+            f"{e.seconds:>7.1f} {e.gaussians:>9} {e.warm_from or '-'}"
+            + (f"  {e.error}" if e.error else "")
+        )
+    return "\n".join(lines)
+
+
+def export(folder: Path, out: Path, at: list[str] | None, fmt: str) -> list[Path]:
+    """Each done (or each named) timestamp as a standard 3DGS PLY (or .splat) with unit
+    quaternions, checked against its checksum first."""
+    from reconstructor.case.work import unit_quaternions
+    from reconstructor.splats import ply
+
+    index = _read(folder)
+    rows = index.by_name()
+    names = at or [e.name for e in index.timestamps if e.status == "done"]
+    unknown = [n for n in names if n not in rows]
+    if unknown:
+        raise CaseFolderError(
+            f"{', '.join(unknown)}: not in the case; 'egosurg case info {folder}' lists its names"
+        )
+    if not names:
+        raise CaseFolderError(f"{folder} has no finished timestamp to export yet")
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name in names:
+        e = rows[name]
+        if not verify(folder, e):
+            raise CaseFolderError(
+                f"{name} is {e.status}, or its model fails its checksum; rerun the reconstruct "
+                "command to (re)make it"
+            )
+        g = unit_quaternions(ply.read_ply(folder / e.model))
+        target = out / f"{name}.{fmt}"
+        (ply.write_splat if fmt == "splat" else ply.write_ply)(target, g)
+        written.append(target)
+    return written
+
+
+def _read(folder: Path) -> CaseIndex:
+    if not (folder / INDEX_NAME).exists():
+        raise CaseFolderError(
+            f"{folder} is not a case folder (no {INDEX_NAME}); make one with 'egosurg "
+            "reconstruct SESSION.h5 --every 1s --out FOLDER'"
+        )
+    return CaseIndex.read(folder)
+
+
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(
+        prog="egosurg case",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = parser.add_subparsers(dest="verb", required=True)
+    p_info = sub.add_parser("info", help="what is done, pending, failed; sizes; timings")
+    p_info.add_argument("case", help="a case folder made by 'egosurg reconstruct --every'")
+    p_exp = sub.add_parser("export", help="timestamps as standard 3DGS PLY (or .splat) files")
+    p_exp.add_argument("case")
+    p_exp.add_argument("--out", required=True, help="folder to write the files to")
+    p_exp.add_argument("--at", action="append", help="a timestamp's name (repeatable; default all)")
+    p_exp.add_argument("--format", choices=("ply", "splat"), default="ply")
+    args = parser.parse_args(argv)
+    if args.verb == "info":
+        print(info(Path(args.case)))
+        return 0
+    files = export(Path(args.case), Path(args.out), args.at, args.format)
+    print(f"{args.out}: {len(files)} file(s) exported")
+    return 0

@@ -1,0 +1,183 @@
+"""A whole case through the real ``egosurg reconstruct --every`` and ``egosurg case`` commands:
+the folder and its index, resume after SIGKILL, bad inputs. Reconstructions are tiny (96 px
+wide, a few steps, stereo at quarter scale) so a timestamp takes well under a second."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xxhash
+
+from reconstructor.splats import ply
+from sim.eval_set import EvalSetSpec, write_eval_set
+from tests.helpers import REPO, run_egosurg
+
+TINY = """
+train_max_width_px = 96
+[stereo]
+match_scale = 0.25
+[fill]
+enabled = false
+[fusion]
+max_points = 20000
+[train]
+warmup_steps = {steps}
+refine_steps = 0
+[auxiliary]
+enabled = false
+"""
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory) -> tuple[Path, Path]:
+    """Six consecutive sets (15 fps, 2.0 s to 2.33 s) of the intraoperative sim, and a tiny
+    config."""
+    root = tmp_path_factory.mktemp("case")
+    spec = EvalSetSpec(phases=("intraoperative",), sets=6, eval_sets=(0,), view_size_px=(64, 40))
+    write_eval_set(root / "es", spec)
+    config = root / "tiny.toml"
+    config.write_text(TINY.format(steps=3))
+    return root / "es" / "intraoperative" / "session.h5", config
+
+
+def _index(folder: Path) -> dict:
+    return json.loads((folder / "case.json").read_text())
+
+
+def _xxh(path: Path) -> str:
+    return xxhash.xxh3_64(path.read_bytes()).hexdigest()
+
+
+def _args(session: Path, config: Path, out: Path, *extra: str) -> list[str]:
+    return ["reconstruct", str(session), "--config", str(config), "--out", str(out), *extra]
+
+
+@pytest.mark.slow  # about 45 s on 2 loaded cores: five runs of the command
+def test_a_case_holds_one_checked_model_per_timestamp_and_a_rerun_skips_them(session, tmp_path):
+    h5, config = session
+    out = tmp_path / "case"
+    done = run_egosurg(*_args(h5, config, out, "--every", "0.1s"), timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = _index(out)["timestamps"]
+    # 2.0 .. 2.3 s every 0.1 s, each at its nearest set
+    assert [r["set_index"] for r in rows] in ([0, 1, 3, 4], [0, 2, 3, 4], [0, 1, 3, 5])
+    assert all(r["status"] == "done" for r in rows)
+    for r in rows:
+        path = out / r["model"]
+        assert _xxh(path) == r["xxh3_64"] and path.stat().st_size == r["bytes"]
+        # exported models carry unit quaternions (training leaves them at 0.74-1.06)
+        q = ply.read_ply(path).quats_wxyz.numpy()
+        assert np.allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-5)
+    stamps = {r["name"]: (out / r["model"]).stat().st_mtime_ns for r in rows}
+
+    # a damaged model is found by its checksum and redone; the others are skipped
+    victim = out / rows[1]["model"]
+    blob = bytearray(victim.read_bytes())
+    blob[-5] ^= 0xFF
+    victim.write_bytes(bytes(blob))
+    again = run_egosurg(*_args(h5, config, out, "--every", "0.1s"), timeout=300)
+    assert again.returncode == 0, again.stderr[-3000:]
+    after = {r["name"]: (out / r["model"]).stat().st_mtime_ns for r in _index(out)["timestamps"]}
+    changed = [n for n in stamps if after[n] != stamps[n]]
+    assert changed == [rows[1]["name"]]
+    assert _xxh(victim) == _index(out)["timestamps"][1]["xxh3_64"]
+
+    info = run_egosurg("case", "info", str(out))
+    assert info.returncode == 0 and "4 done, 0 pending, 0 failed" in info.stdout
+
+    exported = tmp_path / "export"
+    exp = run_egosurg("case", "export", str(out), "--out", str(exported), "--at", rows[0]["name"])
+    assert exp.returncode == 0, exp.stderr
+    g = ply.read_ply(exported / f"{rows[0]['name']}.ply")
+    assert np.allclose(np.linalg.norm(g.quats_wxyz.numpy(), axis=1), 1.0, atol=1e-5)
+
+    # other settings in the same folder are refused, and nothing finished is touched
+    other = tmp_path / "other.toml"
+    other.write_text(TINY.format(steps=4))
+    refused = run_egosurg(*_args(h5, other, out, "--every", "0.1s"))
+    assert refused.returncode == 2 and "Traceback" not in refused.stderr
+    assert "other settings" in refused.stderr and "--force" in refused.stderr
+    assert {
+        r["name"]: (out / r["model"]).stat().st_mtime_ns for r in _index(out)["timestamps"]
+    } == after
+
+
+@pytest.mark.slow  # about 60 s on 2 loaded cores
+def test_a_run_killed_halfway_resumes_and_the_index_never_names_a_partial_file(session, tmp_path):
+    h5, _ = session
+    config = tmp_path / "slower.toml"
+    config.write_text(TINY.format(steps=40))  # long enough to be caught halfway
+    out = tmp_path / "case"
+    argv = [sys.executable, "-m", "protocol.cli", *_args(h5, config, out, "--every", "0.0667s")]
+    proc = subprocess.Popen(
+        argv, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )  # fmt: skip
+    deadline = time.monotonic() + 240
+    seen_done = 0
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            if (out / "case.json").exists():
+                rows = _index(out)["timestamps"]  # replaced atomically: always whole JSON
+                for r in rows:
+                    if r["status"] == "done":  # what the index names is whole, at any moment
+                        assert _xxh(out / r["model"]) == r["xxh3_64"]
+                seen_done = sum(r["status"] == "done" for r in rows)
+                if seen_done >= 1:
+                    break
+            time.sleep(0.05)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+    planned = len(_index(out)["timestamps"])  # the index lists every timestamp from the start
+    assert 1 <= seen_done < planned, "the run finished before it could be killed halfway"
+    before = {r["name"]: r for r in _index(out)["timestamps"] if r["status"] == "done"}
+    for r in before.values():
+        assert _xxh(out / r["model"]) == r["xxh3_64"]
+    stamps = {n: (out / r["model"]).stat().st_mtime_ns for n, r in before.items()}
+
+    done = run_egosurg(*_args(h5, config, out, "--every", "0.0667s"), timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = _index(out)["timestamps"]
+    assert len(rows) == planned and all(r["status"] == "done" for r in rows)
+    for n, mtime in stamps.items():  # finished work is kept, not redone
+        assert (out / before[n]["model"]).stat().st_mtime_ns == mtime
+    assert not list(out.rglob("*.partial")) and not any((out / ".work").iterdir())
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (("--every", "0.01s"), "shorter than the session's frame period"),
+        (("--every", "1s", "--from", "30"), "outside the session"),
+        (("--every", "1s", "--to", "-4"), "outside the session"),
+        (("--every", "often"), "write a duration"),
+        (("--every", "1s", "--ray", "127.0.0.1:1"), "does not answer"),
+        (("--every", "1s", "--at", "2.0"), "not both"),
+    ],
+)
+def test_bad_case_options_get_one_clear_line(session, tmp_path, extra, message):
+    h5, config = session
+    done = run_egosurg(*_args(h5, config, tmp_path / "case", *extra), timeout=120)
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert message in done.stderr
+
+
+def test_a_folder_that_is_not_a_case_is_refused_untouched(session, tmp_path):
+    h5, config = session
+    foreign = tmp_path / "photos"
+    foreign.mkdir()
+    (foreign / "holiday.jpg").write_bytes(b"jpeg")
+    done = run_egosurg(*_args(h5, config, foreign, "--every", "1s"))
+    assert done.returncode == 2 and "not a case folder" in done.stderr
+    assert sorted(p.name for p in foreign.iterdir()) == ["holiday.jpg"]
+    info = run_egosurg("case", "info", str(foreign))
+    assert info.returncode == 2 and "not a case folder" in info.stderr
