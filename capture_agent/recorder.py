@@ -16,7 +16,15 @@ served in order between frames and two simultaneous starts cannot race. It:
   from frame indices, per-node sequence numbers and timestamps, feeds the synchroniser and stores
   each completed set; flushes the file every ``flush_interval_s`` (a crash loses at most that
   much) and stops cleanly before the disk's free space falls under ``disk_reserve_gb``;
-- answers ``start``, ``stop``, ``status`` and ``heartbeat`` on its REP control socket.
+- answers ``start``, ``stop``, ``status`` and ``heartbeat`` on its REP control socket, exactly
+  one bounded reply per request whatever it holds (``capture_agent/control_server.py``).
+
+Input cannot stop or exhaust it: the camera table holds only rig.toml's serials (at most
+``MAX_UNLISTED_CAMERAS`` when it lists none), a listed camera is heard only from its own node,
+frames stamped more than ``max_clock_skew_s`` from the recorder's clock are refused, and no
+message is kept after it is handled; each refusal is counted in ``status``. The I/O loop beats a
+progress heartbeat each iteration; ``status`` reports its age, and past ``STALL_LIMIT_S`` the
+process exits for systemd to restart it (``capture_agent/daemon.py``, ``WatchdogSec=``).
 
 Each agent's SUB socket queues what ``receive_buffer_mb`` allows (split over the agents, counted
 at the largest legal frame message; at most ``RECEIVE_QUEUE_S`` of that agent's frames: see
@@ -35,8 +43,11 @@ keeps what failed and retries it at each flush, frames arriving meanwhile are re
 (``not_written_write_failed``), and ``status`` shows the error. After ``WRITE_FAILURE_STOP_S`` of
 failures the take is stopped with the reason; the recorder itself keeps running.
 
-A start is refused, with the reason and what to do, when a camera the rig expects is not
-streaming, when an agent's PTP is not locked (``require_ptp_lock``), or when the disk cannot hold
+A start is refused, with the reason and what to do, when its arguments are unusable (a case
+name that is not 1-64 of ``A-Z a-z 0-9 _ . -``; more than 64 metadata keys, keys over 64 or
+values over 4096 characters, control or bidi characters; a planned duration that is not a number
+> 0), when a camera the rig expects is not streaming, when an agent's PTP is not locked
+(``require_ptp_lock``), or when the disk cannot hold
 ``planned_duration_min`` at the rig's measured data rate.
 """
 

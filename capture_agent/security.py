@@ -49,8 +49,13 @@ CONTROL_MAX_BYTES = MAX_JSON_BYTES + 64  # one control JSON body (the limit of p
 # to ZMTP commands too, and CURVE's INITIATE (the client's vouch and metadata) is ~300 bytes.
 SUBSCRIPTION_MAX_BYTES = 4096
 HANDSHAKE_MS = 5000  # a peer that has not finished its handshake by then is dropped
-HEARTBEAT_IVL_MS = 2000
-HEARTBEAT_TIMEOUT_MS = 6000  # a peer silent for this long (no PONG) is dropped
+# Dead peers are found by TCP keepalive, not ZMTP heartbeats: libzmq aborts the whole process
+# (``Assertion failed: _input_stopped``, zeromq/libzmq#3937) when a heartbeat times out on a
+# receiving socket whose queue is full, which is exactly what a stalling disk makes of the
+# recorder's SUB sockets (tests/test_faults.py freezes the disk for 8 s).
+KEEPALIVE_IDLE_S = 5
+KEEPALIVE_INTERVAL_S = 2
+KEEPALIVE_PROBES = 3
 _LOG_EVERY = 1000  # after the first few, one log line per this many refusals of a link
 _HANDSHAKE_FAILED = (
     zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
@@ -187,8 +192,10 @@ def harden(sock: zmq.Socket, max_message_bytes: int) -> None:
     sock.setsockopt(zmq.LINGER, 0)
     sock.setsockopt(zmq.MAXMSGSIZE, max_message_bytes)
     sock.setsockopt(zmq.HANDSHAKE_IVL, HANDSHAKE_MS)
-    sock.setsockopt(zmq.HEARTBEAT_IVL, HEARTBEAT_IVL_MS)
-    sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, HEARTBEAT_TIMEOUT_MS)
+    sock.setsockopt(zmq.TCP_KEEPALIVE, 1)
+    sock.setsockopt(zmq.TCP_KEEPALIVE_IDLE, KEEPALIVE_IDLE_S)
+    sock.setsockopt(zmq.TCP_KEEPALIVE_INTVL, KEEPALIVE_INTERVAL_S)
+    sock.setsockopt(zmq.TCP_KEEPALIVE_CNT, KEEPALIVE_PROBES)
 
 
 def make_client(sock: zmq.Socket, links: LinkSecurity, server_key: bytes | None) -> None:
