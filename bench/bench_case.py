@@ -90,7 +90,7 @@ def main() -> None:
     print(f"\nsim seed {args.seed}, intraoperative, {args.sets} consecutive sets at 15 fps, "
           f"width {args.width}px, cold {args.steps} steps, warm {args.warm_steps} steps, "
           f"{torch.get_num_threads()} threads")  # fmt: skip
-    print("| set | cold CPU s | warm CPU s | ratio | cold PSNR dB | warm PSNR dB | kept/dropped/added")
+    print("| set | cold CPU s | warm CPU s | ratio | cold PSNR | warm PSNR | kept/dropped/added")
     print("|---|---|---|---|---|---|---")
     for k, cs, ws, cp, wp, c in rows:
         kda = f"{c.get('kept', '-')}/{c.get('dropped', '-')}/{c.get('added', '-')}"

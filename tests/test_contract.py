@@ -201,7 +201,6 @@ def test_each_missing_cameras_info_field_is_named(rig, agent, field):
         ("encoding", ["jpeg"], '"jpeg" or "raw_bgr8"'),
         ("factory_conf", 3, "the factory file's text, or null"),
         ("factory_conf", "[STEREO]\0", "no NUL characters"),
-        ("factory_conf", "\ud800", "UTF-8"),
         ("factory_conf", "x" * 70_000, "65536-byte limit"),
     ],
 )
@@ -219,6 +218,22 @@ def test_each_mistyped_cameras_info_field_is_named(rig, agent, field, value, wor
     assert f"cameras_info[1].{field}" in message or f"cameras_info[1].{field[:5]}" in message
     assert words in message
     assert "\x1b" not in message and len(message) < 400
+
+
+def test_a_reply_with_a_lone_surrogate_is_refused_as_not_utf8(rig, agent):
+    """JSON can spell a half UTF-16 pair (a lone surrogate) that no UTF-8 text holds: the whole
+    reply is refused as unreadable, in one bounded line, before any field is trusted."""
+    _, client, _ = rig
+
+    def wrong(result):
+        result["cameras_info"][1]["factory_conf"] = "\ud800"
+        return result
+
+    agent.status_result = wrong
+    message = _refusal(client)
+    low = message.lower()
+    assert NODE in message and ("surrogate" in low or "utf-8" in low), message
+    assert len(message) < 400
 
 
 @pytest.mark.parametrize(

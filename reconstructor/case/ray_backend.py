@@ -25,8 +25,7 @@ from typing import TYPE_CHECKING, Any
 from reconstructor.errors import ReconstructError
 
 if TYPE_CHECKING:
-    from reconstructor.case.runner import CaseRequest
-    from reconstructor.case.work import StepJob
+    from reconstructor.case.work import ChainJob, StepJob
 
 log = logging.getLogger(__name__)
 PROBE_TIMEOUT_S = 5.0
@@ -78,15 +77,19 @@ def _cuda() -> bool:
 
 
 def run_on_ray(
-    req: CaseRequest, queues: list[list[StepJob]], record: Callable[[Any], None]
+    address: str,
+    threads: int,
+    queues: list[list[StepJob]],
+    make_job: Callable[[list[StepJob], int], ChainJob],
+    record: Callable[[Any], None],
 ) -> None:
-    from reconstructor.case.runner import _job, threads_per_worker
+    """Run the queues' steps as tasks of ``threads`` CPUs each, a chain's steps in order."""
     from reconstructor.case.work import run_chain
 
-    ray = connect(req.ray)
+    ray = connect(address)
     cpus = int(ray.cluster_resources().get("CPU", os.cpu_count() or 1))
     # as many threads as a local pool worker would get, so both make the same models
-    per_task = min(threads_per_worker(req.workers), cpus)
+    per_task = min(threads, cpus)
     options: dict[str, Any] = {"num_cpus": per_task}
     if _cuda():
         options["num_gpus"] = 1
@@ -96,7 +99,7 @@ def run_on_ray(
 
     def submit(queue: list[StepJob]) -> None:
         if queue:
-            pending[task.remote(_job(req, queue[:1], per_task))] = queue[1:]
+            pending[task.remote(make_job(queue[:1], per_task))] = queue[1:]
 
     for queue in queues:
         submit(queue)

@@ -184,7 +184,8 @@ def _run(req: CaseRequest, index: CaseIndex, step_progress: Callable | None) -> 
         if req.ray:
             from reconstructor.case.ray_backend import run_on_ray
 
-            run_on_ray(req, queues, record)
+            threads = threads_per_worker(req.workers)
+            run_on_ray(req.ray, threads, queues, lambda q, t: _job(req, q, t), record)
         elif req.workers <= 1:
             for queue in queues:
                 run_chain(_job(req, queue), progress=step_progress, on_done=record)
