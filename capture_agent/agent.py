@@ -448,6 +448,11 @@ class Agent:
                 # a receiver ignores what it does not know)
                 "progress_age_s": self.progress.ages_s(),
                 "control": self.control.counts(),
+                # connection attempts this agent's links refused (unlisted key, plaintext)
+                "links": {
+                    "auth_refused": self.guard.refused if getattr(self, "guard", None) else {},
+                    "insecure": self.config.security.insecure,
+                },
             }
         raise Refused(
             f"an agent does not {req.verb} recordings; send '{req.verb}' to the recorder "

@@ -190,6 +190,12 @@ def test_an_unlisted_key_and_a_plaintext_client_get_nothing_and_are_counted(rig,
     status = client.status()
     assert not status["recording"]
     assert status["links"]["auth_refused"]["recorder.control"] >= before_rec + 2
+    # the agent reports its own refusals in its status reply, to the recorder's key
+    reply = recorder.request_agent(cfg.agents[0].control, "status")
+    assert reply is not None and reply.ok, reply
+    agent_links = reply.result["links"]["auth_refused"]
+    assert agent_links[f"{NODE}.control"] >= before_ctl + 2
+    assert agent_links[f"{NODE}.frames"] >= before_frames + 2
     intruder_public = zmq.auth.load_certificate(keys / "intruder.key")[0].decode()
     logged = caplog.text
     assert intruder_public in logged and "refused connection" in logged

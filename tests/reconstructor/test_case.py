@@ -181,3 +181,22 @@ def test_a_folder_that_is_not_a_case_is_refused_untouched(session, tmp_path):
     assert sorted(p.name for p in foreign.iterdir()) == ["holiday.jpg"]
     info = run_egosurg("case", "info", str(foreign))
     assert info.returncode == 2 and "not a case folder" in info.stderr
+
+
+@pytest.mark.slow  # about 20 s on 2 loaded cores
+def test_warm_start_chains_each_timestamp_to_the_one_before_and_keyframes_start_cold(
+    session, tmp_path
+):
+    h5, config = session
+    out = tmp_path / "case"
+    extra = ("--every", "0.1s", "--warm-start", "--warm-steps", "2", "--keyframe-every", "3")
+    done = run_egosurg(*_args(h5, config, out, *extra), timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    index = _index(out)
+    rows = index["timestamps"]
+    assert index["warm_start"] and [r["chain"] for r in rows] == [0, 0, 0, 1]
+    assert [r["warm_from"] for r in rows] == ["", rows[0]["name"], rows[1]["name"], ""]
+    assert (out / "config_warm.toml").exists()
+    # a cold run of the same times is other settings: refused in this folder
+    cold = run_egosurg(*_args(h5, config, out, "--every", "0.1s"))
+    assert cold.returncode == 2 and "other settings" in cold.stderr
