@@ -30,6 +30,7 @@ Example ``rig.toml``::
     output_dir = "/data/egosurg/sessions"
     require_ptp_lock = true
     receive_buffer_mb = 1024           # what queued frames may hold in the recorder, all agents
+    write_queue_mb = 256               # frames waiting for the disk (a stall): ~3 s of the rig
     # max_image_bytes = 6912000        # largest legal image (default: raw_bgr8 at HD1200)
 
     [security]
@@ -50,76 +51,35 @@ from __future__ import annotations
 
 import dataclasses
 import re
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, get_args
 
-from capture_agent.security import (
-    LARGEST_IMAGE_BYTES,
-    SECRET_SUFFIX,
-    LinkSecurity,
-    frame_message_max_bytes,
-    key_path,
-    secure_bind_check,
-)
+from capture_agent.security import LARGEST_IMAGE_BYTES, frame_message_max_bytes, key_path
+from capture_agent.security_config import NO_KEYS, SecurityConfig
+from capture_agent.toml_table import TableReader, load_toml
 from protocol.errors import ConfigError
 from protocol.messages import MAX_FRAME_BYTES
 
-ENCODINGS = ("jpeg", "raw_bgr8")
+__all__ = [
+    "ENCODINGS",
+    "MIN_RECEIVE_MESSAGES",
+    "AgentEndpoint",
+    "CameraEntry",
+    "EncodingName",
+    "NodeConfig",
+    "RigConfig",
+    "SecurityConfig",
+    "connect_address",
+    "load_toml",
+]
+
+# The names of protocol.messages.Encoding, as node.toml spells them.
+EncodingName = Literal["jpeg", "raw_bgr8"]
+ENCODINGS: tuple[EncodingName, ...] = get_args(EncodingName)
 MIN_RECEIVE_MESSAGES = 8  # the smallest receive queue per agent that receive_buffer_mb may give
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,31}$")
-
-
-def load_toml(path: Path | str, what: str) -> tuple[dict[str, Any], str]:
-    """(parsed table, raw text) of a TOML file, with clear errors."""
-    p = Path(path)
-    try:
-        text = p.read_text()
-    except FileNotFoundError:
-        raise ConfigError(
-            f"{what} {p} does not exist; see docs/capture.md for an example"
-        ) from None
-    except OSError as exc:
-        raise ConfigError(f"cannot read {what} {p}: {exc.strerror}") from None
-    try:
-        return tomllib.loads(text), text
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p} is not valid TOML: {exc}") from None
-
-
-class _Table:
-    """Typed access to a TOML table whose errors name the file and the field."""
-
-    def __init__(self, table: dict[str, Any], where: str) -> None:
-        self.table = table
-        self.where = where
-        self.used: set[str] = set()
-
-    def get(self, key: str, kind: type, default: Any = ..., *, check=None, hint: str = "") -> Any:
-        self.used.add(key)
-        if key not in self.table:
-            if default is ...:
-                raise ConfigError(f"{self.where}: '{key}' is required{'; ' + hint if hint else ''}")
-            return default
-        value = self.table[key]
-        if kind is float and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
-        if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
-            raise ConfigError(
-                f"{self.where}: '{key}' = {value!r} should be a {kind.__name__}"
-                f"{'; ' + hint if hint else ''}"
-            )
-        if check is not None and not check(value):
-            raise ConfigError(f"{self.where}: '{key}' = {value!r} is not allowed; {hint}")
-        return value
-
-    def reject_unknown(self, allowed_extra: tuple[str, ...] = ()) -> None:
-        unknown = set(self.table) - self.used - set(allowed_extra)
-        if unknown:
-            raise ConfigError(
-                f"{self.where}: unknown setting(s) {', '.join(sorted(unknown))}; check the spelling"
-            )
+_NAME_HINT = "a name of letters, digits, - _ . (at most 32)"
 
 
 def _endpoint(value: str) -> bool:
@@ -133,79 +93,12 @@ class CameraEntry:
     where: str
 
 
-_NO_KEYS = (
-    "make keys with 'egosurg keys generate --out DIR --name NAME' and name them in [security] "
-    "(see docs/capture.md, Security), or set insecure = true in [security] for plaintext links"
-)
-
-
-@dataclass(frozen=True, kw_only=True)
-class SecurityConfig:
-    """The ``[security]`` table of node.toml or rig.toml: key file paths (relative paths are
-    relative to the config's folder), not keys: a client reading rig.toml need not be able to
-    read the recorder's secret key. ``links()`` loads them when a daemon starts."""
-
-    insecure: bool = False
-    allow_all_interfaces: bool = False
-    secret_key: str = ""  # this daemon's keypair (a .key_secret file, mode 0600)
-    allowed_keys: tuple[str, ...] = ()  # node: recorder + operators; rig: operators on control
-    public_key: str = ""  # rig: the recorder's public key, which clients connect to
-    operator_key: str = ""  # rig: the keypair that egosurg record/status/shell use
-    where: str = ""
-
-    def links(self) -> LinkSecurity:
-        """This daemon's keys, loaded (ConfigError when missing, unreadable or not 0600)."""
-        if self.insecure:
-            return LinkSecurity.plaintext()
-        if not self.secret_key or not self.allowed_keys:
-            raise ConfigError(f"{self.where or 'config'}: no CURVE keys; {_NO_KEYS}")
-        return LinkSecurity.load(self.secret_key, self.allowed_keys)
-
-    @classmethod
-    def from_table(cls, data: dict[str, Any], where: str, *, rig: bool) -> SecurityConfig:
-        raw = data.get("security", {})
-        if not isinstance(raw, dict):
-            raise ConfigError(f"{where}: [security] must be a table")
-        t = _Table(raw, f"{where} [security]")
-        base = Path(where).parent
-        insecure = t.get("insecure", bool, False)
-        allowed_name = "operator_keys" if rig else "allowed_keys"
-        allowed = t.get(allowed_name, list, [])
-        if not all(isinstance(k, str) and k for k in allowed):
-            raise ConfigError(f"{t.where}: '{allowed_name}' must list public key file paths")
-        secret = t.get("secret_key", str, "")
-        if not insecure and not secret:
-            raise ConfigError(f"{t.where}: 'secret_key' is required; {_NO_KEYS}")
-        if not insecure and not allowed:
-            who = "the operators' public keys" if rig else "the recorder's and operators' keys"
-            raise ConfigError(f"{t.where}: '{allowed_name}' must list {who}; {_NO_KEYS}")
-        public = t.get("public_key", str, "") if rig else ""
-        if rig and not public and secret.endswith(SECRET_SUFFIX):
-            public = secret[: -len("_secret")]
-        cfg = cls(
-            insecure=insecure,
-            allow_all_interfaces=t.get("allow_all_interfaces", bool, False),
-            secret_key=key_path(secret, base) if secret else "",
-            allowed_keys=tuple(key_path(k, base) for k in allowed),
-            public_key=key_path(public, base) if public else "",
-            operator_key=key_path(t.get("operator_key", str, ""), base) if rig else "",
-            where=t.where,
-        )
-        t.reject_unknown()
-        return cfg
-
-    def check_bind(self, address: str, name: str) -> None:
-        secure_bind_check(
-            address, self.insecure, self.allow_all_interfaces, f"{self.where} ({name})"
-        )
-
-
 @dataclass(frozen=True, kw_only=True)
 class NodeConfig:
     node_id: str
     frames_bind: str
     control_bind: str
-    encoding: str = "jpeg"
+    encoding: EncodingName = "jpeg"
     jpeg_quality: int = 90
     queue_frames: int = 120
     status_interval_s: float = 1.0
@@ -213,7 +106,7 @@ class NodeConfig:
     reopen_interval_s: float = 1.0
     ptp: dict[str, Any] = field(default_factory=dict)
     cameras: tuple[CameraEntry, ...] = ()
-    security: SecurityConfig = SecurityConfig()
+    security: SecurityConfig = field(default_factory=SecurityConfig)
     source_path: str = ""
 
     @classmethod
@@ -223,10 +116,10 @@ class NodeConfig:
 
     @classmethod
     def from_table(cls, data: dict[str, Any], where: str) -> NodeConfig:
-        t = _Table(data, where)
-        node_id = t.get("node_id", str, check=_NAME.match, hint="use letters, digits, - _ .")
+        t = TableReader(data, where)
+        node_id = t.text("node_id", check=_NAME.match, hint=_NAME_HINT)
         cams = data.get("cameras")
-        t.used.add("cameras")
+        t.skip("cameras", "security")
         if not isinstance(cams, list) or not cams:
             raise ConfigError(f"{where}: add at least one [[cameras]] table")
         entries = []
@@ -236,58 +129,38 @@ class NodeConfig:
                 raise ConfigError(f'{cw}: needs source = "zed", "sim" or "video"')
             rest = {k: v for k, v in cam.items() if k != "source"}
             entries.append(CameraEntry(source=str(cam["source"]), table=rest, where=cw))
-        ptp = data.get("ptp", {})
-        t.used.add("ptp")
-        if not isinstance(ptp, dict):
-            raise ConfigError(f"{where}: [ptp] must be a table")
         cfg = cls(
             node_id=node_id,
-            frames_bind=t.get(
-                "frames_bind", str, check=_endpoint, hint="like tcp://10.10.0.11:5550"
+            frames_bind=t.text(
+                "frames_bind", check=_endpoint, hint="an endpoint like tcp://10.10.0.11:5550"
             ),
-            control_bind=t.get(
-                "control_bind", str, check=_endpoint, hint="like tcp://10.10.0.11:5551"
+            control_bind=t.text(
+                "control_bind", check=_endpoint, hint="an endpoint like tcp://10.10.0.11:5551"
             ),
-            encoding=t.get(
-                "encoding",
-                str,
-                "jpeg",
-                check=lambda v: v in ENCODINGS,
-                hint=f"one of {', '.join(ENCODINGS)}",
+            encoding=t.choice("encoding", ENCODINGS, "jpeg"),
+            jpeg_quality=t.integer(
+                "jpeg_quality", 90, check=lambda v: 1 <= v <= 100, hint="an integer, 1 to 100"
             ),
-            jpeg_quality=t.get(
-                "jpeg_quality", int, 90, check=lambda v: 1 <= v <= 100, hint="1 to 100"
+            queue_frames=t.integer(
+                "queue_frames",
+                120,
+                check=lambda v: 2 <= v <= 10_000,
+                hint="an integer, 2 to 10000",
             ),
-            queue_frames=t.get(
-                "queue_frames", int, 120, check=lambda v: 2 <= v <= 10_000, hint="2 to 10000"
+            status_interval_s=t.number(
+                "status_interval_s", 1.0, check=lambda v: 0.05 <= v <= 60, hint="0.05 to 60 s"
             ),
-            status_interval_s=t.get(
-                "status_interval_s",
-                float,
-                1.0,
-                check=lambda v: 0.05 <= v <= 60,
-                hint="0.05 to 60 s",
+            watchdog_timeout_s=t.number(
+                "watchdog_timeout_s", 2.0, check=lambda v: 0.1 <= v <= 600, hint="0.1 to 600 s"
             ),
-            watchdog_timeout_s=t.get(
-                "watchdog_timeout_s",
-                float,
-                2.0,
-                check=lambda v: 0.1 <= v <= 600,
-                hint="0.1 to 600 s",
+            reopen_interval_s=t.number(
+                "reopen_interval_s", 1.0, check=lambda v: 0.05 <= v <= 600, hint="0.05 to 600 s"
             ),
-            reopen_interval_s=t.get(
-                "reopen_interval_s",
-                float,
-                1.0,
-                check=lambda v: 0.05 <= v <= 600,
-                hint="0.05 to 600 s",
-            ),
-            ptp=ptp,
+            ptp=t.table_of("ptp"),
             cameras=tuple(entries),
             source_path=where,
         )
-        t.used.add("security")
-        t.reject_unknown()
+        t.finish()
         security = SecurityConfig.from_table(data, where, rig=False)
         security.check_bind(cfg.frames_bind, "frames_bind")
         security.check_bind(cfg.control_bind, "control_bind")
@@ -317,9 +190,12 @@ class RigConfig:
     planned_duration_min: float = 60.0
     agent_timeout_s: float = 3.0
     receive_buffer_mb: float = 1024.0
+    # frames received but not yet written (a stalling disk); ~3.5 s of the reference rig's
+    # 4 x HD1200 JPEG streams (~75 MB/s); at least one largest legal frame message
+    write_queue_mb: float = 256.0
     max_image_bytes: int = LARGEST_IMAGE_BYTES
     max_clock_skew_s: float = 10.0  # frames stamped further from the recorder's clock: refused
-    security: SecurityConfig = SecurityConfig()
+    security: SecurityConfig = field(default_factory=SecurityConfig)
     toml_text: str = ""
     source_path: str = ""
 
@@ -334,27 +210,12 @@ class RigConfig:
 
     @classmethod
     def from_table(cls, data: dict[str, Any], where: str, text: str = "") -> RigConfig:
-        t = _Table(data, where)
+        t = TableReader(data, where)
         agents_raw = data.get("agents")
-        t.used.add("agents")
+        t.skip("agents", "security")
         if not isinstance(agents_raw, list) or not agents_raw:
             raise ConfigError(f"{where}: add one [[agents]] table per capture node")
-        agents = []
-        for i, a in enumerate(agents_raw):
-            at = _Table(a if isinstance(a, dict) else {}, f"{where} [[agents]] #{i + 1}")
-            cams = at.get("cameras", list, [])
-            if not all(isinstance(c, int) and c > 0 for c in cams):
-                raise ConfigError(f"{at.where}: 'cameras' must list camera serial numbers")
-            agents.append(
-                AgentEndpoint(
-                    node_id=at.get("node_id", str, check=_NAME.match, hint="a node name"),
-                    frames=at.get("frames", str, check=_endpoint, hint="like tcp://host:5550"),
-                    control=at.get("control", str, check=_endpoint, hint="like tcp://host:5551"),
-                    cameras=tuple(cams),
-                    public_key=at.get("public_key", str, ""),
-                )
-            )
-            at.reject_unknown()
+        agents = tuple(_agent(a, f"{where} [[agents]] #{i + 1}") for i, a in enumerate(agents_raw))
         names = [a.node_id for a in agents]
         if len(set(names)) != len(names):
             raise ConfigError(f"{where}: two [[agents]] share a node_id; each node needs its own")
@@ -362,69 +223,76 @@ class RigConfig:
         if len(set(serials)) != len(serials):
             raise ConfigError(f"{where}: a camera serial is listed under two agents")
         cfg = cls(
-            rig_name=t.get("rig_name", str, "rig", check=_NAME.match, hint="a short name"),
-            fps=t.get("fps", float, check=lambda v: 1 <= v <= 120, hint="1 to 120"),
-            control_bind=t.get(
-                "control_bind", str, check=_endpoint, hint="like tcp://127.0.0.1:5560"
+            rig_name=t.text("rig_name", "rig", check=_NAME.match, hint=_NAME_HINT),
+            fps=t.number("fps", check=lambda v: 1 <= v <= 120, hint="a number, 1 to 120"),
+            control_bind=t.text(
+                "control_bind", check=_endpoint, hint="an endpoint like tcp://127.0.0.1:5560"
             ),
-            output_dir=t.get("output_dir", str, hint="where sessions are written"),
-            agents=tuple(agents),
-            require_ptp_lock=t.get("require_ptp_lock", bool, True),
-            flush_interval_s=t.get(
+            output_dir=t.text("output_dir", hint="the folder sessions are written to"),
+            agents=agents,
+            require_ptp_lock=t.boolean("require_ptp_lock", True),
+            flush_interval_s=t.number(
                 "flush_interval_s",
-                float,
                 0.5,
                 check=lambda v: 0.01 <= v <= 1.0,
                 hint="0.01 to 1 s (a crash loses at most this much)",
             ),
-            max_wait_ms=t.get(
-                "max_wait_ms",
-                float,
-                500.0,
-                check=lambda v: 10 <= v <= 10_000,
-                hint="10 to 10000 ms",
+            max_wait_ms=t.number(
+                "max_wait_ms", 500.0, check=lambda v: 10 <= v <= 10_000, hint="10 to 10000 ms"
             ),
-            disk_reserve_gb=t.get(
-                "disk_reserve_gb",
-                float,
-                2.0,
-                check=lambda v: v >= 0,
-                hint="a non-negative size in GB",
+            disk_reserve_gb=t.number(
+                "disk_reserve_gb", 2.0, check=lambda v: v >= 0, hint="a non-negative size in GB"
             ),
-            planned_duration_min=t.get(
-                "planned_duration_min", float, 60.0, check=lambda v: v > 0, hint="minutes, > 0"
+            planned_duration_min=t.number(
+                "planned_duration_min", 60.0, check=lambda v: v > 0, hint="minutes, > 0"
             ),
-            agent_timeout_s=t.get(
-                "agent_timeout_s", float, 3.0, check=lambda v: 0.5 <= v <= 60, hint="0.5 to 60 s"
+            agent_timeout_s=t.number(
+                "agent_timeout_s", 3.0, check=lambda v: 0.5 <= v <= 60, hint="0.5 to 60 s"
             ),
-            receive_buffer_mb=t.get(
+            receive_buffer_mb=t.number(
                 "receive_buffer_mb",
-                float,
                 1024.0,
                 check=lambda v: 1 <= v <= 1_000_000,
-                hint="MB of queued frames the recorder may hold, 1 to 1000000",
+                hint="the MB of queued frames the recorder may hold, 1 to 1000000",
             ),
-            max_image_bytes=t.get(
+            write_queue_mb=t.number(
+                "write_queue_mb",
+                256.0,
+                check=lambda v: 1 <= v <= 1_000_000,
+                hint="the MB of frames waiting for the disk the recorder may hold, 1 to 1000000",
+            ),
+            max_image_bytes=t.integer(
                 "max_image_bytes",
-                int,
                 LARGEST_IMAGE_BYTES,
                 check=lambda v: 1024 <= v <= MAX_FRAME_BYTES,
                 hint=f"bytes per image, 1024 to {MAX_FRAME_BYTES}; larger images are refused",
             ),
-            max_clock_skew_s=t.get(
+            max_clock_skew_s=t.number(
                 "max_clock_skew_s",
-                float,
                 10.0,
                 check=lambda v: 0.1 <= v <= 86_400,
-                hint="seconds a frame's capture time may differ from the recorder's clock, "
+                hint="the seconds a frame's capture time may differ from the recorder's clock, "
                 "0.1 to 86400",
             ),
             toml_text=text,
             source_path=where,
         )
-        t.used.add("security")
-        t.reject_unknown()
+        t.finish()
         return _with_rig_security(cfg, data, where)
+
+
+def _agent(table: object, where: str) -> AgentEndpoint:
+    # a non-table entry reads as an empty one, so the error names its first required field
+    at = TableReader(table if isinstance(table, dict) else {}, where)
+    agent = AgentEndpoint(
+        node_id=at.text("node_id", check=_NAME.match, hint=_NAME_HINT),
+        frames=at.text("frames", check=_endpoint, hint="an endpoint like tcp://host:5550"),
+        control=at.text("control", check=_endpoint, hint="an endpoint like tcp://host:5551"),
+        cameras=tuple(at.integers("cameras", [], hint="a list of camera serial numbers")),
+        public_key=at.text("public_key", "", hint="the agent's public key file path"),
+    )
+    at.finish()
+    return agent
 
 
 def _with_rig_security(cfg: RigConfig, data: dict[str, Any], where: str) -> RigConfig:
@@ -436,7 +304,7 @@ def _with_rig_security(cfg: RigConfig, data: dict[str, Any], where: str) -> RigC
         if not a.public_key and not security.insecure:
             raise ConfigError(
                 f"{where} [[agents]] #{i + 1} ({a.node_id}): 'public_key' is required (the "
-                f"agent's .key file); {_NO_KEYS}"
+                f"agent's .key file); {NO_KEYS}"
             )
         agents.append(
             dataclasses.replace(a, public_key=key_path(a.public_key, base) if a.public_key else "")
@@ -448,6 +316,12 @@ def _with_rig_security(cfg: RigConfig, data: dict[str, Any], where: str) -> RigC
             f"{where}: receive_buffer_mb = {cfg.receive_buffer_mb:g} leaves {per_agent / 1e6:.0f} "
             f"MB per agent, under {MIN_RECEIVE_MESSAGES} of the largest legal frame messages "
             f"({need / 1e6:.0f} MB); raise receive_buffer_mb or lower max_image_bytes"
+        )
+    if cfg.write_queue_mb * 1e6 < frame_message_max_bytes(cfg.max_image_bytes):
+        raise ConfigError(
+            f"{where}: write_queue_mb = {cfg.write_queue_mb:g} cannot hold one largest legal "
+            f"frame message ({frame_message_max_bytes(cfg.max_image_bytes) / 1e6:.0f} MB); "
+            "raise write_queue_mb or lower max_image_bytes"
         )
     return dataclasses.replace(cfg, agents=tuple(agents), security=security)
 

@@ -74,6 +74,20 @@ def format_summary(s: dict[str, Any]) -> str:
             f"({_t(s.get('write_error', 'see the recorder log'))}): "
             f"{refused} frames are not in the file" + (f" ({per_camera})" if per_camera else "")
         )
+    stalled = int(s.get("frames_not_written_disk_stalled", 0))
+    if stalled:
+        lines.append(
+            f"the disk stalled: {stalled} frames arrived while the write queue was full and are "
+            "not in the file ("
+            + ", ".join(
+                f"SN{_t(serial)} {c['not_written_disk_stalled']}"
+                for serial, c in s["cameras"].items()
+                if c.get("not_written_disk_stalled")
+            )
+            + ")"
+        )
+    if s.get("closing"):
+        lines.append(f"NOTE: {_t(s['closing'])}")
     if s.get("malformed_messages") or s.get("unknown_version_messages"):
         lines.append(
             f"rejected messages: {s['malformed_messages']} malformed, "
@@ -104,6 +118,7 @@ def format_status(st: dict[str, Any]) -> str:
             f"WRITING FAILS for {st['write_failing_s']:.0f} s: {_t(st['write_error'])}; "
             f"{st['frames_not_written_write_failed']} frames not in the file so far"
         )
+    lines += _write_stall(st)
     lines.append("camera       node      state      fps   dropped  ptp_offset_ns  ptp")
     for c in st["cameras"]:
         dropped = c["dropped_in_recording"] if st["recording"] else c["dropped_at_agent"]
@@ -185,3 +200,21 @@ def main_status(argv: list[str]) -> int:
     st = RigClient.connect(args.recorder, args.config).status()
     print(json.dumps(st, indent=2) if args.json else format_status(st))
     return 0
+
+
+def _write_stall(st: dict[str, Any]) -> list[str]:
+    """The status line of a session file whose disk stalls (or fell behind): the recorder
+    queues frames while it can, then refuses and counts them."""
+    stalled_s = float(st.get("write_stalled_s") or 0.0)
+    refused = int(st.get("frames_not_written_disk_stalled") or 0)
+    if not stalled_s and not refused:
+        return []
+    queued = int(st.get("write_queue_bytes") or 0) / 1e6
+    limit = int(st.get("write_queue_limit_bytes") or 0) / 1e6
+    if not stalled_s:
+        return [f"the disk stalled earlier in this take: {refused} frames are not in the file"]
+    return [
+        f"WRITING STALLED for {stalled_s:.0f} s: {queued:.0f} of {limit:.0f} MB of frames wait "
+        f"for the disk; {refused} frames not written so far (queue full); check the disk "
+        f"holding {_t(st['output_dir'])}"
+    ]

@@ -38,10 +38,21 @@ delivered a frame captured after it. Whatever of the take cannot be written then
 reserve was reached, or the queue did not drain in time) is counted per camera as
 ``not_written_at_stop`` in the stop summary, never dropped silently.
 
+The I/O thread never waits for the disk: the session file is written by the recording's writer
+thread (``capture_agent/session_queue.py``), fed through a queue bounded in bytes
+(``write_queue_mb``), and created at a start on a thread of its own (the start is refused when
+that takes over ``OPEN_WAIT_S``). When the disk stalls, the queue fills; then frames are refused
+and counted per camera (``not_written_disk_stalled``), ``status`` shows ``write_stalled_s`` and
+the queued bytes, and once the disk answers the queue drains and the take goes on. A stop waits
+for the queue up to ``STOP_WRITE_S`` and counts what it could not write (``not_written_at_stop``);
+a file whose disk still does not answer is closed by the writer thread when it does.
+
 When the session file cannot be written (disk full, I/O error), the take goes on: the writer
 keeps what failed and retries it at each flush, frames arriving meanwhile are refused and counted
 (``not_written_write_failed``), and ``status`` shows the error. After ``WRITE_FAILURE_STOP_S`` of
-failures the take is stopped with the reason; the recorder itself keeps running.
+failures the take is stopped with the reason; the recorder itself keeps running. An exception
+while handling one message or one periodic step is counted (``internal_errors`` in ``status``),
+logged (rate-limited) and the loop goes on.
 
 A start is refused, with the reason and what to do, when its arguments are unusable (a case
 name that is not 1-64 of ``A-Z a-z 0-9 _ . -``; more than 64 metadata keys, keys over 64 or
@@ -82,6 +93,7 @@ from capture_agent.security import (
     load_public_key,
     make_client,
 )
+from capture_agent.session_queue import open_writer
 from capture_agent.sync import SyncConfig, Synchroniser
 from capture_agent.take_journal import TakeJournal, TakeResume
 from capture_agent.take_journal import remove as remove_take_journal
@@ -117,6 +129,7 @@ WRITE_FAILURE_STOP_S = 5.0  # a take whose file cannot be written for this long 
 STOP_WRITE_S = 3.0  # at a stop, write the queued frames of the take for at most this long
 STOP_COUNT_S = 1.0  # then count (without writing) what is still queued, for at most this long
 STOP_IDLE_S = 0.25  # a stop stops waiting for frames after this long without a message
+OPEN_WAIT_S = 5.0  # a start whose session file is not created within this long is refused
 
 
 class StartRefused(Refused):
@@ -172,6 +185,7 @@ class Recorder:
         self._server_keys: dict[str, bytes] = {}  # agent endpoint -> the agent's public key
         self.frames_refused_unknown_camera = 0  # serials not in rig.toml (or over the cap)
         self.progress = Progress("io")  # the I/O loop's heartbeat, for status and systemd
+        self.internal_errors = 0  # bugs met while handling a message or a periodic step
         self.control = ControlServer(f"recorder {config.rig_name}", self._handle)
         self.stopped = threading.Event()
         self.last_stop_summary: dict[str, Any] | None = None
@@ -243,8 +257,18 @@ class Recorder:
                 except zmq.Again:
                     break
                 n += 1
-                self._on_published(parts, agent)
+                try:
+                    self._on_published(parts, agent)
+                except Exception:  # one message's bug must not end the take or the loop
+                    self._internal_error("handling a message from agent " + agent.node_id)
         return n
+
+    def _internal_error(self, what: str) -> None:
+        """Count and log (rate-limited, with the traceback) an unexpected exception."""
+        self.internal_errors += 1
+        n = self.internal_errors
+        if n <= 5 or n % 1000 == 0:
+            log.exception("internal error #%d %s; the recorder goes on", n, what)
 
     def stop(self) -> None:
         self.stopped.set()
@@ -264,7 +288,10 @@ class Recorder:
                 self.progress.beat("io")
                 if self.rep in events:
                     self.control.serve(self.rep)  # one reply per request, whatever it holds
-                self._periodic()
+                try:
+                    self._periodic()
+                except Exception:
+                    self._internal_error("in the periodic step")
         finally:
             if self.recording is not None:
                 self._stop_recording("the recorder was shut down")
@@ -414,17 +441,18 @@ class Recorder:
         if rec is not None:
             rec.poll(time.time_ns())
             if now - rec.last_flush >= self.config.flush_interval_s:
-                try:
-                    rec.flush()
-                except SessionWriteError as exc:
-                    if rec.write_failing_s() >= WRITE_FAILURE_STOP_S:
-                        self._stop_recording(
-                            f"writing {rec.writer.path} failed for {rec.write_failing_s():.0f} s "
-                            f"({exc}); stopped. The file holds what was written before; check "
-                            "the disk, then start a new recording",
-                            write_queued=False,
-                        )
-                        return
+                rec.request_flush()  # queued behind the frames; never waits for the disk
+            if (
+                rec.write_failing_since is not None
+                and rec.write_failing_s() >= WRITE_FAILURE_STOP_S
+            ):
+                self._stop_recording(
+                    f"writing {rec.writer.path} failed for {rec.write_failing_s():.0f} s "
+                    f"({rec.write_error}); stopped. The file holds what was written before; "
+                    "check the disk, then start a new recording",
+                    write_queued=False,
+                )
+                return
         if now - self._last_disk_check >= DISK_CHECK_S:
             self._last_disk_check = now
             self._disk_free = self._free_bytes()
@@ -436,7 +464,7 @@ class Recorder:
                 # alone would be wild), or the write rate if that is higher.
                 elapsed = max(now - rec.started_monotonic, 1.0)
                 streams = sum(self.cameras[s].byte_rate() for s in rec.serials if s in self.cameras)
-                rate = max(streams, rec.writer.bytes_written / elapsed)
+                rate = max(streams, rec.bytes_written / elapsed)
                 headroom = DISK_HEADROOM_S * rate + 8e6
             if rec is not None and self._disk_free < self._reserve_bytes() + headroom:
                 log.error("disk space under the reserve: stopping the recording cleanly")
@@ -583,18 +611,28 @@ class Recorder:
             n += 1
             path = path.with_name(f"{case}_{stamp}_{n}.h5")
         previous, part = self._resume.link(case) if self._resume else ("", 1)  # a resumed take
-        writer = SessionWriter(
-            path,
-            previous_session_file=previous,
-            take_part=part,
-            session_name=case,
-            case_metadata={str(k): v for k, v in meta.items()},
-            cameras=infos,
-            tolerance_ns=int(0.5e9 / self.config.fps),
-            rig_config_text=self.config.toml_text,
-            software_version=__version__,
-            started_unix_ns=started_ns,
-        )
+
+        def create() -> SessionWriter:
+            return SessionWriter(
+                path,
+                previous_session_file=previous,
+                take_part=part,
+                session_name=case,
+                case_metadata={str(k): v for k, v in meta.items()},
+                cameras=infos,
+                tolerance_ns=int(0.5e9 / self.config.fps),
+                rig_config_text=self.config.toml_text,
+                software_version=__version__,
+                started_unix_ns=started_ns,
+            )
+
+        try:
+            writer = open_writer(create, OPEN_WAIT_S)  # a stalled disk must not hold the loop
+        except TimeoutError:
+            raise StartRefused(
+                f"the disk holding {self.config.output_dir} did not create the session file "
+                f"within {OPEN_WAIT_S:g} s (writing stalls); check the disk, then start again"
+            ) from None
         self.recording = Recording(
             writer=writer,
             sync=Synchroniser(
@@ -610,6 +648,7 @@ class Recorder:
             started_monotonic=time.monotonic(),
             serials=tuple(expected),
             last_flush=time.monotonic(),
+            write_queue_bytes=int(self.config.write_queue_mb * 1e6),
         )
         log.info("recording case %s to %s (%d cameras)", case, path, len(expected))
         self._take_started(case, meta, planned_min, path, previous, part)
@@ -724,10 +763,7 @@ class Recorder:
                 break
             rec.write_to_stop = write and elapsed < STOP_WRITE_S
             if time.monotonic() - rec.last_flush >= self.config.flush_interval_s:
-                try:
-                    rec.flush()  # a crash while draining loses no more than at any other time
-                except SessionWriteError:
-                    pass  # counted and reported by the recording
+                rec.request_flush()  # a crash while draining loses no more than at other times
             if not self.receive_published(int(STOP_IDLE_S * 1000)):
                 break
         unwritten = sum(rec.not_written_at_stop.values())
@@ -751,10 +787,13 @@ class Recorder:
                 "malformed_messages": self.malformed,
                 "unknown_version_messages": self.unknown_version,
             },
+            write_s=STOP_WRITE_S,
+            close_s=STOP_COUNT_S,
+            # on the writer thread, once the file is closed (a stalled disk: later)
+            on_closed=lambda: self._take_stopped(rec.writer.path.name),
         )
         self.recording = None
         self.last_stop_summary = summary
-        self._take_stopped()
         log.info("stopped case %s: %s", rec.case, reason)
         return summary
 
@@ -807,8 +846,13 @@ class Recorder:
         except OSError as exc:  # the take records; only a resume after a kill is lost
             log.error("cannot write the take journal in %s: %s", self.config.output_dir, exc)
 
-    def _take_stopped(self) -> None:
+    def _take_stopped(self, file_name: str) -> None:
+        """Remove the take journal once the take's file is closed, unless a later take's
+        journal replaced it meanwhile (a file closed late, after its disk stalled)."""
         try:
+            journal = TakeJournal.read(self.config.output_dir)
+            if journal is not None and journal.file != file_name:
+                return
             remove_take_journal(self.config.output_dir)
         except OSError as exc:
             log.error("cannot remove the take journal in %s: %s", self.config.output_dir, exc)
@@ -869,6 +913,7 @@ class Recorder:
             "max_clock_skew_s": self.config.max_clock_skew_s,
             "control": self.control.counts(),
             "progress_age_s": self.progress.ages_s(),
+            "internal_errors": self.internal_errors + (rec.queue.internal_errors if rec else 0),
             "stall_limit_s": STALL_LIMIT_S,
         }
         if rec is not None:
@@ -879,13 +924,19 @@ class Recorder:
                     "duration_s": round(time.monotonic() - rec.started_monotonic, 2),
                     "sets": rec.sets_written,
                     "frames": rec.frames_written,
-                    "bytes": rec.writer.bytes_written,
+                    "bytes": rec.bytes_written,
                     "capture_to_durable_ms": rec.latency_ms(),
                     "write_failing_s": round(rec.write_failing_s(), 1),
                     "write_error": safe_text(rec.write_error, 500)
                     if rec.write_failing_since
                     else "",
                     "frames_not_written_write_failed": sum(rec.not_written_write_failed.values()),
+                    # the writer thread inside one call for this long (a stalling disk), what
+                    # waits for it, and what a full queue refused
+                    "write_stalled_s": round(rec.write_stalled_s(), 1),
+                    "write_queue_bytes": rec.queue.queued_bytes,
+                    "write_queue_limit_bytes": rec.queue.max_bytes,
+                    "frames_not_written_disk_stalled": sum(rec.not_written_disk_stalled.values()),
                 }
             )
         if self.last_stop_summary is not None:

@@ -12,10 +12,17 @@ of them (disk reserve, time), counted per camera in ``not_written_at_stop``; fra
 it are not part of the take, and ``passed_stop`` collects the cameras that sent one (so nothing
 earlier can come from them any more).
 
+Writing happens on the recording's writer thread (``capture_agent/session_queue.py``): the I/O
+thread only queues frames, gap records, sets, flushes and the close, so a stalling disk never
+stops it. While the queue (``write_queue_bytes``) is full, frames are refused and counted per
+camera in ``not_written_disk_stalled``; the synchroniser sees only the frames queued, and the
+writer thread maps the sets' frames to file rows (a frame it could not write is a missing member).
+
 Write failures (disk full, I/O error): the session writer keeps what it could not write and
 retries it at every flush; while it fails, it refuses new frames, which are counted per camera in
 ``not_written_write_failed``. ``write_failing_s`` says for how long; the recorder stops the
-take when that grows too long. Whatever happens, ``finish`` returns a summary.
+take when that grows too long. Whatever happens, ``finish`` returns a summary; a file whose disk
+does not answer within the stop's budget is closed by the writer thread when it does.
 """
 
 from __future__ import annotations
@@ -23,58 +30,81 @@ from __future__ import annotations
 import collections
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-
 from capture_agent.accounting import StreamAccounting
+from capture_agent.session_queue import WriteQueue
 from capture_agent.sync import SyncedSet, Synchroniser
 from protocol.messages import FrameMessage
 from protocol.session import SessionWriteError, SessionWriter
-from protocol.set_counts import missing_in_sets
 
 log = logging.getLogger(__name__)
 
 TAKE_START_WAIT_NS = 2_000_000_000  # a take starts on a partial set after this long
+DEFAULT_WRITE_QUEUE_BYTES = 256_000_000  # rig.toml's write_queue_mb default
+FINISH_WRITE_S = 3.0  # finish() waits this long for the queued frames to be written...
+FINISH_CLOSE_S = 1.0  # ...then this long for the file to close
 
 
 @dataclass
 class Recording:
-    writer: SessionWriter
+    writer: SessionWriter  # used by the writer thread only, once the recording exists
     sync: Synchroniser
     accounting: StreamAccounting
     case: str
     started_unix_ns: int
     started_monotonic: float
     serials: tuple[int, ...]
-    sets_written: int = 0
+    write_queue_bytes: int = DEFAULT_WRITE_QUEUE_BYTES
     leading_sets_skipped: int = 0
     trailing_sets_skipped: int = 0
     take_started: bool = False
-    frames_written: int = 0
     ignored_frames: int = 0
-    last_flush: float = 0.0
+    last_flush: float = 0.0  # when the last flush was queued (monotonic)
     # set by begin_stop: frames captured after stop_unix_ns are not part of the take
     stop_unix_ns: int | None = None
+    stop_began_monotonic: float | None = None
     write_to_stop: bool = True  # False: frames of the take still arriving are only counted
     passed_stop: set[int] = field(default_factory=set)
     not_written_at_stop: collections.Counter[int] = field(default_factory=collections.Counter)
-    # frames the session writer refused while its writes failed, and since when they fail
-    not_written_write_failed: collections.Counter[int] = field(default_factory=collections.Counter)
-    write_failing_since: float | None = None
-    # per camera, the written sets without a frame of it (the stop summary's missing_in_sets)
-    missing_in_sets: collections.Counter[int] = field(default_factory=collections.Counter)
-    write_error: str = ""
-    # capture stamps of frames written since the last flush, and capture-to-durable latencies
-    unflushed_capture_ns: list[int] = field(default_factory=list)
-    durable_latency_ns: collections.deque = field(
-        default_factory=lambda: collections.deque(maxlen=200_000)
-    )
+    # frames refused because the write queue was full (the disk stalled or fell behind)
+    not_written_disk_stalled: collections.Counter[int] = field(default_factory=collections.Counter)
+    queue: WriteQueue = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.queue = WriteQueue(self.writer, self.write_queue_bytes)
+
+    # -- what the writer thread counts (read-only here) ----------------------------------------
+    @property
+    def frames_written(self) -> int:
+        return sum(self.queue.frames_written.values())
+
+    @property
+    def sets_written(self) -> int:
+        return self.queue.sets_written
+
+    @property
+    def bytes_written(self) -> int:
+        return self.queue.bytes_written
+
+    @property
+    def not_written_write_failed(self) -> collections.Counter[int]:
+        return self.queue.not_written_write_failed
+
+    @property
+    def write_failing_since(self) -> float | None:
+        return self.queue.write_failing_since
+
+    @property
+    def write_error(self) -> str:
+        return self.queue.write_error
 
     # -- frames ------------------------------------------------------------------------------
     def write_frame(self, msg: FrameMessage, recorder_receive_unix_ns: int) -> None:
-        """Store one received frame (of any camera), as the take and the stop decide."""
+        """Queue one received frame (of any camera) for the file, as the take and the stop
+        decide; never waits for the disk."""
         serial = msg.camera_serial
         if serial not in self.serials:
             self.ignored_frames += 1
@@ -89,7 +119,7 @@ class Recording:
         for gap in self.accounting.observe(
             serial, msg.frame_index, msg.seq, msg.capture_unix_ns, msg.node_id
         ):
-            self.writer.append_gap(
+            self.queue.put_gap(
                 gap.camera_serial,
                 kind=int(gap.kind),
                 first_missing_frame_index=gap.first_missing_frame_index,
@@ -97,65 +127,55 @@ class Recording:
                 start_unix_ns=gap.start_unix_ns,
                 end_unix_ns=gap.end_unix_ns,
             )
-        try:
-            row = self._append(serial, msg, recorder_receive_unix_ns)
-        except SessionWriteError as exc:
-            self._write_failed(exc)
-            self.not_written_write_failed[serial] += 1
+        ticket = self.queue.put_frame(msg, recorder_receive_unix_ns)
+        if ticket is None:
+            self.not_written_disk_stalled[serial] += 1
+            n = sum(self.not_written_disk_stalled.values())
+            if n == 1 or n % 1000 == 0:
+                log.error(
+                    "case %s: the write queue is full (%.0f MB; the writer has been in one call "
+                    "for %.1f s): %d frames refused so far; check the disk holding %s",
+                    self.case,
+                    self.queue.queued_bytes / 1e6,
+                    self.queue.stalled_s(),
+                    n,
+                    self.writer.path.parent,
+                )
             return
-        self.frames_written += 1
-        self.unflushed_capture_ns.append(msg.capture_unix_ns)
-        self._write_sets(self.sync.add(serial, msg.capture_unix_ns, row, recorder_receive_unix_ns))
-
-    def _append(self, serial: int, msg: FrameMessage, recorder_receive_unix_ns: int) -> int:
-        return self.writer.append_frame(
-            serial,
-            left=msg.left,
-            right=msg.right,
-            capture_unix_ns=msg.capture_unix_ns,
-            host_receive_unix_ns=msg.host_receive_unix_ns,
-            recorder_receive_unix_ns=recorder_receive_unix_ns,
-            frame_index=msg.frame_index,
-            seq=msg.seq,
-            ptp_offset_ns=msg.ptp_offset_ns,
-            ptp_locked=msg.ptp_locked,
+        self._write_sets(
+            self.sync.add(serial, msg.capture_unix_ns, ticket, recorder_receive_unix_ns)
         )
 
     def poll(self, now_unix_ns: int) -> None:
-        """Write the sets that time (a silent camera's timeout) completes."""
+        """Queue the sets that time (a silent camera's timeout) completes."""
         self._write_sets(self.sync.poll(now_unix_ns))
 
-    def flush(self) -> None:
-        """Make what was written durable; raises ``SessionWriteError`` while writes fail (the
-        next flush retries them)."""
+    def request_flush(self) -> None:
+        """Queue a flush (never waits): what was queued before it becomes durable."""
         self.last_flush = time.monotonic()
-        try:
-            self.writer.flush()
-        except SessionWriteError as exc:
-            self._write_failed(exc)
-            raise
+        self.queue.request_flush()
+
+    def flush(self, timeout_s: float = 30.0) -> None:
+        """Queue a flush and wait for it (tests, tools): raises ``SessionWriteError`` while
+        writes fail, ``TimeoutError`` when the disk does not answer within ``timeout_s``."""
+        self.request_flush()
+        if not self.queue.wait_idle(timeout_s):
+            raise TimeoutError(f"{self.writer.path}: the disk did not answer in {timeout_s:g} s")
         if self.write_failing_since is not None:
-            log.warning(
-                "case %s: the session file is written again after %.1f s of failures",
-                self.case,
-                self.write_failing_s(),
-            )
-            self.write_failing_since = None
-        now = time.time_ns()
-        self.durable_latency_ns.extend(now - c for c in self.unflushed_capture_ns)
-        self.unflushed_capture_ns.clear()
+            raise SessionWriteError(self.write_error)
+
+    def wait_written(self, timeout_s: float) -> bool:
+        """Wait until everything queued is done; False if it took longer than ``timeout_s``."""
+        return self.queue.wait_idle(timeout_s)
 
     def write_failing_s(self) -> float:
         """For how long the session file has not been writable (0 while it is)."""
-        if self.write_failing_since is None:
-            return 0.0
-        return time.monotonic() - self.write_failing_since
+        since = self.write_failing_since
+        return 0.0 if since is None else time.monotonic() - since
 
-    def _write_failed(self, exc: SessionWriteError) -> None:
-        self.write_error = str(exc)
-        if self.write_failing_since is None:
-            self.write_failing_since = time.monotonic()
-            log.error("case %s: %s; frames are refused until it is writable again", self.case, exc)
+    def write_stalled_s(self) -> float:
+        """For how long the writer has been inside one call into the file (0 under a second)."""
+        return self.queue.stalled_s()
 
     def _write_sets(self, sets: list[SyncedSet]) -> None:
         for s in sets:
@@ -169,18 +189,30 @@ class Recording:
                     self.leading_sets_skipped += 1
                     continue
                 self.take_started = True
-            self.writer.append_set(s.set_unix_ns, s.member_rows(), s.spread_ns)
-            self.sets_written += 1
-            # counted as the file's readers count it (protocol/set_counts.py), sets written only
-            self.missing_in_sets.update(missing_in_sets([s.member_rows()], self.serials))
+            self.queue.put_set(s.set_unix_ns, s.members, s.spread_ns)
 
     # -- the stop ----------------------------------------------------------------------------
     def begin_stop(self, stop_unix_ns: int, *, write: bool) -> None:
         self.stop_unix_ns = stop_unix_ns
+        self.stop_began_monotonic = time.monotonic()
         self.write_to_stop = write
 
-    def finish(self, reason: str, extra: dict[str, Any]) -> dict[str, Any]:
-        """Write the last sets, close the file with its summary, and return the summary."""
+    def finish(
+        self,
+        reason: str,
+        extra: dict[str, Any],
+        *,
+        write_s: float = FINISH_WRITE_S,
+        close_s: float = FINISH_CLOSE_S,
+        on_closed: Callable[[], None] | None = None,
+    ) -> dict[str, Any]:
+        """Queue the last sets, wait up to ``write_s`` (from ``begin_stop``) for the queued
+        frames to be written, count those that are not as ``not_written_at_stop``, close the
+        file with its summary and return the summary.
+
+        When the file does not close within ``close_s`` more (a disk that still stalls), the
+        summary so far is returned with ``closing`` set; the writer thread closes the file (and
+        calls ``on_closed``) when the disk answers, with the final counts in its summary."""
         tail = self.sync.flush()
         # Likewise at the end: windows the stop cut short (some cameras' frames for them were
         # captured after the stop) are not sets of the take; a take ends on a complete set.
@@ -188,59 +220,70 @@ class Recording:
             tail.pop()
             self.trailing_sets_skipped += 1
         self._write_sets(tail)
-        try:
-            self.flush()
-        except SessionWriteError:
-            pass  # the summary says so, and close() tries once more
+        self.queue.request_flush()
+        began = self.stop_began_monotonic or time.monotonic()
+        left = began + write_s - time.monotonic()
+        if not self.write_to_stop or not self.queue.wait_idle(max(left, 0.0)):
+            self.queue.discard()  # the frames still queued are counted, not written
+        self.queue.close(lambda: self._summary(reason, extra), on_closed)
+        if self.queue.closed.wait(close_s) and self.queue.summary is not None:
+            return self.queue.summary
+        summary = self._summary(reason, extra, still_queued=True)
+        summary["closing"] = (
+            f"the disk did not answer within the stop's {write_s + close_s:g} s; the writer "
+            "closes the file when it does (the file's own summary has the final counts)"
+        )
+        log.error("case %s: %s", self.case, summary["closing"])
+        return summary
+
+    def _summary(
+        self, reason: str, extra: dict[str, Any], still_queued: bool = False
+    ) -> dict[str, Any]:
+        """The stop summary (stored in the file and replied to the stop). ``still_queued``:
+        count the frames still in the write queue as not written at the stop (they will not
+        be: the queue discards them)."""
+        q = self.queue
+        queued = collections.Counter(q.queued_frames) if still_queued else collections.Counter()
+        at_stop = self.not_written_at_stop + q.not_written_at_stop + queued
         stopped_ns = time.time_ns()
         totals = self.accounting.totals()
         per_camera = {}
         for s in self.serials:
             t = totals.get(s)
             per_camera[str(s)] = {
-                "frames": self.writer.frames_written(s),
+                "frames": int(q.frames_written[s]),
                 "dropped": t.frames_dropped_camera if t else 0,
                 "transport_lost": t.transport_lost if t else 0,
                 "time_gaps": t.time_gaps if t else 0,
                 "reconnects": t.reconnects if t else 0,
-                "missing_in_sets": int(self.missing_in_sets[s]),
+                "missing_in_sets": int(q.missing_in_sets[s]),
                 "unassigned": int(self.sync.unassigned_frames.get(s, 0)),
-                "not_written_at_stop": int(self.not_written_at_stop[s]),
-                "not_written_write_failed": int(self.not_written_write_failed[s]),
+                "not_written_at_stop": int(at_stop[s]),
+                "not_written_write_failed": int(q.not_written_write_failed[s]),
+                "not_written_disk_stalled": int(self.not_written_disk_stalled[s]),
             }
         summary = {
             "case": self.case,
             "file": str(self.writer.path),
             "reason": reason,
             "duration_s": round((stopped_ns - self.started_unix_ns) / 1e9, 3),
-            "sets": self.sets_written,
+            "sets": q.sets_written,
+            "sets_not_written": q.sets_not_written,
             "partial_sets_trimmed": self.leading_sets_skipped + self.trailing_sets_skipped,
-            "frames": self.frames_written,
-            "frames_not_written_at_stop": sum(self.not_written_at_stop.values()),
-            "frames_not_written_write_failed": sum(self.not_written_write_failed.values()),
-            "bytes": self.writer.bytes_written,
-            "capture_to_durable_ms": self.latency_ms(),
+            "frames": sum(q.frames_written.values()),
+            "frames_not_written_at_stop": sum(at_stop.values()),
+            "frames_not_written_write_failed": sum(q.not_written_write_failed.values()),
+            "frames_not_written_disk_stalled": sum(self.not_written_disk_stalled.values()),
+            "write_internal_errors": q.internal_errors,
+            "bytes": q.bytes_written,
+            "capture_to_durable_ms": q.latency_ms(),
             "cameras": per_camera,
             **extra,
         }
-        if self.write_error:
-            summary["write_error"] = self.write_error
-        try:
-            self.writer.close(stopped_ns, summary)
-        except SessionWriteError as exc:
-            # The file is closed without the clean mark and holds what the last good flush put
-            # there; every frame after that is in the counts above or in this error.
-            summary["write_error"] = str(exc)
-            log.error("case %s: %s", self.case, exc)
+        if q.write_error:
+            summary["write_error"] = q.write_error
         return summary
 
     # -- numbers -----------------------------------------------------------------------------
     def latency_ms(self) -> dict[str, float | None]:
-        if not self.durable_latency_ns:
-            return {"p50": None, "p99": None, "max": None}
-        a = np.asarray(self.durable_latency_ns, dtype=np.float64) / 1e6
-        return {
-            "p50": round(float(np.percentile(a, 50)), 2),
-            "p99": round(float(np.percentile(a, 99)), 2),
-            "max": round(float(a.max()), 2),
-        }
+        return self.queue.latency_ms()

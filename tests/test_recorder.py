@@ -200,9 +200,11 @@ def test_a_disk_full_for_a_moment_loses_only_the_frames_it_refused(queued, monke
     full.set()
     rec.last_flush = 0.0
     recorder._periodic()  # a flush is due: it fails, the recording goes on
+    assert rec.wait_written(10.0)  # the writer thread has done what was queued
     assert recorder.recording is rec and rec.write_failing_since is not None
     assert "No space" in rec.write_error
     _receive_all(recorder)  # the rest of the take arrives while the disk is full: refused
+    assert rec.wait_written(10.0)
     status = recorder.status()  # what 'egosurg status' shows the operator meanwhile
     assert "No space" in status["write_error"]
     assert status["frames_not_written_write_failed"] == (take + 3) * len(SERIALS) - written
@@ -210,6 +212,7 @@ def test_a_disk_full_for_a_moment_loses_only_the_frames_it_refused(queued, monke
     full.clear()
     rec.last_flush = 0.0  # due again: it succeeds, with the chunks that failed
     recorder._periodic()
+    assert rec.wait_written(10.0)
     assert rec.write_failing_since is None
     summary = recorder._stop_recording("stopped by request")
     refused = summary["frames_not_written_write_failed"]
@@ -238,7 +241,9 @@ def test_a_recording_that_cannot_write_for_long_stops_with_the_reason(queued, mo
     assert flushed == (take + 3) * len(SERIALS)
     full.set()
     recorder.recording.last_flush = 0.0
-    recorder._periodic()
+    recorder._periodic()  # queues the flush, which fails on the writer thread...
+    assert recorder.recording.wait_written(10.0)
+    recorder._periodic()  # ...and the next step sees the failure: the take stops
     assert recorder.recording is None
     summary = recorder.last_stop_summary
     assert "failed" in summary["reason"] and "No space left" in summary["reason"]
