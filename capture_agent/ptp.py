@@ -53,7 +53,7 @@ from dataclasses import dataclass
 from types import TracebackType
 from typing import Any
 
-from capture_agent.sources.options import TableReader, require
+from capture_agent.toml_table import TableReader, require
 from protocol.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -110,7 +110,7 @@ class PtpConfig:
 
     @classmethod
     def from_table(cls, table: dict[str, Any], where: str) -> PtpConfig:
-        r = TableReader(table, where, ignore=())
+        r = TableReader(table, where)
         kw = {
             "source": r.choice("source", PTP_SOURCES, "pmc"),
             "pmc_path": r.text("pmc_path", "pmc", hint="the pmc program (name or path)"),

@@ -36,6 +36,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "case": ("reconstructor.case.cli:main", "a batch-reconstructed case: info, export"),
     "render": ("reconstructor.cli:main_render", "render a splat model from any viewpoint"),
+    "replay": ("reconstructor.replay.cli:main_replay", "a case from a path or a role, to MP4"),
+    "sightline": (
+        "reconstructor.replay.cli:main_sightline",
+        "a target's visible fraction from a viewer over a case, and from a moved position",
+    ),
     "evaluate": (
         "reconstructor.evaluation.cli:main",
         "the paper's evaluation protocols and baselines on an evaluation set",

@@ -17,9 +17,11 @@ Two things HDF5 does differently in that mode made damaged files hang the tools:
    plenty for a live writer's torn read) with ``H5Pset_metadata_read_attempts``, which h5py
    does not wrap, through ctypes on the HDF5 library h5py has loaded.
 
-Where that library cannot be found (not Linux, or an h5py that links HDF5 statically), the open
-is first tried in a child process with a time limit that opens the file and touches all of its
-metadata (``_probe``): slower (about a second), but bounded, and only then is it opened here.
+Neither bounds damage in metadata without a checksum, above all HDF5's global heap (every string
+attribute), whose parser can loop forever; so ``open_hdf5`` first reads all of a file's metadata
+in a child process with a time limit (``protocol.session_probe``), and opens it here only
+after that finished. Where the ctypes binding cannot be found (not Linux, or an h5py that links
+HDF5 statically) the child's retries are not capped, and the time limit alone refuses the file.
 """
 
 from __future__ import annotations
@@ -28,20 +30,18 @@ import ctypes
 import functools
 import logging
 import os
-import subprocess
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
 
 from protocol.session_format import SessionFormatError
+from protocol.session_probe import probe_metadata
 
 logger = logging.getLogger(__name__)
 
 SIGNATURE = b"\x89HDF\r\n\x1a\n"
 METADATA_READ_ATTEMPTS = 25
-PROBE_TIMEOUT_S = 30.0
 _UNDEFINED = "undefined"
 
 
@@ -74,24 +74,29 @@ def read_superblock(path: Path) -> Superblock:
     """Parse the superblock (versions 0 to 3); ``SessionFormatError`` if it is not one."""
     size = path.stat().st_size
     where, head = _locate(path, size)
-    version = head[8]
+
+    def byte(at: int) -> int:
+        if at >= len(head):  # a file cut inside its superblock (even right after the signature)
+            raise SessionFormatError(
+                f"{path}: the HDF5 superblock is cut short ({len(head)} bytes after its start); "
+                "the file is damaged. Copy it again from the recorder"
+            )
+        return head[at]
 
     def field(at: int, width: int) -> int:
-        if at + width > len(head):
-            raise SessionFormatError(
-                f"{path}: the HDF5 superblock is cut short; the file is damaged"
-            )
+        byte(at + width - 1)
         value = int.from_bytes(head[at : at + width], "little")
         return -1 if value == (1 << (8 * width)) - 1 else value
 
+    version = byte(8)
     if version in (0, 1):
-        width = head[13]
+        width = byte(13)
         base_at = 24 if version == 0 else 28
         flags = field(20, 4)
     elif version in (2, 3):
-        width = head[9]
+        width = byte(9)
         base_at = 12
-        flags = head[11]
+        flags = byte(11)
     else:
         raise SessionFormatError(
             f"{path}: HDF5 superblock version {version} is unknown (0-3 are); the file is damaged "
@@ -146,21 +151,35 @@ def _set_read_attempts() -> object | None:
     return None
 
 
-def _fapl(cache_bytes: int, cache_slots: int) -> tuple[h5py.h5p.PropFAID, bool]:
+def _fapl(cache_bytes: int, cache_slots: int) -> h5py.h5p.PropFAID:
     fapl = h5py.h5p.create(h5py.h5p.FILE_ACCESS)
     settings = list(fapl.get_cache())
     settings[1], settings[2] = cache_slots, cache_bytes
     fapl.set_cache(*settings)
     func = _set_read_attempts()
-    bounded = func is not None and func(fapl.id, METADATA_READ_ATTEMPTS) >= 0  # type: ignore[operator]
-    return fapl, bounded
+    if func is None or func(fapl.id, METADATA_READ_ATTEMPTS) < 0:  # type: ignore[operator]
+        _warn_unbounded()
+    return fapl
+
+
+@functools.cache
+def _warn_unbounded() -> None:
+    logger.warning(
+        "H5Pset_metadata_read_attempts not found in the HDF5 library h5py loaded: a session with "
+        "damaged metadata is refused only after the probe's time limit"
+    )
 
 
 def open_hdf5(path: Path, *, cache_bytes: int, cache_slots: int) -> h5py.File:
-    """Open a (checked) session file read-only, SWMR where its format allows, never hanging."""
-    fapl, bounded = _fapl(cache_bytes, cache_slots)
-    if not bounded:
-        _probe_in_child(path)
+    """Open a (checked) session file read-only, SWMR where its format allows, never hanging:
+    its metadata is read first in a child with a time limit (``protocol.session_probe``)."""
+    probe_metadata(path, lambda: open_unprobed(path))
+    return open_unprobed(path, cache_bytes=cache_bytes, cache_slots=cache_slots)
+
+
+def open_unprobed(path: Path, *, cache_bytes: int = 1 << 20, cache_slots: int = 521) -> h5py.File:
+    """``open_hdf5`` without the probe: only for the probe's child, or a file that passed it."""
+    fapl = _fapl(cache_bytes, cache_slots)
     name = os.fsencode(path)
     errors = []
     # SWMR also opens live and killed writers' files; a file older than the 1.10 format only
@@ -174,36 +193,3 @@ def open_hdf5(path: Path, *, cache_bytes: int, cache_slots: int) -> h5py.File:
         f"{path}: HDF5 cannot open it ({errors[0]}); the file is damaged. Copy it again from the "
         "recorder"
     )
-
-
-def _probe_in_child(path: Path) -> None:
-    """Open ``path`` and read all of its metadata in a child process with a time limit."""
-    try:
-        out = subprocess.run(
-            [sys.executable, "-c", _PROBE, os.fspath(path)],
-            capture_output=True,
-            text=True,
-            timeout=PROBE_TIMEOUT_S,
-        )
-    except subprocess.TimeoutExpired:
-        raise SessionFormatError(
-            f"{path}: HDF5 did not finish reading its metadata in {PROBE_TIMEOUT_S:g} s; the file "
-            "is damaged. Copy it again from the recorder"
-        ) from None
-    if out.returncode != 0:
-        reason = (out.stderr.strip().splitlines() or ["unknown error"])[-1]
-        raise SessionFormatError(f"{path}: HDF5 cannot read its metadata ({reason}); damaged")
-
-
-# Every object, attribute and chunk index: all the metadata a reader can touch.
-_PROBE = """
-import sys, h5py
-with h5py.File(sys.argv[1], "r", swmr=True) as f:
-    def visit(name, obj):
-        dict(obj.attrs)
-        if isinstance(obj, h5py.Dataset) and obj.chunks:
-            for i in range(obj.id.get_num_chunks()):
-                obj.id.get_chunk_info(i)
-    dict(f.attrs)
-    f.visititems(visit)
-"""

@@ -58,9 +58,11 @@ class _Blob:
     A chunk is assembled in a buffer lent by the file's ``ChunkSink``; when it is full, the
     sink writes it at the chunk's place in the file from its own thread. The dataset allocates
     its chunks when it grows (``H5D_ALLOC_TIME_EARLY``), so HDF5 knows that place before the
-    bytes exist. ``flush`` writes the unfinished last chunk whole (zeros past the data); it is
-    written again when it fills, with the same leading bytes, so what a reader may already see
-    never changes.
+    bytes exist. ``flush`` writes what the unfinished last chunk gained since its last flush, in
+    whole disk blocks (zeros past the data); the chunk is written whole when it fills, with the
+    same leading bytes, so what a reader may already see never changes. (Writing the whole
+    chunk at every flush cost 1 MiB per camera side and flush: 40 MiB/s more disk writes at the
+    full rig with a flush every 0.2 s.)
     """
 
     def __init__(self, ds: h5py.Dataset, sink: ChunkSink) -> None:
@@ -72,6 +74,7 @@ class _Blob:
         self.chunk_start = 0  # where the buffer's chunk starts in the dataset
         self.buffer: np.ndarray | None = None  # the unfinished chunk, lent by the sink
         self.fill = 0  # bytes of data in the buffer
+        self.flushed = 0  # bytes of the buffer's chunk already written by a flush
         self.zero_from = 0  # buffer[max(fill, zero_from):] is all zeros
 
     def append(self, data: Any) -> tuple[int, int, int]:
@@ -88,6 +91,7 @@ class _Blob:
             if self.buffer is None:
                 self.buffer = self.sink.take_buffer()
                 self.zero_from = chunk  # old contents
+                self.flushed = 0
             step = min(n - pos, chunk - self.fill)
             self.buffer[self.fill : self.fill + step] = src[pos : pos + step]
             self.fill += step
@@ -106,7 +110,12 @@ class _Blob:
             if self.zero_from > self.fill:  # no stale bytes of an earlier chunk in the file
                 self.buffer[self.fill : self.zero_from] = 0
             self.zero_from = self.fill
-            self.sink.write_now(self.buffer, self._file_offset())
+            # whole blocks, as direct I/O needs (the buffer is page-aligned, so is its slice)
+            start = self.flushed // DIRECT_ALIGN_BYTES * DIRECT_ALIGN_BYTES
+            end = min(_round_up(self.fill, DIRECT_ALIGN_BYTES), self.chunk)
+            if end > start:
+                self.sink.write_now(self.buffer[start:end], self._file_offset() + start)
+            self.flushed = self.fill
         self.ds.flush()
 
     def _file_offset(self) -> int:

@@ -305,6 +305,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--view-size", default="960x600", help="egocentric view size WxH")
     p.add_argument("--view-hfov", type=float, default=90.0, help="egocentric hfov, degrees")
     p.set_defaults(func=cmd_eval_set)
+
+    from sim.roles import add_parser as add_roles_parser  # egosurg sim roles (issue 21)
+
+    add_roles_parser(sub)
     return parser
 
 

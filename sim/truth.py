@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.camera import Pose, Resolution
+from protocol.camera import Camera, Pose, Resolution
 from protocol.rig_calibration import RigCalibration, SensorCalibration
 from sim.render import SPHERE_OBJECT_BASE
 from sim.world import Render, World
@@ -156,3 +156,84 @@ def wand_sphere_whole(world: World, render: Render, t_s: float, k: int) -> bool:
         return False
     near = win[d <= r + SPHERE_CLEARANCE_PX]
     return not ((near >= SPHERE_OBJECT_BASE) & (near != SPHERE_OBJECT_BASE + k)).any()
+
+
+def wand_axis_angle_deg(world: World, camera: Camera, t_s: float) -> float:
+    """Angle between the wand's axis and ``camera``'s line of sight to its middle sphere at
+    ``t_s``: 90 when the wand lies across the view, 0 when it points at the camera (its spheres
+    then line up behind each other in the image)."""
+    centres = world.wand_centres(t_s)
+    if centres is None:
+        raise ValueError(f"world seed {world.config.seed} has no wand at t={t_s} s")
+    local = camera.pose.transform(centres)
+    axis = (local[-1] - local[0]) / np.linalg.norm(local[-1] - local[0])
+    sight = local[1] / np.linalg.norm(local[1])
+    return float(np.degrees(np.arccos(min(1.0, abs(float(axis @ sight))))))
+
+
+def wand_in_clear_view(
+    world: World, camera: Camera, t_s: float, *, max_range_m: float, min_axis_angle_deg: float
+) -> bool:
+    """From the geometry alone, without rendering: all three spheres of the wand at ``t_s`` are
+    in front of ``camera``, inside its image with the margin ``wand_sphere_whole`` asks for, no
+    farther than ``max_range_m``, their outlines at least ``SPHERE_CLEARANCE_PX`` apart, and
+    the wand at least ``min_axis_angle_deg`` from pointing at the camera. Whether something
+    hides a sphere only a render can tell (``wand_sphere_whole``); this picks the times worth
+    rendering."""
+    centres = world.wand_centres(t_s)
+    if centres is None:
+        return False
+    local = camera.pose.transform(centres)
+    if (local[:, 2] < 0.3).any() or (np.linalg.norm(local, axis=1) > max_range_m).any():
+        return False
+    px, z = camera.project(centres)
+    r = camera.intrinsics.fx_px * world.config.wand.radius_m / z
+    m = r + SPHERE_CLEARANCE_PX + 2
+    k = camera.intrinsics
+    if not ((px[:, 0] >= m) & (px[:, 0] < k.width_px - m)).all():
+        return False
+    if not ((px[:, 1] >= m) & (px[:, 1] < k.height_px - m)).all():
+        return False
+    for i, j in ((0, 1), (1, 2), (0, 2)):
+        if np.linalg.norm(px[i] - px[j]) - r[i] - r[j] < SPHERE_CLEARANCE_PX:
+            return False
+    return wand_axis_angle_deg(world, camera, t_s) >= min_axis_angle_deg
+
+
+CAMOUFLAGE_CHROMA = 0.1  # chromaticity distance (r, g, b summing to 1) within which colours match
+
+
+def wand_sphere_camouflaged(world: World, render: Render, t_s: float, k: int) -> bool:
+    """Wand sphere ``k`` is seen in front of something of its own colour in ``render``: more
+    than 5 % of the room just outside its outline (2-4 px out) matches the sphere's chromaticity
+    (in the sim, the orange patches on the equipment's plastic), or a lit screen lies there
+    (its yellow traces have the spheres' hue, and its 1 px lines cross the outline). There is no
+    clean outline to find by colour, so a colour detector's centre cannot be held to the truth
+    even where the sphere is whole (``wand_sphere_whole``)."""
+    centres = world.wand_centres(t_s)
+    if centres is None:
+        return False
+    px, z = render.camera.project(centres[k : k + 1])
+    r = render.camera.intrinsics.fx_px * world.config.wand.radius_m / z[0]
+    u, v = px[0]
+    m = int(r) + 6
+    H, W = render.object_index.shape
+    if z[0] <= 0 or not (m <= u < W - m and m <= v < H - m):
+        return False
+    y0, x0 = int(v) - m, int(u) - m
+    ys, xs = np.mgrid[y0 : y0 + 2 * m + 1, x0 : x0 + 2 * m + 1]
+    d = np.hypot(xs - u, ys - v)
+    rgb = render.image_rgb[y0 : y0 + 2 * m + 1, x0 : x0 + 2 * m + 1].astype(float) + 1.0
+    chroma = rgb / rgb.sum(axis=2, keepdims=True)
+    oi = render.object_index[y0 : y0 + 2 * m + 1, x0 : x0 + 2 * m + 1]
+    inside = (oi == SPHERE_OBJECT_BASE + k) & (d < r - 1)
+    objects = world.scene_at(t_s).objects
+    rod = next(i for i, o in enumerate(objects) if o.name == "wand_rod")
+    ring = (d > r + 1.5) & (d < r + 4) & (oi < SPHERE_OBJECT_BASE) & (oi != rod)
+    if not inside.any() or not ring.any():
+        return False
+    if any(objects[i].emission > 0 for i in np.unique(oi[ring]) if 0 <= i < len(objects)):
+        return True
+    own = np.median(chroma[inside], axis=0)
+    matches = np.linalg.norm(chroma[ring] - own, axis=1) < CAMOUFLAGE_CHROMA
+    return bool(matches.mean() > 0.05)

@@ -151,7 +151,7 @@ def test_agent_answers_status_and_refuses_recording_verbs():
         ({"encoding": "png"}, ["encoding", "jpeg"]),
         ({"jpeg_quality": 0}, ["jpeg_quality"]),
         ({"cameras": []}, ["[[cameras]]"]),
-        ({"framez_bind": "tcp://*:1"}, ["unknown setting", "framez_bind"]),
+        ({"framez_bind": "tcp://*:1"}, ["unknown option", "framez_bind"]),
     ],
 )
 def test_bad_node_config_names_the_field(change, words):

@@ -27,6 +27,7 @@ import numpy as np
 import pytest
 import zmq
 
+from capture_agent.control import format_status
 from protocol.messages import ControlReply, ControlRequest
 from protocol.session import GapKind, SessionReader
 from sim.deploy import SimRig, SimRigSpec, free_ports, write_sim_rig
@@ -383,6 +384,9 @@ def test_a_stalling_disk_is_reported_and_the_take_resumes(rig, freezable_disk):
         assert last > thawed_at, "nothing was written after the disk came back"
         during = answers[0]
         assert re.search(r"stall|progress|write", str(during.result)), during.result
+        # what 'egosurg status' printed meanwhile: the stall, and the take still recording
+        assert during.result["recording"] and during.result["write_stalled_s"] > 0, during.result
+        assert "WRITING STALLED" in format_status(during.result)
 
 
 def test_a_clock_step_on_one_node_is_flagged_and_no_set_mixes_times(rig):

@@ -1,12 +1,14 @@
-"""The recorder's stop and receive queue, driven by hand: a real SUB socket fed by a test PUB, a
-real session file, no agents. The recorder's thread is not started, so the messages stay queued
-in ZeroMQ until the stop drains them, as they do in a recorder that fell behind."""
+"""The recorder's stop, receive queue and write queue, driven by hand: a real SUB socket fed by
+a test PUB, a real session file, no agents. The recorder's thread is not started (but in the
+last test), so the messages stay queued in ZeroMQ until the stop drains them, as they do in a
+recorder that fell behind. The session file's writes run on the recording's writer thread."""
 
 from __future__ import annotations
 
 import threading
 import time
 
+import numpy as np
 import pytest
 import zmq
 
@@ -15,9 +17,10 @@ from capture_agent.config import AgentEndpoint, RigConfig, SecurityConfig
 from capture_agent.control import format_status, format_summary
 from capture_agent.recorder import RECEIVE_QUEUE_S, CameraLive, Recorder, receive_hwm
 from capture_agent.recording import Recording
+from capture_agent.session_queue import WriteQueue
 from capture_agent.sync import SyncConfig, Synchroniser
 from protocol import chunk_sink
-from protocol.messages import FrameMessage
+from protocol.messages import ControlReply, ControlRequest, FrameMessage
 from protocol.session import CameraInfo, SessionReader, SessionWriter
 from sim.deploy import free_ports
 
@@ -269,3 +272,207 @@ def test_the_receive_queue_is_bounded_in_bytes_and_holds_seconds_where_it_can(tm
     jpeg = dataclasses.replace(cfg, max_image_bytes=500_000)  # a JPEG-only rig says so
     hwm = receive_hwm(jpeg, jpeg.agents[0])
     assert hwm >= RECEIVE_QUEUE_S * FPS * 6 and hwm * 1e6 <= jpeg.receive_buffer_mb * 1e6
+
+
+# -- the writer thread: a stalling or failing disk never holds the I/O thread -----------------
+# The session file's writes are stalled or failed at the chunk sink's one write call, as a
+# frozen or full disk does (tests/test_faults.py freezes a real file system).
+FRAME_BYTES = 2 * len(JPEG)
+
+
+def _disk(monkeypatch) -> tuple[threading.Event, threading.Event]:
+    """(stalled, full): while ``stalled`` is set every write of the session file waits (at most
+    30 s), while ``full`` is set it fails with ENOSPC."""
+    real = chunk_sink._pwrite
+    stalled, full = threading.Event(), threading.Event()
+
+    def pwrite(fd: int, data, offset: int) -> int:
+        deadline = time.monotonic() + 30
+        while stalled.is_set() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        if full.is_set():
+            raise OSError(28, "No space left on device")
+        return real(fd, data, offset)
+
+    monkeypatch.setattr(chunk_sink, "_pwrite", pwrite)
+    return stalled, full
+
+
+def _wait_for(what: str, condition, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.02)
+
+
+def _assert_sets_name_their_frames(path, tolerance_ns: int) -> None:
+    """Every set member is a row of its camera whose capture time is the set's (within the
+    tolerance): no set points at another frame than the one the synchroniser grouped."""
+    with SessionReader(path) as r:
+        assert r.verify() == []
+        sets = r.sets()
+        assert len(sets.set_unix_ns) > 0
+        for col, s in enumerate(r.info.camera_serials):
+            stamps = r.frame_table(s)["capture_unix_ns"]
+            rows = sets.members[:, col]
+            have = rows >= 0
+            assert np.all(rows[have] < len(stamps))
+            off = np.abs(stamps[rows[have]].astype(np.int64) - sets.set_unix_ns[have])
+            assert np.all(off <= tolerance_ns), f"camera {s}: a set names another frame"
+
+
+def test_a_stalling_disk_is_reported_and_costs_only_what_a_full_queue_refused(queued, monkeypatch):
+    recorder, take = queued
+    stalled, _ = _disk(monkeypatch)
+    rec = recorder.recording
+    rec.queue.max_bytes = 6 * FRAME_BYTES  # a queue of a few frames, so the stall fills it
+    assert recorder.receive_published(1000, max_messages=4) == 4
+    stalled.set()
+    rec.request_flush()  # the flush's write blocks on the stalled disk...
+    _wait_for("the stall to show", lambda: rec.write_stalled_s() > 0)
+    while recorder.receive_published(200):  # ...and the I/O thread goes on receiving
+        pass
+    status = recorder.status()
+    refused = status["frames_not_written_disk_stalled"]
+    assert status["recording"] and status["write_stalled_s"] > 0
+    assert 0 < refused < (take + 3) * len(SERIALS) - 4
+    assert status["write_queue_bytes"] <= status["write_queue_limit_bytes"]
+    assert "WRITING STALLED" in format_status(status)
+    stalled.clear()  # the disk answers: the queue drains, the take goes on
+    assert rec.wait_written(10.0)
+    assert recorder.status()["write_stalled_s"] == 0
+    summary = recorder._stop_recording("stopped by request")
+    assert summary["frames_not_written_disk_stalled"] == refused
+    for s in SERIALS:
+        cam = summary["cameras"][str(s)]
+        assert cam["frames"] + cam["not_written_disk_stalled"] == take + 3
+    assert summary["frames"] == (take + 3) * len(SERIALS) - refused
+    assert f"{refused} frames arrived while the write queue was full" in format_summary(summary)
+    with SessionReader(summary["file"]) as r:
+        assert r.info.closed_cleanly
+        assert sum(r.frame_count(s) for s in SERIALS) == summary["frames"]
+        assert r.summary()["extra"]["frames_not_written_disk_stalled"] == refused
+    _assert_sets_name_their_frames(summary["file"], PERIOD_NS // 2)
+
+
+def test_sets_skip_the_frames_the_writer_could_not_write(tmp_path, monkeypatch):
+    """Frames refused while the disk was full leave their sets' members missing (-1), and the
+    frames written after it are named by their own rows, not by their place in the stream."""
+    _, full = _disk(monkeypatch)
+    info = CameraInfo(
+        camera_serial=7, node_id="n0", resolution="TINY", width=8, height=4,
+        fps_nominal=FPS, encoding="jpeg",
+    )  # fmt: skip
+    t0 = time.time_ns()
+    writer = SessionWriter(
+        tmp_path / "take.h5", session_name="take", case_metadata={}, cameras=[info],
+        tolerance_ns=PERIOD_NS // 2, software_version="test", started_unix_ns=t0,
+    )  # fmt: skip
+    q = WriteQueue(writer, max_bytes=1 << 20)
+
+    def frame(k: int) -> FrameMessage:
+        return FrameMessage.from_parts(_frame(7, k, k, t0 + k * PERIOD_NS))
+
+    tickets = [q.put_frame(frame(k), t0) for k in range(4)]
+    q.request_flush()
+    assert q.wait_idle(10.0)
+    full.set()
+    q.request_flush()  # frame 3 is appended but its flush fails: it is kept and retried
+    assert q.wait_idle(10.0) and q.write_failing_since is not None
+    tickets += [q.put_frame(frame(k), t0) for k in (4, 5)]  # refused by the failing writer
+    assert q.wait_idle(10.0)
+    full.clear()
+    q.request_flush()
+    tickets += [q.put_frame(frame(k), t0) for k in range(6, 10)]
+    for k, ticket in enumerate(tickets):
+        q.put_set(t0 + k * PERIOD_NS, (ticket,), 0)
+    q.close(lambda: {}, None)
+    assert q.closed.wait(10.0)
+    assert dict(q.not_written_write_failed) == {7: 2} and q.sets_not_written == 2
+    with SessionReader(tmp_path / "take.h5") as r:
+        indices = r.frame_table(7)["frame_index"].tolist()
+        members = r.sets().members[:, 0].tolist()
+    assert indices == [0, 1, 2, 3, 6, 7, 8, 9]
+    assert [indices[m] for m in members] == [0, 1, 2, 3, 6, 7, 8, 9]
+
+
+def _control(url: str, verb: str) -> ControlReply:
+    sock = zmq.Context.instance().socket(zmq.REQ)
+    sock.setsockopt(zmq.RCVTIMEO, 5000)
+    sock.setsockopt(zmq.LINGER, 0)
+    try:
+        sock.connect(url)
+        sock.send(ControlRequest(verb=verb).to_bytes())
+        return ControlReply.from_bytes(sock.recv())
+    finally:
+        sock.close()
+
+
+def test_a_bug_in_frame_handling_is_counted_and_the_recorder_goes_on(tmp_path, monkeypatch):
+    """A message whose handling raises (here: a bug planted for camera 12's frames) is counted
+    in ``internal_errors`` and logged; the I/O thread keeps receiving and answering."""
+    ctx = zmq.Context.instance()
+    pub = ctx.socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    port = pub.bind_to_random_port("tcp://127.0.0.1")
+    config = _config(tmp_path, f"tcp://127.0.0.1:{port}")
+    recorder = Recorder(config)
+    real = Recorder._on_frame
+
+    def buggy(self, msg, rx_ns):
+        if msg.camera_serial == 12:
+            raise KeyError("a planted bug")
+        return real(self, msg, rx_ns)
+
+    monkeypatch.setattr(Recorder, "_on_frame", buggy)
+    recorder.start()
+    try:
+        k = 0
+
+        def publish_some() -> bool:
+            nonlocal k
+            for s in SERIALS:
+                pub.send_multipart(_frame(s, k, k, time.time_ns()), copy=False)
+            k += 1
+            return recorder.internal_errors >= 5 and 11 in recorder.cameras
+
+        _wait_for("frames of both cameras to be handled", publish_some)
+        assert recorder._thread.is_alive()
+        status = _control(config.control_bind, "status")
+        assert status.ok and status.result["internal_errors"] >= 5
+        cam = next(c for c in status.result["cameras"] if c["serial"] == 11)
+        assert cam["streaming"]  # the good camera's frames are still handled
+    finally:
+        recorder.stop()
+        pub.close()
+    assert not recorder._thread.is_alive()
+
+
+def test_a_stop_while_the_disk_stalls_answers_and_the_file_closes_when_it_returns(
+    queued, monkeypatch
+):
+    """The stop answers within its budget, counting the frames it could not write; the writer
+    thread closes the file (cleanly, with the final counts) once the disk answers again."""
+    from capture_agent import recorder as recorder_module
+
+    recorder, take = queued
+    stalled, _ = _disk(monkeypatch)
+    monkeypatch.setattr(recorder_module, "STOP_WRITE_S", 0.5)
+    monkeypatch.setattr(recorder_module, "STOP_COUNT_S", 0.5)
+    rec = recorder.recording
+    assert recorder.receive_published(1000, max_messages=4) == 4
+    stalled.set()
+    rec.request_flush()
+    _wait_for("the stall to show", lambda: rec.write_stalled_s() > 0)
+    t0 = time.monotonic()
+    summary = recorder._stop_recording("stopped by request")
+    assert time.monotonic() - t0 < 10.0
+    assert "closing" in summary and recorder.recording is None
+    assert summary["frames"] + summary["frames_not_written_at_stop"] <= take * len(SERIALS)
+    assert summary["frames_not_written_at_stop"] > 0
+    stalled.clear()
+    assert rec.queue.closed.wait(10.0)
+    with SessionReader(summary["file"]) as r:
+        assert r.info.closed_cleanly and r.verify() == []
+        final = r.summary()["extra"]
+    assert final["frames"] + final["frames_not_written_at_stop"] == take * len(SERIALS)

@@ -114,6 +114,76 @@ def test_the_session_commands_give_one_line_and_exit_2_on_a_truncated_file(clean
         assert len(out.stderr.strip().splitlines()) == 1, out.stderr
 
 
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("size", [1, 8, 9, 12, 20, 40, 100])
+def test_a_file_cut_inside_its_superblock_is_refused_with_a_format_error(clean, tmp_path, size):
+    """A copy cut to its first bytes (the signature and a little more; found by the fuzzer at
+    9 bytes, which raised IndexError): one SessionFormatError at once, and exit 2 at the CLI."""
+    path = tmp_path / "stub.h5"
+    path.write_bytes(clean.read_bytes()[:size])
+    words = r"stub\.h5: (not an HDF5 file|the HDF5 superblock is cut short|truncated)"
+    with pytest.raises(SessionFormatError, match=words):
+        SessionReader(path)
+    if size == 9:
+        out = run_egosurg("session", "info", str(path), timeout=60)
+        assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+        assert "superblock is cut short" in out.stderr
+
+
+def _global_heap(data: bytes) -> tuple[int, list[tuple[int, int, int]]]:
+    """The first global heap collection in ``data`` (HDF5 file format spec, "Global Heap"): its
+    offset and its objects as (offset of the object header, heap index, object size)."""
+    at = data.index(b"GCOL")
+    assert data[at + 4] == 1  # collection version 1
+    end = at + int.from_bytes(data[at + 8 : at + 16], "little")
+    objects, p = [], at + 16
+    while p + 16 <= end:
+        index = int.from_bytes(data[p : p + 2], "little")
+        size = int.from_bytes(data[p + 8 : p + 16], "little")
+        objects.append((p, index, size))
+        if index == 0:  # the free space: the rest of the collection
+            break
+        p += 16 + (size + 7) // 8 * 8
+    return at, objects
+
+
+def _shrunk_free_space_landing(data: bytearray) -> None:
+    """The last string's length field changed so the next object header is read from zeros
+    inside the free space (index 0, size 0): the parser never moves on."""
+    _, objects = _global_heap(bytes(data))
+    (last_at, index, _), (free_at, free_index, free_size) = objects[-2], objects[-1]
+    assert index > 0 and free_index == 0 and free_size >= 64, objects[-3:]
+    size = free_at + 32 - last_at - 16
+    data[last_at + 8 : last_at + 16] = size.to_bytes(8, "little")
+
+
+def _zeroed_string_header(data: bytearray) -> None:
+    """A range of zeros over the first string's header (the fuzzer zeroed 1,884 bytes there)."""
+    _, objects = _global_heap(bytes(data))
+    first_at = objects[0][0]
+    data[first_at : first_at + 16] = bytes(16)
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("damage", [_shrunk_free_space_landing, _zeroed_string_header])
+def test_a_damaged_string_heap_is_refused_without_hanging(clean, tmp_path, monkeypatch, damage):
+    """Damage in HDF5's global heap (the string attributes; no checksum) made HDF5 loop forever
+    inside the first attribute read. The reader's first open reads the metadata in a child with
+    a time limit, so the file is refused with a clear error and the caller never hangs."""
+    from protocol import session_probe
+
+    monkeypatch.setattr(session_probe, "PROBE_STALL_S", 3.0)  # the default is 10 s
+    data = bytearray(clean.read_bytes())
+    damage(data)
+    path = tmp_path / "heap.h5"
+    path.write_bytes(bytes(data))
+    with pytest.raises(SessionFormatError, match=r"heap\.h5: the file's metadata is damaged"):
+        SessionReader(path)
+    with pytest.raises(SessionFormatError, match="nothing can be recovered"):
+        recover_session(path, tmp_path / "recovered.h5")
+    assert not (tmp_path / "recovered.h5").exists()
+
+
 def _metadata_positions(path: Path, k: int, seed: int) -> list[int]:
     """``k`` positions of non-zero bytes outside every image chunk: metadata and tables."""
     data = np.fromfile(path, dtype=np.uint8)

@@ -31,6 +31,9 @@ import numpy as np
 from protocol.camera import Resolution
 from protocol.images import EncodedPair
 
+# Keys of a [[cameras]] table that pick the backend; the backend's own reader ignores them.
+SELECTOR_KEYS = ("source", "kind")
+
 
 class CameraUnavailableError(RuntimeError):
     """The camera is missing or vanished (unplugged, rebooting): close it and reopen it later."""

@@ -58,12 +58,13 @@ import cv2
 import numpy as np
 
 from capture_agent.sources.base import (
+    SELECTOR_KEYS,
     CameraSource,
     CameraUnavailableError,
     GrabbedFrame,
     require_timeout,
 )
-from capture_agent.sources.options import TableReader, require
+from capture_agent.toml_table import TableReader, require
 from protocol.camera import Resolution, ResolutionError
 from protocol.errors import ConfigError
 from protocol.images import EncodedPair, encode_pair
@@ -202,7 +203,7 @@ class SimSourceConfig:
 
     @classmethod
     def from_table(cls, table: dict[str, Any], where: str) -> SimSourceConfig:
-        r = TableReader(table, where)
+        r = TableReader(table, where, ignore=SELECTOR_KEYS)
         kw: dict[str, Any] = {
             "seed": r.integer("seed", 0, hint="an integer >= 0"),
             "phase": r.text("phase", "intraoperative"),
@@ -223,7 +224,7 @@ class SimSourceConfig:
             kw["pre_encode"] = None
         faults = []
         for i, ft in enumerate(r.tables("faults", hint="a list of {kind, at_s, duration_s}")):
-            fr = TableReader(ft, f"{where} faults[{i}]", ignore=())
+            fr = TableReader(ft, f"{where} faults[{i}]")
             try:
                 faults.append(
                     FaultSpec(

@@ -38,12 +38,13 @@ import cv2
 import numpy as np
 
 from capture_agent.sources.base import (
+    SELECTOR_KEYS,
     CameraSource,
     EndOfRecordingError,
     GrabbedFrame,
     require_timeout,
 )
-from capture_agent.sources.options import TableReader, require
+from capture_agent.toml_table import TableReader, require
 from protocol.camera import Resolution, ResolutionError
 from protocol.errors import ConfigError
 
@@ -92,7 +93,7 @@ class VideoSourceConfig:
 
     @classmethod
     def from_table(cls, table: dict[str, Any], where: str) -> VideoSourceConfig:
-        r = TableReader(table, where)
+        r = TableReader(table, where, ignore=SELECTOR_KEYS)
         kw = {
             "path": r.text("path", None, hint="a video file path"),
             "left_path": r.text("left_path", None, hint="a video file path"),

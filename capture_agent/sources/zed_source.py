@@ -49,12 +49,13 @@ from typing import Any
 import cv2
 
 from capture_agent.sources.base import (
+    SELECTOR_KEYS,
     CameraSource,
     CameraUnavailableError,
     GrabbedFrame,
     require_timeout,
 )
-from capture_agent.sources.options import TableReader, require
+from capture_agent.toml_table import TableReader, require
 from protocol.camera import Resolution, ResolutionError
 from protocol.errors import ConfigError, UserError
 
@@ -126,7 +127,7 @@ class ZedSourceConfig:
 
     @classmethod
     def from_table(cls, table: dict[str, Any], where: str) -> ZedSourceConfig:
-        r = TableReader(table, where)
+        r = TableReader(table, where, ignore=SELECTOR_KEYS)
         kw = {
             "serial": r.integer("serial", None, hint="the camera's serial number"),
             "resolution": r.text("resolution", "HD1200", hint="'HD1200', 'HD1080' or 'SVGA'"),

@@ -2,8 +2,10 @@
 
 Frames come from ``World.from_seed(5, phase="wand")``, unit 2 (it sees the wand lying on the
 floor too), at HD1200, with sensor noise; the background is the median of frames at other times.
-``object_index`` is used only to decide which spheres are fully visible, never by the code under
-test. Numbers worth knowing are printed (run with ``-s``).
+The waved frames are picked from the sim's truth along the operator's tour (``_waved``), not
+fixed times, so they stay valid when the tour changes. ``object_index`` is used only to decide
+which spheres are fully visible, never by the code under test. Numbers worth knowing are printed
+(run with ``-s``).
 """
 
 from __future__ import annotations
@@ -44,15 +46,26 @@ from protocol.camera import Camera, Intrinsics, Pose
 from protocol.wand import WandSpec
 from sim.render import SPHERE_OBJECT_BASE, FrameScene, Spheres, render_view
 from sim.sensor import SensorSpec, expose
-from sim.truth import wand_sphere_whole
+from sim.truth import (
+    wand_axis_angle_deg,
+    wand_in_clear_view,
+    wand_sphere_camouflaged,
+    wand_sphere_whole,
+)
+from sim.wand_tour import MAX_RANGE_M
 from sim.world import WAND_SPHERE_ALBEDO
 
 UNIT = 2
 FLOOR_T = 1.25  # the wand still lies on the floor
-# waved in the open, clear of the operator's hand, not pointing at the camera (whose spheres'
-# outlines then touch in the image)
-WAVED_T = (3.75, 4.25, 9.5, 11.0, 12.5)
-BACKGROUND_T = (3.5, 6.5, 7.25, 8.0, 8.75, 10.25, 13.25)
+# waved frames: every sphere whole in both views (clear of the operator's hand and of each other),
+# in front of the room's own colours (not of an orange patch, where colour shows no outline),
+# within the range the tour plans for (farther, a 40 mm sphere is 2-3 px in radius and its size
+# says little about its distance), not pointing at the camera; at least 1 s apart on the tour
+N_WAVED = 5
+WAVED_STEP_S = 0.25
+WAVED_SPACING_S = 1.0
+MIN_AXIS_ANGLE_DEG = 45.0
+N_BACKGROUND = 7  # spread evenly over the tour's loop
 SIDES = ("left", "right")
 WAND = WandSpec()
 
@@ -61,25 +74,87 @@ def _bgr(render) -> np.ndarray:
     return np.ascontiguousarray(render.image_rgb[:, :, ::-1])
 
 
+def _tour_span_s(world) -> tuple[float, float]:
+    """(start, period) of the operator's tour: from the pick-up's end, once round its loop."""
+    motion = world.wand_motion
+    assert motion.tour is not None, "the wand world's operator should follow the coverage tour"
+    return motion.floor_lie_s + motion.pickup_s, float(motion.tour.arrive_s[-1])
+
+
+def _waved(world, cams) -> tuple[tuple[float, ...], dict]:
+    """The first ``N_WAVED`` times along the tour, ``WAVED_SPACING_S`` apart, that meet the
+    criteria above in both views, and their renders: the geometry picks the candidates
+    (``wand_in_clear_view``), a render confirms that nothing hides a sphere or blends with it."""
+    start, period = _tour_span_s(world)
+    times: list[float] = []
+    renders: dict[tuple[str, float], object] = {}
+    for t in np.arange(start, start + period, WAVED_STEP_S):
+        t = round(float(t), 3)
+        if times and t - times[-1] < WAVED_SPACING_S:
+            continue
+        if not all(
+            wand_in_clear_view(
+                world, cam, t, max_range_m=MAX_RANGE_M, min_axis_angle_deg=MIN_AXIS_ANGLE_DEG
+            )
+            for cam in cams.values()
+        ):
+            continue
+        views = {side: world.render_sensor(UNIT, side, t) for side in SIDES}
+        if all(
+            wand_sphere_whole(world, views[s], t, k)
+            and not wand_sphere_camouflaged(world, views[s], t, k)
+            for s in SIDES
+            for k in range(3)
+        ):
+            times.append(t)
+            renders.update({(side, t): r for side, r in views.items()})
+            if len(times) == N_WAVED:
+                return tuple(times), renders
+    raise AssertionError(f"the tour shows unit {UNIT} the wand whole at only {times}")
+
+
+def _off_centre_px(cam: Camera, world, t: float) -> float:
+    """How far the wand's middle sphere is from the principal point in ``cam``'s image."""
+    px, _ = cam.project(world.wand_centres(t)[1:2])
+    return float(np.hypot(px[0, 0] - cam.intrinsics.cx_px, px[0, 1] - cam.intrinsics.cy_px))
+
+
+def _background_times(world) -> tuple[float, ...]:
+    start, period = _tour_span_s(world)
+    return tuple(round(start + period * (i + 0.5) / N_BACKGROUND, 3) for i in range(N_BACKGROUND))
+
+
+def _assert_median_is_the_room(world, renders: list) -> None:
+    """The temporal median shows the room where fewer than half the frames show something that
+    moves (the wand, its operator): the background the detector needs, checked on the truth."""
+    moving = sum((r.object_index >= len(world.static_objects)).astype(int) for r in renders)
+    assert moving.max() < len(renders) / 2, "pick background times where the operator is apart"
+
+
 @pytest.fixture(scope="module")
 def sim(wand_world):
     """Rendered frames, fitted detectors and their detections, shared by the tests below."""
     world = wand_world
     unit = world.rig[UNIT]
     cams = {side: unit.sensor(side, "HD1200") for side in SIDES}
-    backgrounds: dict[str, list[np.ndarray]] = {side: [] for side in SIDES}
-    for t in BACKGROUND_T:
+    renders: dict[str, list] = {side: [] for side in SIDES}
+    for t in _background_times(world):
         for side in SIDES:  # both sides at one time share the scene's ray-casting structure
-            backgrounds[side].append(_bgr(world.render_sensor(UNIT, side, t)))
+            renders[side].append(world.render_sensor(UNIT, side, t))
+    backgrounds: dict[str, list[np.ndarray]] = {}
+    for side in SIDES:
+        _assert_median_is_the_room(world, renders[side])
+        backgrounds[side] = [_bgr(r) for r in renders[side]]
     detectors = {}
     for side in SIDES:
         det = SphereDetector(cams[side].intrinsics, WAND.radius_m)
         det.fit_background(backgrounds[side])
         detectors[side] = det
+    waved_t, waved_renders = _waved(world, cams)
     frames, blobs, times_ms = {}, {}, []
-    for t in (FLOOR_T, *WAVED_T):
+    for t in (FLOOR_T, *waved_t):
         for side in SIDES:
-            r = world.render_sensor(UNIT, side, t)
+            r = waved_renders.get((side, t)) or world.render_sensor(UNIT, side, t)
             img = _bgr(r)
             detectors[side].detect(img)  # warm caches; time the second call
             t0 = time.perf_counter()
@@ -93,6 +168,12 @@ def sim(wand_world):
         cams=cams,
         detectors=detectors,
         backgrounds=backgrounds,
+        waved_t=waved_t,
+        # the waved frame where the wand lies most nearly across the left view
+        across_t=max(waved_t, key=lambda t: wand_axis_angle_deg(world, cams["left"], t)),
+        # ... and where it is nearest the left image's centre, where a sphere's image is round
+        # (so a flat disc drawn there looks like one)
+        central_t=min(waved_t, key=lambda t: _off_centre_px(cams["left"], world, t)),
         frames=frames,
         blobs=blobs,
         times_ms=times_ms,
@@ -291,7 +372,7 @@ def test_jpeg_frames_keep_sub_pixel_accuracy_with_full_chroma(sim):
         det = SphereDetector(sim.cams[side].intrinsics, WAND.radius_m)
         det.fit_background([_jpeg(b, sampling) for b in sim.backgrounds[side][::2]])
         errors, missed = [], 0
-        for t in (FLOOR_T, *WAVED_T):
+        for t in (FLOOR_T, *sim.waved_t):
             render = sim.frames[(side, t)]
             truth, _, _ = _truth(sim, side, t)
             blobs = det.detect(_jpeg(_bgr(render), sampling))
@@ -315,7 +396,7 @@ def test_jpeg_frames_keep_sub_pixel_accuracy_with_full_chroma(sim):
 
 def test_the_background_keeps_static_orange_clutter_out(sim):
     """The room's orange equipment labels look like spheres to colour alone."""
-    side, t = "left", WAVED_T[0]
+    side, t = "left", sim.central_t
     img = _bgr(sim.frames[(side, t)])
     truth, _, _ = _truth(sim, side, t)
     bare = SphereDetector(sim.cams[side].intrinsics, WAND.radius_m)
@@ -328,7 +409,7 @@ def test_the_background_keeps_static_orange_clutter_out(sim):
 
 
 def test_colour_model_can_be_learned_from_sphere_pixels(sim):
-    side, t = "left", WAVED_T[0]
+    side, t = "left", sim.central_t
     render = sim.frames[(side, t)]
     inner = cv2.erode(
         (render.object_index >= SPHERE_OBJECT_BASE).astype(np.uint8), np.ones((3, 3), np.uint8)
@@ -406,7 +487,7 @@ def _wand_blobs(first: np.ndarray, direction: np.ndarray, wand: WandSpec = WAND)
 
 
 def test_label_rejections_have_reasons(sim):
-    side, t = "left", WAVED_T[0]
+    side, t = "left", sim.central_t
     blobs = sim.blobs[(side, t)]
     res = label_wand(blobs[:2], WAND)
     assert not res.ok and res.reason == FEWER_THAN_3
@@ -462,7 +543,7 @@ def test_perspective_labelling_survives_a_wand_pointing_at_the_camera():
 def test_a_fake_orange_disc_does_not_break_labelling(sim):
     """A sphere-coloured disc near the wand (off its line, then on its line beyond the last
     sphere) is detected like a sphere, and the labeller still picks the wand."""
-    side, t = "left", WAVED_T[0]
+    side, t = "left", sim.central_t
     render = sim.frames[(side, t)]
     truth, _, _ = _truth(sim, side, t)
     good = label_wand(sim.blobs[(side, t)], WAND)
@@ -501,7 +582,7 @@ def test_a_fake_orange_disc_does_not_break_labelling(sim):
 def test_stereo_triangulates_the_wand_and_fixes_a_flipped_view(sim):
     errors = []
     checked = 0
-    for t in (FLOOR_T, *WAVED_T):
+    for t in (FLOOR_T, *sim.waved_t):
         left = label_wand(sim.blobs[("left", t)], WAND)
         right = label_wand(sim.blobs[("right", t)], WAND)
         if not (left.ok and right.ok):
@@ -540,7 +621,7 @@ def test_stereo_triangulates_the_wand_and_fixes_a_flipped_view(sim):
 
 def test_stereo_rejects_a_wand_of_the_wrong_geometry(sim):
     # a frame where the wand lies across the view, so a 50 mm discrepancy is unmistakable
-    t = 11.0
+    t = sim.across_t
     left = label_wand(sim.blobs[("left", t)], WAND)
     right = label_wand(sim.blobs[("right", t)], WAND)
     assert left.ok and right.ok

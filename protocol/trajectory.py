@@ -1,0 +1,234 @@
+"""Viewpoints through space and time: the trajectory / roles TOML file (``egosurg-trajectories``).
+
+One file holds one or more named trajectories. A role file (``egosurg sim roles`` writes one
+from the simulator's true head poses) holds one per person; a replay trajectory file holds one.
+Times are case time: seconds since the session started, as in the case index (``t_s``).
+
+Format (version 1)::
+
+    format = "egosurg-trajectories"
+    format_version = 1
+
+    [[trajectories]]
+    name = "surgeon"                    # a role's name, or any name for a path
+    [[trajectories.keyframes]]
+    time_s = 2.0
+    eye_m = [0.4, -0.6, 1.7]            # the eye (camera centre), world metres
+    look_at_m = [0.1, 0.0, 1.0]         # a point it looks at (image up towards +z) ...
+    # orientation_wxyz = [w, x, y, z]   # ... or the world-from-camera rotation (OpenCV axes)
+    fov_deg = 90.0                      # horizontal field of view
+
+Shared by sim/ (which writes true roles) and reconstructor/ (which replays them): a contract,
+so it lives here and imports neither.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from protocol.camera import Pose
+from protocol.errors import UserError
+
+TRAJECTORY_FORMAT = "egosurg-trajectories"
+TRAJECTORY_FORMAT_VERSION = 1
+
+
+class TrajectoryFileError(UserError, ValueError):
+    """A trajectory or roles file that cannot be used; the message names the entry and the fix."""
+
+
+def quat_wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z), w >= 0, of a rotation matrix (Shepperd's method)."""
+    R = np.asarray(R, dtype=np.float64)
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * math.sqrt(tr + 1.0)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * math.sqrt(max(1.0 + R[i, i] - R[j, j] - R[k, k], 1e-300))
+        q = [0.0, 0.0, 0.0, 0.0]
+        q[0] = (R[k, j] - R[j, k]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (R[j, i] + R[i, j]) / s
+        q[1 + k] = (R[k, i] + R[i, k]) / s
+    out = np.asarray(q) / np.linalg.norm(q)
+    return -out if out[0] < 0 else out
+
+
+def matrix_from_quat_wxyz(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class Keyframe:
+    time_s: float
+    eye_m: tuple[float, float, float]
+    look_at_m: tuple[float, float, float] | None = None
+    orientation_wxyz: tuple[float, float, float, float] | None = None  # world-from-camera
+    fov_deg: float = 90.0
+
+    def __post_init__(self) -> None:
+        if (self.look_at_m is None) == (self.orientation_wxyz is None):
+            raise ValueError("give exactly one of look_at_m and orientation_wxyz")
+        if not math.isfinite(self.time_s):
+            raise ValueError(f"time_s {self.time_s} must be a finite number of seconds")
+        if not 1.0 < self.fov_deg < 179.0:
+            raise ValueError(f"fov_deg {self.fov_deg} must be between 1 and 179 degrees")
+        if not np.all(np.isfinite(self.eye_m)):
+            raise ValueError(f"eye_m {self.eye_m} must be three finite numbers")
+        if self.look_at_m is not None and np.linalg.norm(
+            np.subtract(self.look_at_m, self.eye_m)
+        ) < 1e-6:
+            raise ValueError("look_at_m must differ from eye_m")
+        if self.orientation_wxyz is not None and not (
+            np.all(np.isfinite(self.orientation_wxyz)) and np.linalg.norm(self.orientation_wxyz)
+        ):
+            raise ValueError(f"orientation_wxyz {self.orientation_wxyz} must be a non-zero quaternion")
+
+    def pose(self) -> Pose:
+        """World-to-camera pose (OpenCV axes)."""
+        eye = np.asarray(self.eye_m, dtype=np.float64)
+        if self.look_at_m is not None:
+            return Pose.look_at(eye, np.asarray(self.look_at_m, dtype=np.float64))
+        R = matrix_from_quat_wxyz(np.asarray(self.orientation_wxyz)).T
+        return Pose(R=R, t_m=-R @ eye)
+
+    @classmethod
+    def from_pose(cls, time_s: float, pose: Pose, fov_deg: float) -> Keyframe:
+        quat = quat_wxyz_from_matrix(pose.R.T)
+        return cls(
+            time_s=float(time_s),
+            eye_m=tuple(float(v) for v in pose.centre_m),  # type: ignore[arg-type]
+            orientation_wxyz=tuple(float(v) for v in quat),  # type: ignore[arg-type]
+            fov_deg=float(fov_deg),
+        )
+
+
+@dataclass(frozen=True, kw_only=True)
+class Trajectory:
+    name: str
+    keyframes: tuple[Keyframe, ...]
+
+    def __post_init__(self) -> None:
+        if not self.name or not self.name.replace("-", "").replace("_", "").isalnum():
+            raise ValueError(f"name {self.name!r}: use letters, digits, '-' or '_'")
+        if not self.keyframes:
+            raise ValueError(f"trajectory {self.name!r} has no keyframes")
+        times = [k.time_s for k in self.keyframes]
+        if any(b <= a for a, b in zip(times, times[1:], strict=False)):
+            raise ValueError(f"trajectory {self.name!r}: keyframe times must strictly increase")
+
+    @property
+    def span_s(self) -> tuple[float, float]:
+        return self.keyframes[0].time_s, self.keyframes[-1].time_s
+
+
+def _vec(value: object, n: int, where: str) -> tuple[float, ...]:
+    if not (isinstance(value, list) and len(value) == n):
+        raise TrajectoryFileError(f"{where} must be a list of {n} numbers, got {value!r}")
+    try:
+        return tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        raise TrajectoryFileError(f"{where} must be a list of {n} numbers, got {value!r}") from None
+
+
+def read_trajectories(path: Path | str) -> tuple[Trajectory, ...]:
+    """All trajectories of a file; every problem is a :class:`TrajectoryFileError`."""
+    path = Path(path)
+    try:
+        table = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise TrajectoryFileError(f"the trajectory file {path} does not exist") from None
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise TrajectoryFileError(f"{path} is not a readable TOML file: {exc}") from None
+    if table.get("format") != TRAJECTORY_FORMAT:
+        raise TrajectoryFileError(
+            f'{path} is not a trajectory file: it needs format = "{TRAJECTORY_FORMAT}" '
+            "(docs/replay.md has an example)"
+        )
+    if table.get("format_version") != TRAJECTORY_FORMAT_VERSION:
+        raise TrajectoryFileError(
+            f"{path} has format_version {table.get('format_version')!r}; this egosurg reads "
+            f"{TRAJECTORY_FORMAT_VERSION}"
+        )
+    out = []
+    for i, tr in enumerate(table.get("trajectories") or []):
+        where = f"{path}: trajectories[{i}]"
+        try:
+            keys = []
+            for j, kf in enumerate(tr.get("keyframes") or []):
+                w = f"{where}.keyframes[{j}]"
+                unknown = set(kf) - {"time_s", "eye_m", "look_at_m", "orientation_wxyz", "fov_deg"}
+                if unknown:
+                    raise TrajectoryFileError(f"{w}: unknown keys {sorted(unknown)}")
+                if "time_s" not in kf or "eye_m" not in kf:
+                    raise TrajectoryFileError(f"{w}: needs time_s and eye_m")
+                look = kf.get("look_at_m")
+                quat = kf.get("orientation_wxyz")
+                try:
+                    keys.append(
+                        Keyframe(
+                            time_s=float(kf["time_s"]),
+                            eye_m=_vec(kf["eye_m"], 3, f"{w}.eye_m"),  # type: ignore[arg-type]
+                            look_at_m=None if look is None else _vec(look, 3, f"{w}.look_at_m"),  # type: ignore[arg-type]
+                            orientation_wxyz=None
+                            if quat is None
+                            else _vec(quat, 4, f"{w}.orientation_wxyz"),  # type: ignore[arg-type]
+                            fov_deg=float(kf.get("fov_deg", 90.0)),
+                        )
+                    )
+                except (TypeError, ValueError) as exc:
+                    if isinstance(exc, TrajectoryFileError):
+                        raise
+                    raise TrajectoryFileError(f"{w}: {exc}") from None
+            out.append(Trajectory(name=str(tr.get("name", "")), keyframes=tuple(keys)))
+        except (AttributeError, TypeError, ValueError) as exc:
+            if isinstance(exc, TrajectoryFileError):
+                raise
+            raise TrajectoryFileError(f"{where}: {exc}") from None
+    if not out:
+        raise TrajectoryFileError(f"{path} holds no [[trajectories]]")
+    names = [t.name for t in out]
+    if len(set(names)) != len(names):
+        raise TrajectoryFileError(f"{path}: trajectory names repeat: {names}")
+    return tuple(out)
+
+
+def _fmt(values: tuple[float, ...] | None) -> str:
+    return "[" + ", ".join(f"{v:.6f}" for v in values or ()) + "]"
+
+
+def trajectories_toml(trajectories: tuple[Trajectory, ...] | list[Trajectory]) -> str:
+    lines = [f'format = "{TRAJECTORY_FORMAT}"', f"format_version = {TRAJECTORY_FORMAT_VERSION}"]
+    for tr in trajectories:
+        lines += ["", "[[trajectories]]", f'name = "{tr.name}"']
+        for k in tr.keyframes:
+            lines += ["[[trajectories.keyframes]]", f"time_s = {k.time_s:.6f}"]
+            lines.append(f"eye_m = {_fmt(k.eye_m)}")
+            if k.look_at_m is not None:
+                lines.append(f"look_at_m = {_fmt(k.look_at_m)}")
+            else:
+                lines.append(f"orientation_wxyz = {_fmt(k.orientation_wxyz)}")
+            lines.append(f"fov_deg = {k.fov_deg:g}")
+    return "\n".join(lines) + "\n"
+
+
+def write_trajectories(path: Path | str, trajectories: tuple[Trajectory, ...] | list[Trajectory]):
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(trajectories_toml(trajectories))
+    return path

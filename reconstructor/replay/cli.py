@@ -1,0 +1,169 @@
+"""``egosurg replay`` and ``egosurg sightline``: review a reconstructed case (docs/replay.md).
+
+Examples::
+
+    egosurg replay case/ --role surgeon --roles roles.toml --out surgeon.mp4 --pip
+    egosurg replay case/ --trajectory walk.toml --out walk.mp4 --fps 15 --size 960x600
+    egosurg sightline case/ --viewer anaesthetist --roles roles.toml --target monitor-a \\
+        --site site.toml --offset "1m left-posterior" --out los/
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+from pathlib import Path
+
+from protocol.errors import UserError
+from protocol.trajectory import Trajectory, read_trajectories
+from reconstructor.data.views import EYE_NEAR_M
+from reconstructor.errors import ReconstructError
+
+log = logging.getLogger(__name__)
+
+
+class ReplayArgumentError(ReconstructError, ValueError):
+    pass
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ReplayArgumentError(f"--size {text!r}: write it as WxH, e.g. 960x600") from None
+    if not (16 <= w <= 8192 and 16 <= h <= 8192) or w % 2 or h % 2:
+        raise ReplayArgumentError(f"--size {text!r}: even sides of 16 to 8192 px, e.g. 960x600")
+    return w, h
+
+
+def pick_trajectory(trajectory: str | None, role: str | None, roles: str | None) -> Trajectory:
+    """The path asked for: ``--trajectory FILE`` (its only one, or ``--role`` in it), or
+    ``--role NAME --roles FILE``."""
+    source = trajectory or roles
+    if source is None:
+        raise ReplayArgumentError(
+            "say whose view: --trajectory FILE, or --role NAME with --roles roles.toml "
+            "(egosurg sim roles writes one)"
+        )
+    if trajectory and roles:
+        raise ReplayArgumentError("give --trajectory or --roles, not both")
+    found = read_trajectories(source)
+    if role is None:
+        if len(found) == 1:
+            return found[0]
+        raise ReplayArgumentError(
+            f"{source} holds {len(found)} trajectories; pick one with --role: "
+            + ", ".join(t.name for t in found)
+        )
+    for t in found:
+        if t.name == role:
+            return t
+    raise ReplayArgumentError(
+        f"no role {role!r} in {source}; it has: {', '.join(t.name for t in found)}"
+    )
+
+
+def _progress(unit: str):
+    from tqdm import tqdm
+
+    bar = None
+
+    def update(k: int, n: int) -> None:
+        nonlocal bar
+        if bar is None:
+            bar = tqdm(total=n, unit=unit, leave=False)
+        bar.update(k - bar.n)
+        if k >= n:
+            bar.close()
+
+    return update
+
+
+def main_replay(argv: list[str]) -> int:
+    from reconstructor.replay.path import CameraPath
+    from reconstructor.replay.run import ReplayConfig, replay
+
+    p = argparse.ArgumentParser(
+        prog="egosurg replay", description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )  # fmt: skip
+    p.add_argument("case", help="a case folder (egosurg reconstruct --every ... --out CASE/)")
+    p.add_argument("--trajectory", help="a trajectory TOML (docs/replay.md)")
+    p.add_argument("--role", help="a role's name in --roles (or in --trajectory)")
+    p.add_argument("--roles", help="a roles TOML (egosurg sim roles writes the sim's)")
+    p.add_argument("--out", required=True, help="the MP4 to write")
+    p.add_argument("--fps", type=float, default=10.0, help="frames per second of case time (10)")
+    p.add_argument("--size", default="960x600", help="WxH, even (960x600)")
+    p.add_argument("--from", dest="t_from", type=float, help="first case time, s")
+    p.add_argument("--to", dest="t_to", type=float, help="last case time, s")
+    p.add_argument("--pip", action="store_true", help="inset the nearest real camera's frame")
+    p.add_argument("--no-preload", action="store_true", help="read each model when first shown")
+    p.add_argument("--allow-gaps", action="store_true", help="show the model before a gap")
+    p.add_argument("--near-m", type=float, help=f"near plane, m ({EYE_NEAR_M:g} for a role)")
+    args = p.parse_args(argv)
+    folder = Path(args.case)
+    traj = pick_trajectory(args.trajectory, args.role, args.roles)
+    near = args.near_m if args.near_m is not None else (EYE_NEAR_M if args.roles else 0.0)
+    if not (math.isfinite(near) and 0 <= near < 10):
+        raise ReplayArgumentError(f"--near-m {near}: give 0 to 10 metres")
+    try:
+        config = ReplayConfig(
+            fps=args.fps, size_px=parse_size(args.size), t_from_s=args.t_from,
+            t_to_s=args.t_to, preload=not args.no_preload, near_m=near, pip=args.pip,
+            allow_gaps=args.allow_gaps,
+        )  # fmt: skip
+    except ValueError as exc:
+        if isinstance(exc, UserError):
+            raise
+        raise ReplayArgumentError(str(exc)) from None
+    out = Path(args.out)
+    if out.suffix.lower() != ".mp4":
+        raise ReplayArgumentError(f"--out {out}: give a .mp4 path")
+    stats = replay(folder, CameraPath(traj), out, config, progress=_progress("frame"))
+    print(
+        f"{out}: {stats.frames} frames, {stats.t_from_s:.3f}-{stats.t_to_s:.3f} s of case time, "
+        f"{stats.models} models; {stats.fps:.1f} frames/s rendered, "
+        f"{stats.load_wait_s:.2f} s waiting on models (preload {'on' if config.preload else 'off'})"
+    )
+    return 0
+
+
+def main_sightline(argv: list[str]) -> int:
+    from protocol.site import read_site
+    from reconstructor.replay.path import CameraPath
+    from reconstructor.replay.sightline import parse_offset
+    from reconstructor.replay.sightline_run import VISIBLE_ENOUGH, sightline
+
+    p = argparse.ArgumentParser(
+        prog="egosurg sightline", description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )  # fmt: skip
+    p.add_argument("case", help="a case folder")
+    p.add_argument("--viewer", required=True, help="a role in --roles (or a --trajectory)")
+    p.add_argument("--roles", help="a roles TOML (egosurg sim roles writes the sim's)")
+    p.add_argument("--trajectory", help="or a trajectory TOML")
+    p.add_argument("--target", required=True, help="a box's name in --site")
+    p.add_argument("--site", required=True, help="the site file naming the boxes")
+    p.add_argument("--offset", help='a counterfactual position, e.g. "1m left-posterior"')
+    p.add_argument("--out", required=True, help="folder: sightline.csv, timeline.png, worst_*.png")
+    args = p.parse_args(argv)
+    traj = pick_trajectory(args.trajectory, args.viewer, args.roles)
+    boxes = read_site(args.site)
+    if args.target not in boxes:
+        raise ReplayArgumentError(
+            f"no target {args.target!r} in {args.site}; it has: {', '.join(boxes)}"
+        )
+    offset = parse_offset(args.offset) if args.offset else None
+    out = Path(args.out)
+    rows = sightline(
+        Path(args.case), CameraPath(traj), boxes[args.target], offset, out,
+        progress=_progress("timestamp"),
+    )  # fmt: skip
+    for label in dict.fromkeys(r.position for r in rows):
+        sel = [r.visible_fraction for r in rows if r.position == label]
+        blocked = sum(f < VISIBLE_ENOUGH for f in sel)
+        print(f"{args.viewer} {label}: {args.target} visible {min(sel):.2f}-{max(sel):.2f}, "
+              f"less than half visible at {blocked} of {len(sel)} timestamps")  # fmt: skip
+    print(f"wrote {out / 'sightline.csv'}, {out / 'timeline.png'} and the worst instants' renders")
+    return 0

@@ -1,0 +1,179 @@
+"""``replay``: render a camera path through a case's models over time into an MP4.
+
+Each output frame at case time t renders the path's camera at t into the case's model at t (the
+last done timestamp at or before t); a time code and the model's name are burned in. The
+models come from :class:`ModelSource`, which reads ahead in a thread when ``preload`` is on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from protocol.camera import Camera
+from protocol.errors import UserError
+from protocol.rig_calibration import RigCalibration
+from reconstructor.config import ReconstructConfig
+from reconstructor.data.views import novel_view
+from reconstructor.raster import RasterConfig
+from reconstructor.replay.models import CaseModels, CaseReplayError, ModelSource
+from reconstructor.replay.path import CameraPath
+from reconstructor.replay.video import Mp4Writer, burn_text, paste_pip, timecode
+from reconstructor.splats.gaussians import Gaussians
+from reconstructor.splats.train import render
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReplayConfig:
+    fps: float = 10.0
+    size_px: tuple[int, int] = (960, 600)
+    t_from_s: float | None = None  # default: the later of the path's and the case's starts
+    t_to_s: float | None = None
+    preload: bool = True
+    near_m: float = 0.0  # 0: the model's near plane; 0.2 from a person's eye (EYE_NEAR_M)
+    pip: bool = False
+    allow_gaps: bool = False
+
+    def __post_init__(self) -> None:
+        if not 0.1 <= self.fps <= 240:
+            raise ValueError(f"fps {self.fps}: give 0.1 to 240 frames per second")
+        if not (16 <= self.size_px[0] <= 8192 and 16 <= self.size_px[1] <= 8192):
+            raise ValueError(f"size {self.size_px}: 16 to 8192 px a side")
+
+
+@dataclass(frozen=True)
+class ReplayStats:
+    frames: int
+    models: int  # distinct models shown
+    wall_s: float
+    load_wait_s: float  # time blocked on reading models (what preloading hides)
+    t_from_s: float
+    t_to_s: float
+
+    @property
+    def fps(self) -> float:
+        return self.frames / self.wall_s if self.wall_s > 0 else 0.0
+
+
+def case_raster(folder: Path, near_m: float = 0.0) -> RasterConfig:
+    cfg = folder / "config.toml"
+    raster = ReconstructConfig.read(cfg).raster if cfg.is_file() else RasterConfig()
+    if near_m > raster.near_m:
+        raster = dataclasses.replace(raster, near_m=near_m)
+    return raster
+
+
+def render_view(g: Gaussians, camera: Camera, raster: RasterConfig):
+    """(uint8 RGB (H, W, 3), depth_m (H, W), alpha (H, W)) numpy arrays."""
+    with torch.no_grad():
+        out = render(g, novel_view(camera), raster, torch.zeros(3))
+    rgb = (out.image.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+    return rgb, out.depth_m.numpy(), out.alpha.numpy()
+
+
+def frame_times(path: CameraPath, models: CaseModels, config: ReplayConfig) -> np.ndarray:
+    p0, p1 = path.span_s
+    c0, c1 = models.span_s
+    t0 = max(p0, c0) if config.t_from_s is None else config.t_from_s
+    t1 = p1 if config.t_to_s is None else config.t_to_s
+    if t1 < t0:
+        raise CaseReplayError(
+            f"nothing to replay: trajectory {path.name!r} spans {p0:.3f}-{p1:.3f} s and the "
+            f"case {c0:.3f}-{c1:.3f} s"
+        )
+    path.require_inside(t0, "replay start")
+    path.require_inside(t1, "replay end")
+    models.require_span(t0, t1, config.allow_gaps)
+    n = int(np.floor((t1 - t0) * config.fps + 1e-6)) + 1
+    return t0 + np.arange(n) / config.fps
+
+
+class RealCameras:
+    """The session's frame from the real camera nearest an eye, at the set nearest a time."""
+
+    def __init__(self, models: CaseModels) -> None:
+        from protocol.images import decode_image
+        from protocol.session import SessionReader
+
+        self._decode = decode_image
+        session = Path(models.index.session)
+        cal = models.folder / "calibration.toml"
+        if not session.is_file() or not cal.is_file():
+            raise CaseReplayError(
+                f"--pip needs the case's session ({session}) and {cal}; put the session back "
+                "at that path or replay without --pip"
+            )
+        self.sensors = [s for s in RigCalibration.read(cal).sensors if s.side == "left"]
+        self.reader = SessionReader(session)
+        sets = self.reader.sets()
+        self.set_t_s = (sets.set_unix_ns - self.reader.info.started_unix_ns) / 1e9
+        self.members = sets.members
+        self._cache: dict[tuple[int, int], np.ndarray] = {}
+
+    def frame(self, eye_m: np.ndarray, t_s: float) -> tuple[np.ndarray, str] | None:
+        dist = [np.linalg.norm(s.pose.centre_m - eye_m) for s in self.sensors]
+        sensor = self.sensors[int(np.argmin(dist))]
+        k = int(np.argmin(np.abs(self.set_t_s - t_s)))
+        col = self.reader.info.camera_serials.index(sensor.camera_serial)
+        row = int(self.members[k, col])
+        if row < 0:
+            return None
+        key = (sensor.camera_serial, row)
+        if key not in self._cache:
+            info = self.reader.info.camera(sensor.camera_serial)
+            left, _ = self.reader.frame_bytes(sensor.camera_serial, row)
+            bgr = self._decode(left, info.encoding, info.width, info.height)
+            self._cache = {key: np.ascontiguousarray(bgr[:, :, ::-1])}  # keep one: small memory
+        return self._cache[key], f"{sensor.name} {timecode(self.set_t_s[k])}"
+
+    def close(self) -> None:
+        self.reader.close()
+
+
+def replay(
+    folder: Path, path: CameraPath, out: Path, config: ReplayConfig, progress=None
+) -> ReplayStats:
+    models = CaseModels(folder)
+    times = frame_times(path, models, config)
+    order = [models.entry_at(float(t)) for t in times]
+    raster = case_raster(folder, config.near_m)
+    real = RealCameras(models) if config.pip else None
+    t_start = time.perf_counter()
+    try:
+        with ModelSource(models, order, preload=config.preload) as source, Mp4Writer(
+            out, config.size_px, config.fps
+        ) as video:
+            for k, (t, entry) in enumerate(zip(times, order, strict=True)):
+                camera = path.camera(float(t), config.size_px)
+                rgb, _, _ = render_view(source.get(entry), camera, raster)
+                rgb = burn_text(rgb, [f"{timecode(float(t))}  {path.name}", f"model {entry.name}"])
+                if real is not None:
+                    pip = real.frame(camera.pose.centre_m, float(t))
+                    if pip is not None:
+                        rgb = paste_pip(rgb, *pip)
+                video.write(rgb)
+                if progress is not None:
+                    progress(k + 1, len(times))
+            waited, loads = source.waited_s, len({e.name for e in order})
+    except UserError:
+        out.unlink(missing_ok=True)  # never leave half a video that looks whole
+        raise
+    finally:
+        if real is not None:
+            real.close()
+    return ReplayStats(
+        frames=len(times),
+        models=loads,
+        wall_s=time.perf_counter() - t_start,
+        load_wait_s=waited,
+        t_from_s=float(times[0]),
+        t_to_s=float(times[-1]),
+    )

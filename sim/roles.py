@@ -1,0 +1,160 @@
+"""``egosurg sim roles``: each person's true eye over time, as a roles file, and the site's true
+boxes, so that replay and line of sight can be judged against the simulator's exact truth.
+
+Case time (seconds since the session started) maps to sim time through the session's start:
+``t_sim = (started_unix_ns - SIM_EPOCH_UNIX_NS) / 1e9 + t_case``; ``egosurg sim eval-set``
+sessions start at the sim epoch, so there the two are equal.
+
+Examples::
+
+    egosurg sim roles evalset/intraoperative/session.h5 --out roles.toml --site-out site.toml
+    egosurg sim roles --seed 3 --phase intraoperative --from 2 --to 4 --every 0.1 --out roles.toml
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from protocol.errors import UserError
+from protocol.site import SiteBox, site_toml, surface_points
+from protocol.trajectory import Keyframe, Trajectory, write_trajectories
+from sim.phases import PHASES
+from sim.timing import SIM_EPOCH_UNIX_NS
+from sim.world import World
+
+log = logging.getLogger(__name__)
+
+# Screens a reviewer asks about, by the sim's object name -> the site box's name stem.
+_SCREENS = {"monitor_screen": "monitor", "anaesthesia_screen": "anaesthesia-screen"}
+
+
+class RolesArgumentError(UserError, ValueError):
+    pass
+
+
+def role_trajectories(
+    world: World, case_times_s: np.ndarray, *, sim_offset_s: float = 0.0, fov_deg: float = 90.0
+) -> list[Trajectory]:
+    """One trajectory per person: their egocentric eye (``World.head_poses``) at each time."""
+    keys: dict[str, list[Keyframe]] = {}
+    for t in case_times_s:
+        for name, pose in world.head_poses(float(t) + sim_offset_s).items():
+            keys.setdefault(name, []).append(Keyframe.from_pose(float(t), pose, fov_deg))
+    return [Trajectory(name=n, keyframes=tuple(k)) for n, k in keys.items()]
+
+
+def site_boxes(world: World) -> list[SiteBox]:
+    """The room's screens as boxes (their +x face is the screen), named ``monitor-a``, ..."""
+    out: list[SiteBox] = []
+    counts: dict[str, int] = {}
+    for obj in world.static_objects:
+        stem = _SCREENS.get(obj.name)
+        if stem is None:
+            continue
+        v = np.asarray(obj.mesh.vertices, np.float64)
+        # sim.geometry.box orders corners 4*ix + 2*iy + iz: its axes are corner differences
+        x, y, z = v[4] - v[0], v[2] - v[0], v[1] - v[0]
+        k = counts[stem] = counts.get(stem, 0) + 1
+        name = f"{stem}-{'abcdefgh'[k - 1]}" if stem == "monitor" else stem
+        out.append(
+            SiteBox(
+                name=name,
+                centre_m=tuple(float(c) for c in v.mean(axis=0)),  # type: ignore[arg-type]
+                size_m=(float(np.linalg.norm(x)), float(np.linalg.norm(y)), float(np.linalg.norm(z))),
+                yaw_deg=float(np.degrees(np.arctan2(x[1], x[0]))),
+                front_only=True,
+            )
+        )
+    return out
+
+
+def true_visible_fraction(
+    world: World, t_sim_s: float, eye_m: np.ndarray, box: SiteBox, per_face: int = 12
+) -> float:
+    """The fraction of ``box``'s points facing ``eye_m`` that a ray from the eye reaches
+    unobstructed in the true scene at ``t_sim_s`` (0 when no counted face faces the eye)."""
+    pts = surface_points(box, eye_m, per_face)
+    if len(pts) == 0:
+        return 0.0
+    eye = np.asarray(eye_m, np.float64)
+    d = pts - eye
+    dist = np.linalg.norm(d, axis=1)
+    rays = np.concatenate([np.broadcast_to(eye, d.shape), d / dist[:, None]], axis=1)
+    t_hit, _, _ = world.scene_at(t_sim_s).cast_rays(rays.astype(np.float32))
+    # the sampled point lies on the box's own surface: a hit within 1 cm of it is the box
+    return float(np.mean(t_hit >= dist - 0.01))
+
+
+def _times(args: argparse.Namespace, first_s: float, last_s: float) -> np.ndarray:
+    t0 = first_s if args.t_from is None else args.t_from
+    t1 = last_s if args.t_to is None else args.t_to
+    if not (args.every > 0 and np.isfinite(args.every)):
+        raise RolesArgumentError(f"--every {args.every}: give a positive number of seconds")
+    if not (np.isfinite(t0) and np.isfinite(t1) and 0 <= t0 <= t1):
+        raise RolesArgumentError(f"--from {t0} --to {t1}: need 0 <= from <= to (seconds)")
+    n = int(np.floor((t1 - t0) / args.every + 1e-9)) + 1
+    return t0 + args.every * np.arange(n)
+
+
+def cmd_roles(args: argparse.Namespace) -> int:
+    offset_s, seed, phase = 0.0, args.seed, args.phase
+    first_s = last_s = float("nan")
+    if args.session:
+        from protocol.session import SessionReader
+
+        path = Path(args.session)
+        if not path.is_file():
+            raise RolesArgumentError(f"the session {path} does not exist")
+        with SessionReader(path) as reader:
+            meta, start = reader.info.case_metadata, reader.info.started_unix_ns
+            set_ns = reader.sets().set_unix_ns
+        if len(set_ns) == 0:
+            raise RolesArgumentError(f"the session {path} holds no synchronised sets")
+        first_s, last_s = (set_ns[0] - start) / 1e9, (set_ns[-1] - start) / 1e9
+        offset_s = (start - SIM_EPOCH_UNIX_NS) / 1e9
+        if seed is None:
+            if "seed" not in meta:
+                raise RolesArgumentError(f"{path} does not say its sim seed: pass --seed")
+            seed = int(meta["seed"])
+        phase = phase or meta.get("phase")
+        if phase is None:
+            raise RolesArgumentError(f"{path} does not say its sim phase: pass --phase")
+    elif args.t_from is None or args.t_to is None:
+        raise RolesArgumentError("without a session, give --from and --to (seconds)")
+    if phase not in PHASES:
+        raise RolesArgumentError(f"--phase {phase!r}: choose one of {', '.join(PHASES)}")
+    world = World.from_seed(0 if seed is None else int(seed), phase=phase)
+    times = _times(args, first_s, last_s)
+    if times[0] + offset_s < 0:
+        raise RolesArgumentError(f"--from {times[0]} lies before the simulation starts")
+    roles = role_trajectories(world, times, sim_offset_s=offset_s, fov_deg=args.fov)
+    if not roles:
+        raise RolesArgumentError(f"the {phase} phase has no people: no roles to write")
+    write_trajectories(args.out, roles)
+    print(f"{args.out}: {len(roles)} roles ({', '.join(r.name for r in roles)}), "
+          f"{len(times)} keyframes each, {times[0]:.3f} s to {times[-1]:.3f} s")  # fmt: skip
+    if args.site_out:
+        boxes = site_boxes(world)
+        Path(args.site_out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.site_out).write_text(site_toml(boxes))
+        print(f"{args.site_out}: {len(boxes)} boxes ({', '.join(b.name for b in boxes)})")
+    return 0
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register ``egosurg sim roles`` on the ``egosurg sim`` subparsers."""
+    p = sub.add_parser("roles", help="each person's true eye over time (a roles file) and boxes")
+    p.add_argument("session", nargs="?", help="a sim session (eval-set); its seed, phase, times")
+    p.add_argument("--seed", type=int, default=None, help="world seed (default: the session's)")
+    p.add_argument("--phase", default=None, help="phase (default: the session's)")
+    p.add_argument("--from", dest="t_from", type=float, help="first case time, s")
+    p.add_argument("--to", dest="t_to", type=float, help="last case time, s")
+    p.add_argument("--every", type=float, default=0.1, help="keyframe interval, s (0.1)")
+    p.add_argument("--fov", type=float, default=90.0, help="horizontal field of view, degrees")
+    p.add_argument("--out", required=True, help="roles TOML to write")
+    p.add_argument("--site-out", help="also write the room's screens as a site file")
+    p.set_defaults(func=cmd_roles)
