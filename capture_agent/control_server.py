@@ -199,7 +199,9 @@ def _salvage_request_id(parts: list[bytes]) -> str:
     try:
         d = json.loads(parts[0].decode("utf-8"))
         rid = d.get("request_id", "") if isinstance(d, dict) else ""
-        ControlReply(ok=False, error="x", request_id=rid)  # the reply's own check
-    except (ValueError, RecursionError, AttributeError):
+        # the reply's own check, and its encoding: JSON can spell a lone surrogate that no
+        # UTF-8 reply can carry
+        ControlReply(ok=False, error="x", request_id=rid).to_bytes()
+    except (ValueError, RecursionError, AttributeError, UnicodeError):
         return ""
     return rid

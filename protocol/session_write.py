@@ -106,6 +106,7 @@ class _Blob:
 
     def flush_partial(self) -> None:
         """Write the unfinished chunk (call after ``sink.drain()``), then flush the dataset."""
+        # (the last block again even with nothing new: a failing disk shows at every flush)
         if self.fill and self.buffer is not None:
             if self.zero_from > self.fill:  # no stale bytes of an earlier chunk in the file
                 self.buffer[self.fill : self.zero_from] = 0

@@ -114,7 +114,9 @@ def read_site(path: Path | str) -> dict[str, SiteBox]:
             if len(box.centre_m) != 3 or len(box.size_m) != 3:
                 raise ValueError("centre_m and size_m need three numbers each")
         except (KeyError, TypeError, ValueError) as exc:
-            raise SiteFileError(f"{path}: boxes[{i}]: {exc!s} (needs name, centre_m, size_m)")
+            raise SiteFileError(
+                f"{path}: boxes[{i}]: {exc!s} (needs name, centre_m, size_m)"
+            ) from None
         if box.name in boxes:
             raise SiteFileError(f"{path}: the box name {box.name!r} repeats")
         boxes[box.name] = box

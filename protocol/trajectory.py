@@ -24,6 +24,7 @@ so it lives here and imports neither.
 
 from __future__ import annotations
 
+import itertools
 import math
 import tomllib
 from dataclasses import dataclass
@@ -90,14 +91,17 @@ class Keyframe:
             raise ValueError(f"fov_deg {self.fov_deg} must be between 1 and 179 degrees")
         if not np.all(np.isfinite(self.eye_m)):
             raise ValueError(f"eye_m {self.eye_m} must be three finite numbers")
-        if self.look_at_m is not None and np.linalg.norm(
-            np.subtract(self.look_at_m, self.eye_m)
-        ) < 1e-6:
+        if (
+            self.look_at_m is not None
+            and np.linalg.norm(np.subtract(self.look_at_m, self.eye_m)) < 1e-6
+        ):
             raise ValueError("look_at_m must differ from eye_m")
         if self.orientation_wxyz is not None and not (
             np.all(np.isfinite(self.orientation_wxyz)) and np.linalg.norm(self.orientation_wxyz)
         ):
-            raise ValueError(f"orientation_wxyz {self.orientation_wxyz} must be a non-zero quaternion")
+            raise ValueError(
+                f"orientation_wxyz {self.orientation_wxyz} must be a non-zero quaternion"
+            )
 
     def pose(self) -> Pose:
         """World-to-camera pose (OpenCV axes)."""
@@ -129,7 +133,7 @@ class Trajectory:
         if not self.keyframes:
             raise ValueError(f"trajectory {self.name!r} has no keyframes")
         times = [k.time_s for k in self.keyframes]
-        if any(b <= a for a, b in zip(times, times[1:], strict=False)):
+        if any(b <= a for a, b in itertools.pairwise(times)):
             raise ValueError(f"trajectory {self.name!r}: keyframe times must strictly increase")
 
     @property

@@ -64,7 +64,11 @@ def site_boxes(world: World) -> list[SiteBox]:
             SiteBox(
                 name=name,
                 centre_m=tuple(float(c) for c in v.mean(axis=0)),  # type: ignore[arg-type]
-                size_m=(float(np.linalg.norm(x)), float(np.linalg.norm(y)), float(np.linalg.norm(z))),
+                size_m=(
+                    float(np.linalg.norm(x)),
+                    float(np.linalg.norm(y)),
+                    float(np.linalg.norm(z)),
+                ),
                 yaw_deg=float(np.degrees(np.arctan2(x[1], x[0]))),
                 front_only=True,
             )
@@ -73,20 +77,29 @@ def site_boxes(world: World) -> list[SiteBox]:
 
 
 def true_visible_fraction(
-    world: World, t_sim_s: float, eye_m: np.ndarray, box: SiteBox, per_face: int = 12
+    world: World,
+    t_sim_s: float,
+    eye_m: np.ndarray,
+    box: SiteBox,
+    per_face: int = 12,
+    near_m: float = 0.2,
 ) -> float:
     """The fraction of ``box``'s points facing ``eye_m`` that a ray from the eye reaches
-    unobstructed in the true scene at ``t_sim_s`` (0 when no counted face faces the eye)."""
+    unobstructed in the true scene at ``t_sim_s`` (0 when no counted face faces the eye).
+
+    Rays start ``near_m`` from the eye, as renders from an eye leave out the viewer's own head
+    (reconstructor's EYE_NEAR_M): the question is whether they could see it by turning."""
     pts = surface_points(box, eye_m, per_face)
     if len(pts) == 0:
         return 0.0
     eye = np.asarray(eye_m, np.float64)
     d = pts - eye
     dist = np.linalg.norm(d, axis=1)
-    rays = np.concatenate([np.broadcast_to(eye, d.shape), d / dist[:, None]], axis=1)
+    unit = d / dist[:, None]
+    rays = np.concatenate([eye + near_m * unit, unit], axis=1)
     t_hit, _, _ = world.scene_at(t_sim_s).cast_rays(rays.astype(np.float32))
     # the sampled point lies on the box's own surface: a hit within 1 cm of it is the box
-    return float(np.mean(t_hit >= dist - 0.01))
+    return float(np.mean(t_hit >= dist - near_m - 0.01))
 
 
 def _times(args: argparse.Namespace, first_s: float, last_s: float) -> np.ndarray:

@@ -303,6 +303,8 @@ GARBAGE = {
     "a 5000-character request_id": [_LONG_ID],
     "two parts": [ControlRequest(verb="status").to_bytes(), b"second part"],
     "three empty parts": [b"", b"", b""],
+    # JSON can spell half a UTF-16 pair, which no UTF-8 reply can echo
+    "a lone surrogate as request_id": [_NO_ID[:-1] + b', "request_id": "\\ud800"}'],
 }
 
 

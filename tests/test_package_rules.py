@@ -39,6 +39,8 @@ RECONSTRUCTOR_PARTS: dict[str, set[str]] = {
     "pipeline": {"data", "depth", "splats", "refine", "raster", "config"} | _SHARED,
     "evaluation": {"data", "depth", "splats", "refine", "raster", "config", "pipeline"} | _SHARED,
     "case": {"data", "depth", "splats", "refine", "raster", "config", "pipeline"} | _SHARED,
+    # reviewing a case (docs/replay.md): reads the case index and renders its models
+    "replay": {"case", "data", "splats", "raster", "config"} | _SHARED,
     "cli": {"data", "depth", "splats", "refine", "raster", "config", "pipeline", "evaluation"}
     | {"case"}
     | _SHARED,

@@ -377,7 +377,7 @@ def test_sets_skip_the_frames_the_writer_could_not_write(tmp_path, monkeypatch):
     q.request_flush()
     assert q.wait_idle(10.0)
     full.set()
-    q.request_flush()  # frame 3 is appended but its flush fails: it is kept and retried
+    q.request_flush()  # fails: the writer refuses frames until a flush gets through
     assert q.wait_idle(10.0) and q.write_failing_since is not None
     tickets += [q.put_frame(frame(k), t0) for k in (4, 5)]  # refused by the failing writer
     assert q.wait_idle(10.0)

@@ -15,6 +15,7 @@ import signal
 import stat
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -182,6 +183,31 @@ def test_a_damaged_string_heap_is_refused_without_hanging(clean, tmp_path, monke
     with pytest.raises(SessionFormatError, match="nothing can be recovered"):
         recover_session(path, tmp_path / "recovered.h5")
     assert not (tmp_path / "recovered.h5").exists()
+
+
+@pytest.mark.timeout(60)
+def test_a_damaged_string_heap_is_refused_too_while_other_threads_run(clean, tmp_path, monkeypatch):
+    """With other threads running the probe is a new interpreter, not a fork (a fork could copy
+    a lock another thread holds): the same refusal, and a healthy file still opens."""
+    from protocol import session_probe
+
+    monkeypatch.setattr(session_probe, "PROBE_STALL_S", 3.0)
+    data = bytearray(clean.read_bytes())
+    _zeroed_string_header(data)
+    path = tmp_path / "heap.h5"
+    path.write_bytes(bytes(data))
+    healthy = shutil.copy(clean, tmp_path / "healthy.h5")
+    stop = threading.Event()
+    other = threading.Thread(target=stop.wait, daemon=True)
+    other.start()
+    try:
+        with pytest.raises(SessionFormatError, match=r"heap\.h5: the file's metadata is damaged"):
+            SessionReader(path)
+        with SessionReader(healthy) as reader:
+            assert reader.info.session_name
+    finally:
+        stop.set()
+        other.join(timeout=10)
 
 
 def _metadata_positions(path: Path, k: int, seed: int) -> list[int]:

@@ -148,9 +148,10 @@ def replay(
     real = RealCameras(models) if config.pip else None
     t_start = time.perf_counter()
     try:
-        with ModelSource(models, order, preload=config.preload) as source, Mp4Writer(
-            out, config.size_px, config.fps
-        ) as video:
+        with (
+            ModelSource(models, order, preload=config.preload) as source,
+            Mp4Writer(out, config.size_px, config.fps) as video,
+        ):
             for k, (t, entry) in enumerate(zip(times, order, strict=True)):
                 camera = path.camera(float(t), config.size_px)
                 rgb, _, _ = render_view(source.get(entry), camera, raster)

@@ -12,6 +12,7 @@ was in their field of view at that instant.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from dataclasses import dataclass
@@ -106,15 +107,21 @@ def visible_fraction(
     if len(pts) == 0:
         return 0.0, {"points": 0}
     camera = aimed_camera(np.asarray(eye_m, float), pts)
-    rgb, depth, alpha = render_view(g, camera, raster)
-    px, z = camera.project(pts)
-    h, w = depth.shape
+    z = camera.pose.transform(pts)[:, 2]
+    # Only what lies clearly in front of the target can block it: render the opacity of that
+    # alone (far plane just before the target). A point is blocked where it is more than half
+    # opaque; a depth test on the blended depth would call a faint floater in front a wall.
+    z_front = float(z.min())
+    far = max(raster.near_m + 0.01, z_front - float(depth_tolerance_m(np.asarray(z_front))))
+    front = dataclasses.replace(raster, far_m=far)
+    rgb, _, alpha = render_view(g, camera, front)
+    px, _ = camera.project(pts)
+    h, w = alpha.shape
     u = np.clip(np.round(px[:, 0]).astype(int), 0, w - 1)
     v = np.clip(np.round(px[:, 1]).astype(int), 0, h - 1)
-    surface = np.where(alpha[v, u] > 0.5, depth[v, u], np.inf)  # nothing drawn: nothing blocks
-    visible = surface >= z - depth_tolerance_m(z)
+    visible = alpha[v, u] < 0.5
     return float(visible.mean()), {
-        "points": len(pts), "camera": camera, "rgb": rgb, "depth": depth,
+        "points": len(pts), "camera": camera, "rgb": rgb, "alpha": alpha,
         "pixels": np.stack([u, v], 1), "visible": visible,
     }  # fmt: skip
 

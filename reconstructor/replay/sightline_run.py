@@ -76,8 +76,9 @@ def _write_csv(path: Path, rows: list[SightRow], box: SiteBox) -> None:
         w.writerow(["t_s", "model", "position", "eye_x_m", "eye_y_m", "eye_z_m", "target",
                     "visible_fraction", "in_view_fraction"])  # fmt: skip
         for r in rows:
-            w.writerow([f"{r.t_s:.3f}", r.model, r.position, *(f"{v:.3f}" for v in r.eye_m),
-                        box.name, f"{r.visible_fraction:.3f}", f"{r.in_view_fraction:.3f}"])  # fmt: skip
+            eye = [f"{v:.3f}" for v in r.eye_m]
+            fractions = [f"{r.visible_fraction:.3f}", f"{r.in_view_fraction:.3f}"]
+            w.writerow([f"{r.t_s:.3f}", r.model, r.position, *eye, box.name, *fractions])
 
 
 def _plot(path: Path, rows: list[SightRow], box: SiteBox, viewer: str) -> None:

@@ -31,7 +31,9 @@ class Mp4Writer:
             self._container = av.open(str(self.path), mode="w")
         except (OSError, av.error.FFmpegError) as exc:
             raise VideoOutputError(f"cannot write {self.path}: {exc}") from None
-        self._stream = self._container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1000))
+        self._stream = self._container.add_stream(
+            "libx264", rate=Fraction(fps).limit_denominator(1000)
+        )
         self._stream.width, self._stream.height = w, h
         self._stream.pix_fmt = "yuv420p"
         self._stream.options = {"crf": "20", "preset": "veryfast"}

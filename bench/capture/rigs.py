@@ -1,0 +1,234 @@
+"""The rigs bench_capture.py records from: the simulated rig (``egosurg agent`` processes with
+the sim source), and a replay rig whose two "agents" are feeders publishing real JPEG pairs."""
+
+from __future__ import annotations
+
+import dataclasses
+import struct
+import time
+from pathlib import Path
+
+from bench.capture.measure import JPEG_QUALITY, REPLAY_SERIAL0, RESOLUTION
+
+
+def rig_spec(fps: float, duration_s: float, seed: int = 0, insecure: bool = False):
+    from sim.deploy import SimRigSpec
+
+    return SimRigSpec(
+        insecure=insecure,
+        seed=seed,
+        resolution=RESOLUTION,
+        fps=fps,
+        content_fps=1.0,  # one content frame per camera, rendered before streaming, repeated
+        prerender_s=1.0,
+        drop_probability=0.0,
+        encoding="jpeg",
+        jpeg_quality=JPEG_QUALITY,
+        pre_encode=True,
+        flush_interval_s=0.5,
+        # the start-time disk check reserves this much recording at the measured rate
+        planned_duration_min=(duration_s + 5.0) / 60.0,
+    )
+
+
+def make_rig(
+    directory: Path,
+    cameras: int,
+    fps: float,
+    duration_s: float,
+    seed: int = 0,
+    insecure: bool = False,
+):
+    """``write_sim_rig`` for ``cameras`` stereo cameras: camera k >= 4 is camera ``k % 4`` of the
+    sim world of seed ``seed + k // 4`` (``SimRigSpec.cameras``), two per node as on the rig."""
+    from sim.deploy import write_sim_rig
+
+    return write_sim_rig(
+        directory, dataclasses.replace(rig_spec(fps, duration_s, seed, insecure), cameras=cameras)
+    )
+
+
+def make_replay_rig(
+    directory: Path, cameras: int, fps: float, duration_s: float, insecure: bool = False
+):
+    """A rig.toml whose two "agents" are replay feeders; the same recorder settings and keys as
+    the sim rig (written as ``write_sim_rig`` does, then pointed at the feeders' ports)."""
+    from sim.deploy import SimRigFiles, free_ports, write_keys
+
+    if cameras < 2 or cameras % 2:
+        raise SystemExit(f"replay cameras must be even and >= 2, got {cameras}")
+    spec = rig_spec(fps, duration_s, insecure=insecure)
+    ports = free_ports(5)
+    nodes = {"replay-a": [], "replay-b": []}
+    for k in range(cameras):
+        nodes["replay-a" if k % 2 == 0 else "replay-b"].append(REPLAY_SERIAL0 + k)
+    lines = [
+        "# bench_capture replay rig: the recorder settings of sim.deploy.write_sim_rig",
+        'rig_name = "bench-replay"',
+        f"fps = {fps!r}",
+        f'control_bind = "tcp://127.0.0.1:{ports[-1]}"',
+        f'output_dir = "{directory / "sessions"}"',
+        "require_ptp_lock = false",
+        f"flush_interval_s = {spec.flush_interval_s!r}",
+        f"max_wait_ms = {spec.max_wait_ms!r}",
+        f"disk_reserve_gb = {spec.disk_reserve_gb!r}",
+        f"planned_duration_min = {spec.planned_duration_min!r}",
+        "",
+        "[security]",
+    ]
+    if insecure:
+        lines.append("insecure = true")
+    else:
+        write_keys(directory / "keys", ["recorder", "operator", *nodes])
+        lines += [
+            'secret_key = "keys/recorder.key_secret"',
+            'operator_keys = ["keys/operator.key"]',
+            'operator_key = "keys/operator.key_secret"',
+        ]
+    endpoints = {}
+    for k, (node, serials) in enumerate(nodes.items()):
+        fr, ct = f"tcp://127.0.0.1:{ports[2 * k]}", f"tcp://127.0.0.1:{ports[2 * k + 1]}"
+        endpoints[node] = (fr, ct)
+        lines += [
+            "",
+            "[[agents]]",
+            f'node_id = "{node}"',
+            f'frames = "{fr}"',
+            f'control = "{ct}"',
+            f"cameras = [{', '.join(map(str, serials))}]",
+            *([] if insecure else [f'public_key = "keys/{node}.key"']),
+        ]
+    directory.mkdir(parents=True, exist_ok=True)
+    rig_path = directory / "rig.toml"
+    rig_path.write_text("\n".join(lines) + "\n")
+    files = SimRigFiles(
+        directory=directory,
+        node_configs={},
+        rig_config=rig_path,
+        session_dir=directory / "sessions",
+        recorder_url=f"tcp://127.0.0.1:{ports[-1]}",
+        epoch_unix_ns=0,
+        serials_by_node={n: tuple(s) for n, s in nodes.items()},
+        camera_index_by_serial={},
+        spec=spec,
+    )
+    return files, endpoints
+
+
+def feeder(
+    node_id: str,
+    frames_ep: str,
+    control_ep: str,
+    serials: list,
+    fps: float,
+    pairs: list,
+    stop_at: float,
+    stop_event,
+    q,
+    key_file: str | None = None,
+) -> None:
+    """Stands in for one capture agent: publishes valid frame messages of ``serials`` at ``fps``
+    each, free-running with random phases, stamped with their scheduled time (as a camera is),
+    with the node's ``seq`` and each camera's ``frame_index``; answers the recorder's ``status``
+    control request with the cameras' info. Images are the real JPEG pairs, sent with copy=False.
+    No rendering, no encoding, no per-frame validation: it costs the shared cores little. With
+    ``key_file`` its sockets are CURVE servers of that key, as an agent's are (without a ZAP
+    allow-list: the cost measured is the encryption, which is per message; ZAP is per
+    connection)."""
+    import heapq
+    import random
+
+    import zmq
+    import zmq.auth
+
+    from protocol.messages import ControlReply, ControlRequest, FrameMessage
+
+    ctx = zmq.Context()
+    pub = ctx.socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    pub.setsockopt(zmq.SNDHWM, 480)  # the agent's: max(100, 4 * queue_frames)
+    rep = ctx.socket(zmq.REP)
+    rep.setsockopt(zmq.LINGER, 0)
+    if key_file is not None:
+        public, secret = zmq.auth.load_certificate(key_file)
+        for sock in (pub, rep):
+            sock.curve_publickey, sock.curve_secretkey = public, secret
+            sock.curve_server = True
+    pub.bind(frames_ep)
+    rep.bind(control_ep)
+    templates = []
+    for c, serial in enumerate(serials):
+        left, right = pairs[c % len(pairs)]
+        h = FrameMessage(
+            node_id=node_id,
+            camera_serial=serial,
+            frame_index=0,
+            seq=0,
+            capture_unix_ns=0,
+            host_receive_unix_ns=0,
+            ptp_offset_ns=0,
+            ptp_locked=True,
+            encoding="jpeg",
+            width=1920,
+            height=1200,
+            left=left,
+            right=right,
+        ).header()
+        templates.append((bytearray(h), left, right))
+    info = [
+        {
+            "camera_serial": s,
+            "resolution": RESOLUTION,
+            "width": 1920,
+            "height": 1200,
+            "fps": fps,
+            "encoding": "jpeg",
+            "factory_conf": "",
+        }
+        for s in serials
+    ]
+    period = 1e9 / fps
+    rng = random.Random(hash(node_id) & 0xFFFF)
+    t0 = time.time_ns() + 200_000_000
+    heap = [(t0 + rng.uniform(0, period), c, 0) for c in range(len(serials))]
+    heapq.heapify(heap)
+    seq = sent = 0
+    max_lag_ns = 0
+    measure_from = None  # lag is reported from the first control request on (the start)
+    pack = struct.Struct("<QQQqq")  # seq, serial, frame_index, capture, host_receive at 8..48
+
+    def control() -> None:
+        nonlocal measure_from
+        while rep.poll(0):
+            req = ControlRequest.from_bytes(rep.recv())
+            result = {"cameras_info": info} if req.verb == "status" else {"node_id": node_id}
+            rep.send(ControlReply(ok=True, result=result, request_id=req.request_id).to_bytes())
+            if measure_from is None:
+                measure_from = time.time_ns()
+
+    try:
+        while time.monotonic() < stop_at and not stop_event.is_set():
+            due, c, idx = heap[0]
+            now = time.time_ns()
+            if due > now:
+                control()
+                time.sleep(min((due - now) / 1e9, 0.005))
+                continue
+            heapq.heapreplace(heap, (due + period, c, idx + 1))
+            h, left, right = templates[c]
+            pack.pack_into(h, 8, seq, serials[c], idx, int(due), now)
+            try:
+                pub.send_multipart([bytes(h), left, right], copy=False)
+            except zmq.Again:
+                pass
+            seq += 1
+            sent += 1
+            if measure_from is not None and due >= measure_from:
+                max_lag_ns = max(max_lag_ns, now - int(due))
+            if sent % 64 == 0:
+                control()
+    finally:
+        pub.close(linger=0)
+        rep.close(linger=0)
+        ctx.term()
+    q.put({"node": node_id, "sent": sent, "max_lag_ms": max_lag_ns / 1e6})
