@@ -172,6 +172,9 @@ def test_two_simultaneous_starts_record_one_case(rig):
         client.stop()
 
 
+ROGUE_SERIAL = 99  # the camera of the rogue publisher below: listed, never streaming until it sends
+
+
 def _in_process_recorder(rig, tmp_path, **overrides) -> tuple[Recorder, RigClient]:
     cfg = RigConfig.from_toml(rig.files.rig_config)
     port = free_ports(1)[0]
@@ -187,7 +190,7 @@ def _in_process_recorder(rig, tmp_path, **overrides) -> tuple[Recorder, RigClien
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline:
         st = client.status()
-        if all(c["streaming"] for c in st["cameras"]) and all(
+        if all(c["streaming"] for c in st["cameras"] if c["serial"] != ROGUE_SERIAL) and all(
             a["alive"] for a in st["agents"] if a["node_id"] != "rogue"
         ):
             return rec, client
@@ -272,6 +275,7 @@ def test_malformed_messages_are_counted_and_the_receiver_keeps_going(rig, tmp_pa
             frames=f"tcp://127.0.0.1:{port}",
             control="tcp://127.0.0.1:1",
             public_key=str(public),
+            cameras=(ROGUE_SERIAL,),  # the recorder takes frames only from the rig's listed cameras
         ),
     )
     rec, client = _in_process_recorder(rig, tmp_path, agents=agents)

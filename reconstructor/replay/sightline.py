@@ -2,12 +2,12 @@
 (counterfactual) position.
 
 At each instant the viewer's eye comes from their trajectory. A camera at the eye, aimed at the
-target's centre and just wide enough to hold it, renders the case's model's depth (our
-rasterizer, the eye's near plane leaving out the viewer's own head); each sampled target point
-(``protocol.site.surface_points``: the faces that face the eye) is visible when nothing
-rendered lies clearly in front of it. Aiming at the target, not where the head points, asks
-"could they see it by looking", the question of a review; ``in_view`` says whether the target
-was in their field of view at that instant.
+target's centre and just wide enough to hold it, renders the case's model (our rasterizer, the
+eye's near plane leaving out the viewer's own head) with its far plane just before the target:
+the opacity of what lies in front. Each sampled target point (``protocol.site.surface_points``:
+the faces that face the eye) is visible where that opacity is under one half. Aiming at the
+target, not where the head points, asks "could they see it by looking", the question of a
+review; ``in_view_fraction`` says whether the target was in their field of view then.
 """
 
 from __future__ import annotations
