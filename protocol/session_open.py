@@ -18,9 +18,10 @@ Two things HDF5 does differently in that mode made damaged files hang the tools:
    does not wrap, through ctypes on the HDF5 library h5py has loaded.
 
 Neither bounds damage in metadata without a checksum, above all HDF5's global heap (every string
-attribute), whose parser can loop forever; so ``open_hdf5`` first reads all of a file's metadata
-in a child process with a time limit (``protocol.session_probe``), and opens it here only
-after that finished. Where the ctypes binding cannot be found (not Linux, or an h5py that links
+attribute), whose parser can loop forever; so ``protocol.session_probe.open_hdf5`` first reads
+all of a file's metadata in a child process with a time limit, and opens it with
+``open_unprobed`` only after that finished (imports run one way: the probe uses this module,
+not the reverse). Where the ctypes binding cannot be found (not Linux, or an h5py that links
 HDF5 statically) the child's retries are not capped, and the time limit alone refuses the file.
 """
 
@@ -36,7 +37,6 @@ from pathlib import Path
 import h5py
 
 from protocol.session_format import SessionFormatError
-from protocol.session_probe import probe_metadata
 
 logger = logging.getLogger(__name__)
 
@@ -170,15 +170,9 @@ def _warn_unbounded() -> None:
     )
 
 
-def open_hdf5(path: Path, *, cache_bytes: int, cache_slots: int) -> h5py.File:
-    """Open a (checked) session file read-only, SWMR where its format allows, never hanging:
-    its metadata is read first in a child with a time limit (``protocol.session_probe``)."""
-    probe_metadata(path, lambda: open_unprobed(path))
-    return open_unprobed(path, cache_bytes=cache_bytes, cache_slots=cache_slots)
-
-
 def open_unprobed(path: Path, *, cache_bytes: int = 1 << 20, cache_slots: int = 521) -> h5py.File:
-    """``open_hdf5`` without the probe: only for the probe's child, or a file that passed it."""
+    """``session_probe.open_hdf5`` without the probe: only for the probe's child, or a file
+    that passed it."""
     fapl = _fapl(cache_bytes, cache_slots)
     name = os.fsencode(path)
     errors = []

@@ -45,6 +45,7 @@ import numpy as np
 from h5py._objects import phil  # h5py's global lock: held across fork so no thread owns it
 
 from protocol.session_format import SessionFormatError
+from protocol.session_open import open_unprobed
 
 logger = logging.getLogger(__name__)
 
@@ -238,8 +239,6 @@ def _one_line(value: object) -> str:
 
 def child_main(path: str) -> None:
     """The new-interpreter child: walk ``path`` opened as ``open_hdf5`` opens it."""
-    from protocol.session_open import open_unprobed  # here: session_open imports this module
-
     out = sys.stdout.buffer
 
     def emit(line: str) -> None:
@@ -248,3 +247,10 @@ def child_main(path: str) -> None:
 
     logging.disable(logging.CRITICAL)
     _walk(lambda: open_unprobed(Path(path)), emit)
+
+
+def open_hdf5(path: Path, *, cache_bytes: int, cache_slots: int) -> h5py.File:
+    """Open a (checked) session file read-only, SWMR where its format allows, never hanging:
+    its metadata is read first in a child with a time limit (``probe_metadata``)."""
+    probe_metadata(path, lambda: open_unprobed(path))
+    return open_unprobed(path, cache_bytes=cache_bytes, cache_slots=cache_slots)

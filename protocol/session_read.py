@@ -40,7 +40,8 @@ from protocol.session_format import (
     SetTable,
     frame_columns,
 )
-from protocol.session_open import check_superblock, open_hdf5, read_superblock
+from protocol.session_open import check_superblock, read_superblock
+from protocol.session_probe import open_hdf5
 from protocol.session_verify import verify_session
 from protocol.set_counts import missing_in_sets
 
