@@ -48,7 +48,7 @@ from sim.timing import ClockSpec
 from sim.truth import align_to_truth, calibration_errors, content_time_s, true_rig_calibration
 from sim.world import World
 
-STAGES = 6
+STAGES = 7
 
 
 def _stage(k: int, text: str) -> None:
@@ -329,6 +329,35 @@ def stage_batch(out: Path, stamp: DemoTimestamp, steps: int) -> None:
     _egosurg("case", "info", str(case))
 
 
+def stage_review(out: Path, stamp: DemoTimestamp) -> None:
+    """The paper's case studies as tools, on the case of stage 6: the surgeon's own view replayed
+    over the case with the nearest real camera inset, and whether the anaesthetist could see a
+    monitor from where they stood, and from a metre to their left and back."""
+    _stage(7, "review: replay the surgeon's view of the case, and the anaesthetist's line of sight")
+    case, review = out / "case", out / "review"
+    review.mkdir(parents=True, exist_ok=True)
+    roles, site = review / "roles.toml", review / "site.toml"
+    done = _egosurg(
+        "sim", "roles", str(stamp.session), "--out", str(roles), "--site-out", str(site),
+    )  # fmt: skip
+    if done.returncode != 0:
+        print("      the sim's role viewpoints could not be written; see the message above")
+        return
+    done = _egosurg(
+        "replay", str(case), "--role", "surgeon", "--roles", str(roles),
+        "--out", str(review / "surgeon.mp4"), "--size", "480x300", "--pip",
+    )  # fmt: skip
+    if done.returncode != 0:
+        print("      replay failed; see the message above")
+    done = _egosurg(
+        "sightline", str(case), "--viewer", "anaesthetist", "--roles", str(roles),
+        "--target", "monitor-a", "--site", str(site), "--offset", "1m left-posterior",
+        "--out", str(review / "sightline"),
+    )  # fmt: skip
+    if done.returncode != 0:
+        print("      line of sight failed; see the message above")
+
+
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(
         prog="egosurg demo",
@@ -355,5 +384,6 @@ def main(argv: list[str]) -> int:
     if stamp is not None:
         stage_evaluation(out, args.seed, files.spec.phase, stamp, args.steps)
         stage_batch(out, stamp, args.steps)
+        stage_review(out, stamp)
     print(f"demo finished in {time.perf_counter() - t0:.0f} s; everything is under {out}/")
     return 0
