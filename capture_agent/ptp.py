@@ -51,7 +51,7 @@ import threading
 import time
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Any
+from typing import Any, Literal, get_args
 
 from capture_agent.toml_table import TableReader, require
 from protocol.errors import ConfigError
@@ -59,7 +59,8 @@ from protocol.errors import ConfigError
 log = logging.getLogger(__name__)
 
 PTP_STATES = ("locked", "unlocked", "no_ptp4l", "no_pmc", "disabled")
-PTP_SOURCES = ("pmc", "none")
+PtpSource = Literal["pmc", "none"]  # "none": no PTP (simulation)
+PTP_SOURCES: tuple[PtpSource, ...] = get_args(PtpSource)
 PMC_QUERY = "GET TIME_STATUS_NP"
 _RESPONSE = re.compile(r"\sseq\s+\d+\s+RESPONSE\s+(MANAGE?MENT\S*)\s+(\S+)")
 
@@ -83,7 +84,7 @@ class PtpStatus:
 
 @dataclass(frozen=True, kw_only=True)
 class PtpConfig:
-    source: str = "pmc"
+    source: PtpSource = "pmc"
     pmc_path: str = "pmc"
     lock_threshold_ns: int = 1000
     require_lock: bool = True

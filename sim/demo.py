@@ -329,7 +329,7 @@ def stage_batch(out: Path, stamp: DemoTimestamp, steps: int) -> None:
     _egosurg("case", "info", str(case))
 
 
-def stage_review(out: Path, stamp: DemoTimestamp) -> None:
+def stage_review(out: Path, seed: int, phase: str, stamp: DemoTimestamp) -> None:
     """The paper's case studies as tools, on the case of stage 6: the surgeon's own view replayed
     over the case with the nearest real camera inset, and whether the anaesthetist could see a
     monitor from where they stood, and from a metre to their left and back."""
@@ -338,7 +338,9 @@ def stage_review(out: Path, stamp: DemoTimestamp) -> None:
     review.mkdir(parents=True, exist_ok=True)
     roles, site = review / "roles.toml", review / "site.toml"
     done = _egosurg(
-        "sim", "roles", str(stamp.session), "--out", str(roles), "--site-out", str(site),
+        "sim", "roles", str(stamp.session), "--seed", str(seed), "--phase", phase,
+        "--out", str(roles),
+        "--site-out", str(site),
     )  # fmt: skip
     if done.returncode != 0:
         print("      the sim's role viewpoints could not be written; see the message above")
@@ -384,6 +386,6 @@ def main(argv: list[str]) -> int:
     if stamp is not None:
         stage_evaluation(out, args.seed, files.spec.phase, stamp, args.steps)
         stage_batch(out, stamp, args.steps)
-        stage_review(out, stamp)
+        stage_review(out, args.seed, files.spec.phase, stamp)
     print(f"demo finished in {time.perf_counter() - t0:.0f} s; everything is under {out}/")
     return 0

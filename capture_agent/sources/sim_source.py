@@ -52,7 +52,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal, get_args
 
 import cv2
 import numpy as np
@@ -75,8 +75,10 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-FAULT_KINDS = ("hang", "vanish")
-PRE_ENCODINGS = ("jpeg",)
+FaultKind = Literal["hang", "vanish"]
+FAULT_KINDS: tuple[FaultKind, ...] = get_args(FaultKind)
+PreEncoding = Literal["jpeg"]
+PRE_ENCODINGS: tuple[PreEncoding, ...] = get_args(PreEncoding)
 BUFFER_S = 0.5  # frames older than this when grab() is called are lost (a camera's buffer)
 DAY_NS = 86_400 * 1_000_000_000
 _CONTENT_CACHE = 4  # lazily rendered content frames kept (current, next, and a little slack)
@@ -108,7 +110,7 @@ def start_of_utc_day(unix_ns: int) -> int:
 class FaultSpec:
     """``kind`` ("hang" or "vanish") from ``at_s`` to ``at_s + duration_s`` after the first open."""
 
-    kind: str
+    kind: FaultKind
     at_s: float
     duration_s: float
 
@@ -133,7 +135,7 @@ class SimSourceConfig:
     drop_probability: float = 0.002
     epoch_unix_ns: int | None = None
     content_fps: float = 2.0
-    pre_encode: str | None = None
+    pre_encode: PreEncoding | None = None
     jpeg_quality: int = 90
     prerender_s: float = 0.0
     realtime: bool = True
