@@ -56,7 +56,7 @@ class SimRigSpec:
     encoding: str = "jpeg"
     jpeg_quality: int = 85
     pre_encode: bool = True
-    flush_interval_s: float = 0.5
+    flush_interval_s: float = 0.2
     max_wait_ms: float = 500.0
     disk_reserve_gb: float = 0.5
     planned_duration_min: float = 1.0

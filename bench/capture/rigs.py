@@ -25,7 +25,7 @@ def rig_spec(fps: float, duration_s: float, seed: int = 0, insecure: bool = Fals
         encoding="jpeg",
         jpeg_quality=JPEG_QUALITY,
         pre_encode=True,
-        flush_interval_s=0.5,
+        flush_interval_s=0.2,  # the rig.toml default
         # the start-time disk check reserves this much recording at the measured rate
         planned_duration_min=(duration_s + 5.0) / 60.0,
     )

@@ -192,7 +192,8 @@ def run_recording(
         dropped=sum(int(c["dropped"]) for c in cams),
         transport_lost=sum(int(c["transport_lost"]) for c in cams),
         not_written=int(summary.get("frames_not_written_at_stop", 0))
-        + int(summary.get("frames_not_written_write_failed", 0)),
+        + int(summary.get("frames_not_written_write_failed", 0))
+        + int(summary.get("frames_not_written_disk_stalled", 0)),
         latency_ms=summary["capture_to_durable_ms"],
         recorder_cpu=100.0 * (cpu1[0] - cpu0[0]) / wall,
         feeders_cpu=100.0 * (cpu1[1] - cpu0[1]) / wall,
