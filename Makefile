@@ -29,7 +29,7 @@ bench: $(STAMP)
 
 # libusb-1.0-0: open3d needs it at import. hdf5-tools: h5dump/h5ls/h5clear, to read sessions with
 # the standard tools (and for the test that checks a session opens in h5dump). libfaketime: the
-# fault test that steps one agent's clock (tests/test_faults.py; it skips without it).
+# fault test that steps one agent's clock (tests/e2e/test_faults.py; it skips without it).
 system-deps:
 	@if ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' && command -v h5dump >/dev/null \
 			&& ls /usr/lib/*/faketime/libfaketime.so.1 >/dev/null 2>&1; then \

@@ -52,7 +52,7 @@ HANDSHAKE_MS = 5000  # a peer that has not finished its handshake by then is dro
 # Dead peers are found by TCP keepalive, not ZMTP heartbeats: libzmq aborts the whole process
 # (``Assertion failed: _input_stopped``, zeromq/libzmq#3937) when a heartbeat times out on a
 # receiving socket whose queue is full, which is exactly what a stalling disk makes of the
-# recorder's SUB sockets (tests/test_faults.py freezes the disk for 8 s).
+# recorder's SUB sockets (tests/e2e/test_faults.py freezes the disk for 8 s).
 KEEPALIVE_IDLE_S = 5
 KEEPALIVE_INTERVAL_S = 2
 KEEPALIVE_PROBES = 3

@@ -1,4 +1,4 @@
-"""Fuzzing targets shared by ``tests/test_fuzz.py`` (hypothesis, a bounded sample) and
+"""Fuzzing targets shared by ``tests/capture_agent/test_fuzz.py`` (hypothesis, a bounded sample) and
 ``bench/bench_fuzz.py`` (100k+ cases from a seeded mutator).
 
 Every mutator takes a ``Chooser``: ``RandomChooser`` (a seeded ``random.Random``, fast) or

@@ -53,7 +53,7 @@ def _node(faults_cam1: list[dict]) -> NodeConfig:
         "status_interval_s": 0.25,
         "ptp": {"source": "none", "require_lock": False},
         "cameras": cams,
-        "security": {"insecure": True},  # the links are tests/test_security.py's
+        "security": {"insecure": True},  # the links are tests/capture_agent/test_security.py's
     }
     return NodeConfig.from_table(table, "test node.toml")
 

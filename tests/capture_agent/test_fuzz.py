@@ -95,7 +95,7 @@ def recorder_control(tmp_path_factory):
         ),
         require_ptp_lock=False,
         disk_reserve_gb=0.0,
-        security=SecurityConfig(insecure=True),  # the links are tests/test_security.py's
+        security=SecurityConfig(insecure=True),  # links: test_security.py
     )
     recorder = Recorder(cfg)
     recorder.start()

@@ -1,11 +1,11 @@
 """Fault injection on the deployed capture chain: real agent and recorder processes (sim/deploy.py's
-SimRig, CURVE on), a real TCP proxy in one agent's frame link (tests/netproxy.py), real
+SimRig, CURVE on), a real TCP proxy in one agent's frame link (tests/e2e/netproxy.py), real
 filesystems filled or frozen (tmpfs, a loop-mounted ext4 and fsfreeze, as root), a real clock
 step in one agent process (libfaketime). What an operator relies on: a fault costs exactly the
 frames it touched, the gap is on record where it happened, the take goes on or stops cleanly with
 the reason, and memory stays bounded.
 
-tests/test_capture_integration.py already covers: a killed agent leaves a RECONNECT gap spanning
+tests/e2e/test_capture_integration.py already covers: a killed agent leaves a RECONNECT gap spanning
 its death and spares the other node; a SIGKILLed recorder leaves a readable file; malformed
 traffic is counted; the disk reserve stops a take before the disk fills."""
 
@@ -31,7 +31,7 @@ from capture_agent.control import format_status
 from protocol.messages import ControlReply, ControlRequest
 from protocol.session import GapKind, SessionReader
 from sim.deploy import SimRig, SimRigSpec, free_ports, write_sim_rig
-from tests.netproxy import TcpProxy
+from tests.e2e.netproxy import TcpProxy
 
 FPS = 15.0
 PERIOD_NS = int(1e9 / FPS)

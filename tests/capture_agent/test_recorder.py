@@ -47,7 +47,7 @@ def _config(tmp_path, frames: str, cameras: tuple[int, ...] = SERIALS) -> RigCon
         ),
         require_ptp_lock=False,
         disk_reserve_gb=0.0,
-        security=SecurityConfig(insecure=True),  # the links are tests/test_security.py's
+        security=SecurityConfig(insecure=True),  # links: test_security.py
     )
 
 
@@ -276,7 +276,7 @@ def test_the_receive_queue_is_bounded_in_bytes_and_holds_seconds_where_it_can(tm
 
 # -- the writer thread: a stalling or failing disk never holds the I/O thread -----------------
 # The session file's writes are stalled or failed at the chunk sink's one write call, as a
-# frozen or full disk does (tests/test_faults.py freezes a real file system).
+# frozen or full disk does (tests/e2e/test_faults.py freezes a real file system).
 FRAME_BYTES = 2 * len(JPEG)
 
 

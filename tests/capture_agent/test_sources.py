@@ -36,8 +36,8 @@ from protocol.errors import ConfigError, UserError
 from protocol.images import decode_image
 from protocol.zed_conf import ZedFactoryCalibration
 
-REPO = Path(__file__).resolve().parents[1]
-FAKES = Path(__file__).resolve().parent / "fakes"
+REPO = Path(__file__).resolve().parents[2]
+FAKES = Path(__file__).resolve().parents[1] / "fakes"
 WHERE = "node.toml [[cameras]] #1"
 # One epoch for every sim source here, as every agent of a rig shares one; an hour ago keeps
 # sim times small.

@@ -1,7 +1,7 @@
 """The recorder and the agent cannot be stopped or exhausted by input (issue 24).
 
 A real recorder (its I/O thread running) and a real agent (two simulated cameras) on loopback,
-plaintext links (CURVE is tests/test_security.py's), recording one take while every attack of
+plaintext links (CURVE is test_security.py's), recording one take while every attack of
 the issue is tried on them: garbage on both control sockets, hostile start arguments, a rogue
 publisher making up cameras, forging another node's camera and stamping frames hours away.
 After each attack the recorder still records (frames keep reaching the file) and answers, and

@@ -1,7 +1,7 @@
 """The agent-recorder contract (docs/capture.md, "Writing an agent") is enough to write an agent.
 
-``tests/spec_agent.py`` was written from the documents alone, for a camera EgoSurg does not know
-(64x48 JPEGs, mode "TEST64x48", no factory file). Against a real recorder (in this process, real
+``spec_agent.py`` (beside this file) was written from the documents alone, for a camera EgoSurg
+does not know (64x48 JPEGs, mode "TEST64x48", no factory file). Against a real recorder (in this process, real
 sockets on loopback) and the real ``egosurg record`` command, it records a take that holds exactly
 the frames it sent; every broken field of its ``status`` reply is refused with the field's name,
 and an agent's own refusal is reported as its error, not as "is it running?".
@@ -27,8 +27,8 @@ from capture_agent.rig_client import CommandRefusedError, RigClient
 from protocol.agent_info import AgentReplyError, AgentStatusReply
 from protocol.session import SessionReader
 from sim.deploy import free_ports
+from tests.capture_agent.spec_agent import SpecAgent
 from tests.conftest import run_egosurg
-from tests.spec_agent import SpecAgent
 
 NODE = "spec-node"
 SERIALS = (7001, 7002)

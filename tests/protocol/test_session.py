@@ -27,7 +27,7 @@ from protocol.session import (
     SessionWriter,
 )
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 T0_NS = 1_770_000_000_000_000_000
 PERIOD_NS = 33_333_333
 _NOISE = (np.arange(1 << 20, dtype=np.uint64) * 2654435761 % 251).astype(np.uint8).tobytes()
@@ -532,7 +532,7 @@ def test_write_throughput(tmp_path):
 CHILD = """
 import sys, time
 sys.path.insert(0, {repo!r})
-from tests.test_session import _append, _cameras, _image, _writer, T0_NS, PERIOD_NS
+from tests.protocol.test_session import _append, _cameras, _image, _writer, T0_NS, PERIOD_NS
 from protocol.session import GapKind
 w = _writer({path!r}, _cameras(11, 12, 13))
 row = 0

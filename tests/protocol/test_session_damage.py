@@ -28,7 +28,7 @@ from protocol.session import SessionFormatError, SessionReader, SessionWriter
 from protocol.session_privacy import make_private_dir
 from protocol.session_recover import recover_session
 from tests.conftest import REPO, run_egosurg
-from tests.test_session import _cameras, _image, _write_session, _writer
+from tests.protocol.test_session import _cameras, _image, _write_session, _writer
 
 CUTS = [512, 4096, 65_536, 300_000, 1 << 20]
 
@@ -43,7 +43,7 @@ def clean(tmp_path_factory) -> Path:
 KILLED_WRITER = """
 import sys, time
 sys.path.insert(0, {repo!r})
-from tests.test_session import _append, _cameras, _image, _writer, T0_NS, PERIOD_NS
+from tests.protocol.test_session import _append, _cameras, _image, _writer, T0_NS, PERIOD_NS
 w = _writer({path!r}, _cameras(11, 12))
 for row in range({rows}):
     for serial in (11, 12):

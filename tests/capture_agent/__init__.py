@@ -1,0 +1,1 @@
+"""Tests of capture_agent/ (see docs/architecture.md)."""

@@ -1,0 +1,1 @@
+"""Tests of protocol/ (see docs/architecture.md)."""
