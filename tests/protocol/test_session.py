@@ -508,27 +508,6 @@ def test_a_live_file_is_readable_while_it_is_written(tmp_path):
             assert r.frame_bytes(1, 8) == (_image(1, 8, 0), _image(1, 8, 1))
 
 
-def test_write_throughput(tmp_path):
-    """Measured, not asserted: stereo frames of 2 x 150 kB from four cameras, flushed at 5 Hz."""
-    path = tmp_path / "fast.h5"
-    images = [b"\xff\xd8" + bytes([k]) * 149_996 + b"\xff\xd9" for k in range(16)]
-    n = 2_000
-    start = last_flush = time.perf_counter()
-    with _writer(path, _cameras(1, 2, 3, 4)) as w:
-        for i in range(n):
-            _append(w, 1 + i % 4, i // 4, (images[i % 16], images[(i + 1) % 16]))
-            if time.perf_counter() - last_flush > 0.2:
-                w.flush()
-                last_flush = time.perf_counter()
-    seconds = time.perf_counter() - start
-    size_mb = path.stat().st_size / 1e6
-    path.unlink()
-    print(
-        f"\nsession write: {n / seconds:.0f} stereo frames/s of 2 x 150 kB "
-        f"({size_mb / seconds:.0f} MB/s, {n} frames in {seconds:.2f} s)"
-    )
-
-
 CHILD = """
 import sys, time
 sys.path.insert(0, {repo!r})
