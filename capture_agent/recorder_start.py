@@ -1,0 +1,323 @@
+"""A recording's start (``capture_agent/recorder.py``'s ``start`` verb, on its I/O thread): the
+checks of the start's arguments (``start_args``), of the cameras, PTP and the disk, the agents'
+camera infos stored in the session (``camera_infos``, each reply checked against the contract,
+``protocol/agent_info.py``), and the creation of the session file and its ``Recording``. A start
+that cannot go ahead raises ``StartRefused`` with the reason and what to do."""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import zmq
+
+from capture_agent.accounting import StreamAccounting
+from capture_agent.control_server import Refused
+from capture_agent.recorder_take import take_started
+from capture_agent.recording import Recording
+from capture_agent.security import CONTROL_MAX_BYTES, harden, make_client
+from capture_agent.session_queue import open_writer
+from capture_agent.sync import SyncConfig, Synchroniser
+from protocol import __version__
+from protocol.agent_info import AgentReplyError, AgentStatusReply
+from protocol.messages import ControlReply, ControlRequest, MalformedMessageError
+from protocol.safe_text import brief, unsafe_character
+from protocol.session import CameraInfo, SessionWriter
+
+if TYPE_CHECKING:
+    from capture_agent.recorder import Recorder
+
+log = logging.getLogger(__name__)
+
+CASE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # with fullmatch: no trailing \n
+MAX_META_KEYS = 64
+MAX_META_KEY_CHARS = 64
+MAX_META_VALUE_CHARS = 4096
+OPEN_WAIT_S = 5.0  # a start whose session file is not created within this long is refused
+
+
+class StartRefused(Refused):
+    """A start that cannot go ahead; the message says why and what to do."""
+
+
+CONTRACT_DOC = "docs/capture.md#the-status-reply"
+
+
+def checked_reply(raw: bytes, request: ControlRequest) -> ControlReply:
+    """An agent's answer to ``request``; ``AgentReplyError`` names what is wrong with it."""
+    try:
+        reply = ControlReply.from_bytes(raw)
+    except MalformedMessageError as exc:
+        raise AgentReplyError("reply", f"is not a valid EgoSurg reply ({exc})") from None
+    if reply.request_id != request.request_id:
+        raise AgentReplyError(
+            "request_id",
+            f"answers request_id {reply.request_id[:40]!r}, not the request's "
+            f"{request.request_id!r}; a reply must echo its request's request_id",
+        )
+    return reply
+
+
+def start_args(
+    args: dict[str, Any], default_planned_min: float
+) -> tuple[str, dict[str, str], float]:
+    """A start's case name, metadata and planned minutes, checked: they become a file
+    name and a medical record's text, and are printed on operators' terminals."""
+    case = args.get("case")
+    if not isinstance(case, str) or not CASE_NAME.fullmatch(case):
+        raise StartRefused(
+            f"case name {brief(case)} is not usable as a file name; use 1 to 64 letters, "
+            "digits, - _ . starting with a letter or digit"
+        )
+    meta = args.get("meta", {})
+    if not isinstance(meta, dict):
+        raise StartRefused("case metadata must be key=value text pairs")
+    if len(meta) > MAX_META_KEYS:
+        raise StartRefused(
+            f"case metadata has {len(meta)} keys; at most {MAX_META_KEYS} are kept per case"
+        )
+    for key, value in meta.items():
+        if not isinstance(value, str):
+            raise StartRefused(
+                f"case metadata {brief(key)} is {type(value).__name__}; metadata must be "
+                "key=value text pairs"
+            )
+        if not 1 <= len(key) <= MAX_META_KEY_CHARS or len(value) > MAX_META_VALUE_CHARS:
+            raise StartRefused(
+                f"case metadata {brief(key)} ({len(key)}-character key, {len(value)}-"
+                f"character value) is too long: keys 1 to {MAX_META_KEY_CHARS} characters, "
+                f"values at most {MAX_META_VALUE_CHARS}"
+            )
+        bad = unsafe_character(key) or unsafe_character(value)
+        if bad is not None:
+            raise StartRefused(
+                f"case metadata {brief(key)} holds the control character {bad}; metadata "
+                "is plain text on one line: no terminal escapes, bidi controls or line breaks"
+            )
+    planned = args.get("planned_duration_min", default_planned_min)
+    if (
+        isinstance(planned, bool)
+        or not isinstance(planned, int | float)
+        or not math.isfinite(planned)
+        or planned <= 0
+    ):
+        raise StartRefused(
+            f"planned_duration_min = {brief(planned)}: give the planned length of the case "
+            "in minutes, a number > 0 (the disk check needs it)"
+        )
+    return case, meta, float(planned)
+
+
+def start_recording(recorder: Recorder, args: dict[str, Any]) -> dict[str, Any]:
+    case, meta, planned_min = start_args(args, recorder.config.planned_duration_min)
+    # (first: a bad start says what is bad)
+    if recorder.recording is not None:
+        raise StartRefused(
+            f"already recording case '{recorder.recording.case}' to "
+            f"{recorder.recording.writer.path}; stop it first (egosurg record stop)"
+        )
+    expected = recorder.config.expected_cameras or tuple(sorted(recorder.cameras))
+    if not expected:
+        raise StartRefused(
+            "no camera is streaming yet; check that the agents run "
+            "(systemctl status egosurg-agent) and that rig.toml points at them"
+        )
+    missing = [
+        s for s in expected if s not in recorder.cameras or not recorder.cameras[s].streaming()
+    ]
+    if missing:
+        details = []
+        for s in missing:
+            cam = recorder.cameras.get(s)
+            node = next(
+                (a.node_id for a in recorder.config.agents if s in a.cameras),
+                cam.node_id if cam else "?",
+            )
+            ago = (
+                "never seen"
+                if cam is None
+                else f"last frame {time.monotonic() - cam.last_rx_monotonic:.1f} s ago"
+            )
+            details.append(f"SN{s} on {node} ({ago})")
+        raise StartRefused(
+            "camera(s) not streaming: "
+            + "; ".join(details)
+            + ". Check the agent and its cameras (egosurg status), then start again"
+        )
+    if recorder.config.require_ptp_lock:
+        for a in recorder.config.agents:
+            st = recorder.agent_status.get(a.node_id)
+            if st is None or time.monotonic() - st[1] > recorder.config.agent_timeout_s:
+                raise StartRefused(
+                    f"no status from agent {a.node_id} for {recorder.config.agent_timeout_s:g} s;"
+                    " is it running?"
+                )
+            if st[0].ptp.state != "locked":
+                raise StartRefused(
+                    f"PTP on {a.node_id} is '{st[0].ptp.state}', not locked: frames would "
+                    "not share one clock. Check ptp4l/phc2sys on that node (pmc -u -b 0 "
+                    "'GET TIME_STATUS_NP'), or set require_ptp_lock = false in rig.toml"
+                )
+    rate = sum(recorder.cameras[s].byte_rate() for s in expected)
+    need = recorder._reserve_bytes() + rate * planned_min * 60.0
+    free = recorder._free_bytes()
+    if free < need:
+        raise StartRefused(
+            f"not enough disk: {free / 1e9:.1f} GB free in {recorder.config.output_dir}, but a "
+            f"{planned_min:g} min recording at {rate / 1e6:.1f} MB/s needs "
+            f"{(need - recorder._reserve_bytes()) / 1e9:.1f} GB plus the "
+            f"{recorder.config.disk_reserve_gb:g} GB reserve. Free space or plan a shorter case"
+        )
+    infos = camera_infos(recorder, expected)
+    started_ns = time.time_ns()
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime(started_ns / 1e9))
+    path = Path(recorder.config.output_dir) / f"{case}_{stamp}.h5"
+    n = 1
+    while path.exists():
+        n += 1
+        path = path.with_name(f"{case}_{stamp}_{n}.h5")
+    previous, part = recorder._resume.link(case) if recorder._resume else ("", 1)  # a resumed take
+
+    def create() -> SessionWriter:
+        return SessionWriter(
+            path,
+            previous_session_file=previous,
+            take_part=part,
+            session_name=case,
+            case_metadata={str(k): v for k, v in meta.items()},
+            cameras=infos,
+            tolerance_ns=int(0.5e9 / recorder.config.fps),
+            rig_config_text=recorder.config.toml_text,
+            software_version=__version__,
+            started_unix_ns=started_ns,
+        )
+
+    try:
+        writer = open_writer(create, OPEN_WAIT_S)  # a stalled disk must not hold the loop
+    except TimeoutError:
+        raise StartRefused(
+            f"the disk holding {recorder.config.output_dir} did not create the session file "
+            f"within {OPEN_WAIT_S:g} s (writing stalls); check the disk, then start again"
+        ) from None
+    recorder.recording = Recording(
+        writer=writer,
+        sync=Synchroniser(
+            SyncConfig(
+                camera_serials=tuple(expected),
+                fps=recorder.config.fps,
+                max_wait_ns=int(recorder.config.max_wait_ms * 1e6),
+            )
+        ),
+        accounting=StreamAccounting(),
+        case=case,
+        started_unix_ns=started_ns,
+        started_monotonic=time.monotonic(),
+        serials=tuple(expected),
+        last_flush=time.monotonic(),
+        write_queue_bytes=int(recorder.config.write_queue_mb * 1e6),
+    )
+    log.info("recording case %s to %s (%d cameras)", case, path, len(expected))
+    take_started(recorder, case, meta, planned_min, path, previous, part)
+    return {
+        "case": case,
+        "file": str(path),
+        "cameras": list(expected),
+        "started_unix_ns": started_ns,
+    }
+
+
+def camera_infos(recorder: Recorder, serials: tuple[int, ...]) -> list[CameraInfo]:
+    """Ask each agent for its cameras' modes and factory files (stored in the session).
+
+    The reply is checked field by field (``protocol/agent_info.py``): an agent that does
+    not answer, answers ``ok: false`` or breaks the contract is refused with that reason.
+    """
+    infos: dict[int, CameraInfo] = {}
+    for a in recorder.config.agents:
+        needed = bool(a.cameras) or any(
+            recorder.cameras.get(s) is not None and recorder.cameras[s].node_id == a.node_id
+            for s in serials
+        )
+        reply = agent_status_reply(recorder, a.node_id, a.control, needed)
+        if reply is None:
+            continue
+        for s in a.cameras:
+            if reply.camera(s) is None:
+                raise StartRefused(
+                    f"agent {a.node_id}'s status reply has no cameras_info entry for camera "
+                    f"{s}, which rig.toml lists under it; check the serials in rig.toml "
+                    f"(see {CONTRACT_DOC})"
+                )
+        for ci in reply.cameras_info:
+            owner = camera_owner(recorder, ci.camera_serial)
+            if ci.camera_serial in serials and owner in (None, a.node_id):
+                infos[ci.camera_serial] = ci.to_session(a.node_id)
+    missing = [s for s in serials if s not in infos]
+    if missing:
+        raise StartRefused(f"no agent reports camera(s) {missing}; check the serials in rig.toml")
+    return [infos[s] for s in serials]
+
+
+def camera_owner(recorder: Recorder, serial: int) -> str | None:
+    """The node a camera belongs to: rig.toml's listing, else the node its frames name."""
+    for a in recorder.config.agents:
+        if serial in a.cameras:
+            return a.node_id
+    cam = recorder.cameras.get(serial)
+    return cam.node_id if cam is not None else None
+
+
+def agent_status_reply(
+    recorder: Recorder, node_id: str, endpoint: str, needed: bool
+) -> AgentStatusReply | None:
+    """An agent's checked ``status`` reply; None for an agent whose cameras the take does
+    not need and that cannot give one (logged); a refusal naming the problem otherwise."""
+    try:
+        reply = request_agent(recorder, endpoint, "status")
+        if reply is None:
+            problem = (
+                f"agent {node_id} does not answer on {endpoint}; is it running "
+                "(systemctl status egosurg-agent on that node)?"
+                + (
+                    ""
+                    if recorder.config.security.insecure
+                    else " If it runs, check that its public_key in rig.toml is current and "
+                    "that its allowed_keys list the recorder's key"
+                )
+            )
+        elif not reply.ok:
+            problem = f"agent {node_id} refused 'status': {(reply.error or '')[:300]}"
+        else:
+            return AgentStatusReply.from_json(reply.result, node_id=node_id)
+    except AgentReplyError as exc:
+        problem = f"agent {node_id}'s status reply {exc}; see {CONTRACT_DOC}"
+    if needed:
+        raise StartRefused(problem)
+    log.warning("%s (none of its cameras is recorded)", problem)
+    return None
+
+
+def request_agent(
+    recorder: Recorder, endpoint: str, verb: str, timeout_ms: int = 1500
+) -> ControlReply | None:
+    """One request to an agent: its reply (``ok`` or not), or None when none came in time.
+    A reply that is not a valid EgoSurg reply to this request raises ``AgentReplyError``."""
+    sock = recorder.ctx.socket(zmq.REQ)
+    harden(sock, CONTROL_MAX_BYTES)
+    sock.setsockopt(zmq.RCVTIMEO, timeout_ms)
+    sock.setsockopt(zmq.SNDTIMEO, timeout_ms)
+    request = ControlRequest(verb=verb)
+    try:
+        make_client(sock, recorder.links, recorder._server_keys.get(endpoint))
+        sock.connect(endpoint)
+        sock.send(request.to_bytes())
+        raw = sock.recv()
+    except zmq.Again:
+        return None
+    finally:
+        sock.close(linger=0)
+    return checked_reply(raw, request)
