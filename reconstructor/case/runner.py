@@ -104,10 +104,10 @@ def open_index(req: CaseRequest) -> CaseIndex:
                     "use a new --out folder, or add --force to redo every timestamp"
                 )
             log.warning("--force: settings changed, every timestamp of %s is redone", folder)
-            rows = tuple(
+            redo = tuple(
                 replace(e, status="pending", model="", xxh3_64="") for e in index.timestamps
             )
-            index = replace(index, timestamps=rows, config_hash=req.config_hash)
+            index = replace(index, timestamps=redo, config_hash=req.config_hash)
     else:
         index = CaseIndex(
             session=str(req.session.resolve()),
@@ -120,7 +120,7 @@ def open_index(req: CaseRequest) -> CaseIndex:
     known = index.by_name()
     names = [p.name for p in req.planned]
     chain_of = dict(zip(names, chains(names, req.warm.get("keyframe_every", 0)), strict=True))
-    rows = list(index.timestamps)
+    rows: list[Entry] = list(index.timestamps)
     for p in req.planned:
         if p.name not in known:
             rows.append(Entry(name=p.name, t_s=p.t_s, set_index=p.set_index))

@@ -73,7 +73,7 @@ def limit_threads(threads: int) -> None:
     import torch
 
     torch.set_num_threads(threads)
-    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
 
 
 def run_chain(job: ChainJob, progress: Any = None, on_done: Any = None) -> list[StepResult]:
@@ -132,7 +132,7 @@ def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) ->
         previous = ply.read_ply(case / "models" / f"{warm_from}.ply")
         warm = WarmStartConfig(**job.warm)
 
-        def init(ts_, fused, depths):  # type: ignore[no-untyped-def]
+        def init(ts_, fused, depths):
             g, c = warm_seed(previous, ts_, fused, depths, warm, config.init)
             counts.update(c)
             return g

@@ -72,7 +72,8 @@ def parse_offset(text: str) -> Offset:
     if np.linalg.norm(d) < 1e-9:
         raise SightlineError(f"--offset {text!r}: the directions cancel out")
     dist = float(m.group(1)) * (0.01 if m.group(2) == "cm" else 1.0)
-    return Offset(dist, tuple(d / np.linalg.norm(d)), text.strip())  # type: ignore[arg-type]
+    unit = d / np.linalg.norm(d)
+    return Offset(dist, (float(unit[0]), float(unit[1]), float(unit[2])), text.strip())
 
 
 def aimed_camera(eye_m: np.ndarray, points_m: np.ndarray, size_px: int = DEPTH_SIZE_PX) -> Camera:
