@@ -3,9 +3,22 @@
 from __future__ import annotations
 
 import pytest
+from hypothesis import HealthCheck, settings
 
 # capture tests import run_egosurg from here; the other tests from tests.helpers
 from tests.helpers import REPO, run_egosurg  # noqa: F401
+
+# Property tests run on 2 shared cores beside real processes: a slow draw is the machine, not the
+# code (no deadlines, no too-slow health check), and the same examples run every time, so a
+# failure in CI reproduces here (derandomize; no example database in the checkout).
+settings.register_profile(
+    "egosurg",
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+settings.load_profile("egosurg")
 
 
 @pytest.fixture(scope="session")
