@@ -1,5 +1,6 @@
-"""Fuzzing at scale: the properties of tests/capture_agent/test_fuzz.py over 100k+ cases per decoder and per
-control socket, and over mutated session files, from a seeded mutator (tests/fuzzing.py).
+"""Fuzzing at scale: the properties of tests/capture_agent/test_fuzz.py over 100k+ cases per
+decoder and per control socket, and over mutated session files, from a seeded mutator
+(tests/fuzzing.py).
 
     .venv/bin/python bench/bench_fuzz.py --cases 100000 [--files 1000] [--seed 0]
 

@@ -63,11 +63,23 @@ def _imported(path: Path, modules: dict[str, Path]) -> set[str]:
     """The modules of the five packages that ``path`` imports, at the top or inside a function
     (a lazy import still closes a cycle at run time); ``from a import b`` counts as ``a.b``
     where that is a module, else as ``a`` (a package's own ``__init__`` runs before its
-    submodules, so the package a submodule sits in is not an edge)."""
+    submodules, so the package a submodule sits in is not an edge). Imports under
+    ``if TYPE_CHECKING:`` never run, so they close no cycle: they are how a helper module names
+    the class it serves (``recorder_start`` takes a ``Recorder``) without importing it."""
     name = _module_name(path)
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text())):
+    tree = ast.parse(path.read_text())
+    type_only = {
+        id(inner)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test)
+        for stmt in node.body
+        for inner in ast.walk(stmt)
+    }
+    for node in ast.walk(tree):
+        if id(node) in type_only:
+            continue
         if isinstance(node, ast.Import):
             found |= {a.name for a in node.names}
         elif isinstance(node, ast.ImportFrom):

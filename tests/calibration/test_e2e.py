@@ -140,7 +140,7 @@ def test_refine_keeps_the_old_world_frame(calibrated, wand_session, wand_file, t
     new = tmp_path / "refined.toml"
     done = run_egosurg(
         "calibrate", str(wand_session), "--wand", str(wand_file), "--refine", str(old),
-        "--out", str(new), "--max-sets", "120", timeout=900,
+        "--out", str(new), "--max-sets", "200", timeout=900,
     )  # fmt: skip
     assert done.returncode == 0, done.stdout + done.stderr
     assert "camera drift against the old calibration" in done.stdout
