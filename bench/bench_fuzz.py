@@ -28,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tests import fuzzing
 from tests.fuzzing import Hang, RandomChooser
+from tests.helpers import loopback_rig_config
 
 MAX_SHOWN = 3  # failures printed per target
 
@@ -136,30 +137,12 @@ def _socket(name: str, endpoint: str, cases: int, seed: int, daemon) -> Tally:
 
 def _daemons(cases: int, seed: int, tmp: Path) -> list[Tally]:
     from capture_agent.agent import Agent
-    from capture_agent.config import AgentEndpoint, NodeConfig, RigConfig, SecurityConfig
+    from capture_agent.config import NodeConfig
     from capture_agent.recorder import Recorder
     from sim.deploy import free_ports
 
-    control, frames, agent_control, fport, cport = free_ports(5)
-    recorder = Recorder(
-        RigConfig(
-            rig_name="fuzz",
-            fps=30.0,
-            control_bind=f"tcp://127.0.0.1:{control}",
-            output_dir=str(tmp / "sessions"),
-            agents=(
-                AgentEndpoint(
-                    node_id="n0",
-                    frames=f"tcp://127.0.0.1:{frames}",
-                    control=f"tcp://127.0.0.1:{agent_control}",
-                    cameras=(11,),
-                ),
-            ),
-            require_ptp_lock=False,
-            disk_reserve_gb=0.0,
-            security=SecurityConfig(insecure=True),
-        )
-    )
+    fport, cport = free_ports(2)
+    recorder = Recorder(loopback_rig_config(tmp / "sessions", rig_name="fuzz"))
     agent = Agent(
         NodeConfig.from_table(
             {
@@ -189,7 +172,7 @@ def _daemons(cases: int, seed: int, tmp: Path) -> list[Tally]:
         return [
             _socket(
                 "recorder control socket",
-                f"tcp://127.0.0.1:{control}",
+                recorder.config.control_bind,
                 cases,
                 seed,
                 recorder,

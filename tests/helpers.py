@@ -104,3 +104,36 @@ def record_sim_session(directory: Path, spec: SimRigSpec, case: str, seconds: fl
         time.sleep(seconds)
         summary = rig.control("stop")
     return Path(summary["file"])
+
+
+def loopback_rig_config(
+    output_dir: Path | str,
+    *,
+    frames: str | None = None,
+    cameras: tuple[int, ...] = (11,),
+    fps: float = 30.0,
+    rig_name: str = "test",
+):
+    """A recorder's config on free loopback ports: one agent ``n0`` with ``cameras``, plaintext
+    links (CURVE is tests/capture_agent/test_security.py's), no PTP or disk-reserve checks."""
+    from capture_agent.config import AgentEndpoint, RigConfig, SecurityConfig
+    from sim.deploy import free_ports
+
+    control, frames_port, agent_control = free_ports(3)
+    return RigConfig(
+        rig_name=rig_name,
+        fps=fps,
+        control_bind=f"tcp://127.0.0.1:{control}",
+        output_dir=str(output_dir),
+        agents=(
+            AgentEndpoint(
+                node_id="n0",
+                frames=frames or f"tcp://127.0.0.1:{frames_port}",
+                control=f"tcp://127.0.0.1:{agent_control}",
+                cameras=cameras,
+            ),
+        ),
+        require_ptp_lock=False,
+        disk_reserve_gb=0.0,
+        security=SecurityConfig(insecure=True),
+    )

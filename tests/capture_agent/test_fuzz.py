@@ -14,10 +14,11 @@ import pytest
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
-from capture_agent.config import AgentEndpoint, NodeConfig, RigConfig, SecurityConfig
+from capture_agent.config import NodeConfig
 from sim.deploy import free_ports
 from tests import fuzzing
 from tests.fuzzing import DataChooser
+from tests.helpers import loopback_rig_config
 
 # No example database (the test pass writes nothing into the checkout), and the same examples
 # every run: a bounded sample must not pass or fail by chance; bench_fuzz.py explores seeds.
@@ -79,24 +80,7 @@ def recorder_control(tmp_path_factory):
     """A real recorder, its I/O thread running, plaintext links, no agent streaming."""
     from capture_agent.recorder import Recorder
 
-    control, frames, agent_control = free_ports(3)
-    cfg = RigConfig(
-        rig_name="fuzz",
-        fps=30.0,
-        control_bind=f"tcp://127.0.0.1:{control}",
-        output_dir=str(tmp_path_factory.mktemp("fuzz-rec") / "sessions"),
-        agents=(
-            AgentEndpoint(
-                node_id="n0",
-                frames=f"tcp://127.0.0.1:{frames}",
-                control=f"tcp://127.0.0.1:{agent_control}",
-                cameras=(11,),
-            ),
-        ),
-        require_ptp_lock=False,
-        disk_reserve_gb=0.0,
-        security=SecurityConfig(insecure=True),  # links: test_security.py
-    )
+    cfg = loopback_rig_config(tmp_path_factory.mktemp("fuzz-rec") / "sessions", rig_name="fuzz")
     recorder = Recorder(cfg)
     recorder.start()
     probe = fuzzing.ControlProbe(cfg.control_bind)

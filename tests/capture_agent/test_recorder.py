@@ -13,7 +13,7 @@ import pytest
 import zmq
 
 from capture_agent.accounting import StreamAccounting
-from capture_agent.config import AgentEndpoint, RigConfig, SecurityConfig
+from capture_agent.config import RigConfig
 from capture_agent.control import format_status, format_summary
 from capture_agent.recorder import RECEIVE_QUEUE_S, CameraLive, Recorder, receive_hwm
 from capture_agent.recording import Recording
@@ -22,7 +22,7 @@ from capture_agent.sync import SyncConfig, Synchroniser
 from protocol import chunk_sink
 from protocol.messages import ControlReply, ControlRequest, FrameMessage
 from protocol.session import CameraInfo, SessionReader, SessionWriter
-from sim.deploy import free_ports
+from tests.helpers import loopback_rig_config
 
 FPS = 30.0
 PERIOD_NS = int(1e9 / FPS)
@@ -31,24 +31,7 @@ JPEG = b"\xff\xd8" + bytes(range(256)) * 4 + b"\xff\xd9"
 
 
 def _config(tmp_path, frames: str, cameras: tuple[int, ...] = SERIALS) -> RigConfig:
-    control, agent_control = free_ports(2)
-    return RigConfig(
-        rig_name="test",
-        fps=FPS,
-        control_bind=f"tcp://127.0.0.1:{control}",
-        output_dir=str(tmp_path / "sessions"),
-        agents=(
-            AgentEndpoint(
-                node_id="n0",
-                frames=frames,
-                control=f"tcp://127.0.0.1:{agent_control}",
-                cameras=cameras,
-            ),
-        ),
-        require_ptp_lock=False,
-        disk_reserve_gb=0.0,
-        security=SecurityConfig(insecure=True),  # links: test_security.py
-    )
+    return loopback_rig_config(tmp_path / "sessions", frames=frames, cameras=cameras, fps=FPS)
 
 
 def _frame(serial: int, index: int, seq: int, capture_unix_ns: int) -> list:

@@ -120,9 +120,9 @@ def test_the_session_commands_give_one_line_and_exit_2_on_a_truncated_file(clean
 def test_a_file_cut_inside_its_superblock_is_refused_with_a_format_error(clean, tmp_path, size):
     """A copy cut to its first bytes (the signature and a little more; found by the fuzzer at
     9 bytes, which raised IndexError): one SessionFormatError at once, and exit 2 at the CLI."""
-    path = tmp_path / "stub.h5"
+    path = tmp_path / "short.h5"
     path.write_bytes(clean.read_bytes()[:size])
-    words = r"stub\.h5: (not an HDF5 file|the HDF5 superblock is cut short|truncated)"
+    words = r"short\.h5: (not an HDF5 file|the HDF5 superblock is cut short|truncated)"
     with pytest.raises(SessionFormatError, match=words):
         SessionReader(path)
     if size == 9:
