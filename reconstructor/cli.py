@@ -51,6 +51,7 @@ from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import load_timestamp
 from reconstructor.data.views import EYE_NEAR_M
 from reconstructor.errors import ReconstructError
+from reconstructor.raster.device import add_device_option, for_device
 from reconstructor.splats.train import StepStats
 
 
@@ -111,6 +112,7 @@ def reconstruct_parser() -> argparse.ArgumentParser:
     case.add_argument("--force", action="store_true", help="redo a case made with other settings")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--config", help="a config TOML with settings to change")
+    add_device_option(parser, "the config's [raster] backend, the CPU's numba kernels")
     parser.add_argument("--steps", type=int, help="total training steps (default 2000)")
     parser.add_argument("--train-views", choices=("all", "left"), help="'left': near-field test")
     parser.add_argument("--stereo-matcher", help="'sgbm' (default) or an installed plug-in")
@@ -148,6 +150,7 @@ def main_reconstruct(argv: list[str]) -> int:
     calibration, cal_path = find_calibration(session, args.calibration)
     config = ReconstructConfig.read(args.config) if args.config else ReconstructConfig()
     config = _with_options(config, args)
+    config = dataclasses.replace(config, raster=for_device(config.raster, args.device))
     if bool(args.at) == bool(args.every):
         raise ReconstructArgumentError(
             "give --at TIME (single timestamps) or --every INTERVAL (a whole case), not both"
@@ -264,16 +267,20 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 
 def render_camera(
-    model_path: Path, camera: Camera, background=(0.0, 0.0, 0.0), near_m: float = 0.0
+    model_path: Path,
+    camera: Camera,
+    background=(0.0, 0.0, 0.0),
+    near_m: float = 0.0,
+    device: str = "cpu",
 ) -> np.ndarray:
     """(H, W, 3) uint8 RGB of the splat model seen by ``camera`` (pinhole), leaving out what is
-    nearer than ``near_m`` or the model's near plane."""
+    nearer than ``near_m`` or the model's near plane; rendered on ``device``."""
     from reconstructor.data.views import novel_view
     from reconstructor.splats import ply
     from reconstructor.splats.train import render
 
     g = ply.read_ply(model_path)
-    raster = _raster_config(model_path)
+    raster = for_device(_raster_config(model_path), device)
     if near_m > raster.near_m:
         raster = dataclasses.replace(raster, near_m=near_m)
     with torch.no_grad():
@@ -310,6 +317,7 @@ def main_render(argv: list[str]) -> int:
         help="leave out what is nearer to the camera than this, metres (default: the model's "
         f"near plane); from a person's eye use {EYE_NEAR_M:g}, which leaves out their own head",
     )
+    add_device_option(parser)
     args = parser.parse_args(argv)
     model = Path(args.model)
     if not model.exists():
@@ -324,7 +332,7 @@ def main_render(argv: list[str]) -> int:
         )
     camera = parse_camera(args.camera, calibration, args.hfov, _parse_size(args.size))
     t0 = time.perf_counter()
-    rgb = render_camera(model, camera, near_m=args.near_m)
+    rgb = render_camera(model, camera, near_m=args.near_m, device=args.device or "cpu")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(out), rgb[:, :, ::-1]):

@@ -203,7 +203,7 @@ def reconstruct(
         result = Reconstruction(
             timestamp=ts,
             config=cfg,
-            gaussians=gaussians.detach_clone(),
+            gaussians=gaussians.detach_clone().to(device="cpu"),  # trained on cuda or not
             fused=fused,
             depth=depths,
             train_views=train_views,

@@ -70,6 +70,7 @@ def reconstruct_case(
         planned=tuple(planned),
         workers=args.workers,
         ray=args.ray or "",
+        gpus_per_task=1 if config.raster.device == "cuda" else 0,
         force=args.force,
     )
     index = run_case(req, step_progress=_StepBar() if args.workers <= 1 and not args.ray else None)

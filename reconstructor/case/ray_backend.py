@@ -1,7 +1,8 @@
 """The case's timestamps as Ray tasks (``egosurg reconstruct ... --ray auto|ADDRESS``).
 
 Each timestamp is one task that declares its resources: ``num_cpus`` (the threads it may use)
-and, when torch sees CUDA, ``num_gpus=1``. Workers read the frames from the session file and
+and, when the config trains on CUDA (``--device cuda``), ``num_gpus=1``: Ray then runs a
+timestamp only where a GPU is free, one per GPU. Workers read the frames from the session file and
 write the models into the case folder, so both must be on storage every node mounts at the same
 path (NFS, a cluster file system). A task takes this machine's cores // ``--workers`` CPUs, the
 threads a local pool worker gets, so both make the same models. The runner on the driver
@@ -70,20 +71,16 @@ def connect(address: str) -> Any:
     return ray
 
 
-def _cuda() -> bool:
-    import torch
-
-    return bool(torch.cuda.is_available())
-
-
 def run_on_ray(
     address: str,
     threads: int,
     queues: list[list[StepJob]],
     make_job: Callable[[list[StepJob], int], ChainJob],
     record: Callable[[Any], None],
+    gpus_per_task: int = 0,
 ) -> None:
-    """Run the queues' steps as tasks of ``threads`` CPUs each, a chain's steps in order."""
+    """Run the queues' steps as tasks of ``threads`` CPUs (and ``gpus_per_task`` GPUs) each, a
+    chain's steps in order."""
     from reconstructor.case.work import run_chain
 
     ray = connect(address)
@@ -91,8 +88,8 @@ def run_on_ray(
     # as many threads as a local pool worker would get, so both make the same models
     per_task = min(threads, cpus)
     options: dict[str, Any] = {"num_cpus": per_task}
-    if _cuda():
-        options["num_gpus"] = 1
+    if gpus_per_task:  # Ray then places each task on a node with a free GPU, one at a time
+        options["num_gpus"] = gpus_per_task
     task = ray.remote(run_chain).options(**options)
     log.info("Ray: %d CPUs in the cluster, %d per timestamp", cpus, per_task)
     pending: dict[Any, list[StepJob]] = {}

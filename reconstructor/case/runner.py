@@ -50,6 +50,7 @@ class CaseRequest:
     planned: tuple[PlannedTimestamp, ...]
     workers: int = 1
     ray: str = ""  # "" local; "auto" or an address
+    gpus_per_task: int = 0  # 1 when the config trains on CUDA: each Ray task declares a GPU
     force: bool = False
 
 
@@ -185,7 +186,9 @@ def _run(req: CaseRequest, index: CaseIndex, step_progress: Callable | None) -> 
             from reconstructor.case.ray_backend import run_on_ray
 
             threads = threads_per_worker(req.workers)
-            run_on_ray(req.ray, threads, queues, lambda q, t: _job(req, q, t), record)
+            run_on_ray(
+                req.ray, threads, queues, lambda q, t: _job(req, q, t), record, req.gpus_per_task
+            )
         elif req.workers <= 1:
             for queue in queues:
                 run_chain(_job(req, queue), progress=step_progress, on_done=record)

@@ -12,16 +12,19 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
 from reconstructor.data.frames import Timestamp
-from reconstructor.depth.fusion import FusedCloud
 from reconstructor.depth.stereo import DepthMap
 from reconstructor.errors import ReconstructConfigError
 from reconstructor.splats.gaussians import GaussianInitConfig, Gaussians, init_from_points
+
+if TYPE_CHECKING:  # fusion imports open3d; the warm-start settings alone must not need it
+    from reconstructor.depth.fusion import FusedCloud
 
 log = logging.getLogger(__name__)
 

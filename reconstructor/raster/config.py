@@ -13,8 +13,10 @@ from typing import Literal
 
 from torch import Tensor
 
-RasterBackend = Literal["numba", "torch"]
+RasterBackend = Literal["numba", "torch", "gsplat"]
 BACKENDS: tuple[RasterBackend, ...] = typing.get_args(RasterBackend)
+# what gsplat's kernels compile in, for the settings that decide which fragments draw
+GSPLAT_FIXED = {"alpha_min": 1 / 255, "transmittance_min": 1e-4}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -37,7 +39,11 @@ class RasterConfig:
         transmittance_min: a pixel stops compositing before the fragment that would drop its
             transmittance below this (3DGS: 1e-4).
         sigma_extent: screen radius of a Gaussian, in standard deviations of its major axis.
-        backend: ``"numba"`` (the fast CPU kernels) or ``"torch"`` (the slow autograd twin).
+        backend: ``"numba"`` (the fast CPU kernels), ``"torch"`` (the slow autograd twin) or
+            ``"gsplat"`` (gsplat's CUDA kernels, the ``gpu`` extra; ``--device cuda``). gsplat
+            compiles in alpha_min = 1/255 and transmittance_min = 1e-4, so other values are
+            refused with it; it clamps alpha at 0.999, not ``alpha_max``, and takes neither
+            ``tile_px`` nor ``sigma_extent`` (``gsplat_backend.py`` maps each convention).
     """
 
     tile_px: int = 32
@@ -94,11 +100,24 @@ class RasterConfig:
             raise ValueError(
                 f"RasterConfig.backend must be one of {BACKENDS}, got {self.backend!r}"
             )
+        if self.backend == "gsplat":
+            for name, fixed in GSPLAT_FIXED.items():
+                if not math.isclose(getattr(self, name), fixed, rel_tol=1e-6):
+                    raise ValueError(
+                        f"RasterConfig.{name}={getattr(self, name)!r}: gsplat compiles in "
+                        f"{fixed!r}; use that value with backend 'gsplat', or another backend"
+                    )
+
+    @property
+    def device(self) -> str:
+        """Where this backend computes: ``"cuda"`` for gsplat, else ``"cpu"``."""
+        return "cuda" if self.backend == "gsplat" else "cpu"
 
 
 @dataclass(frozen=True)
 class RenderOutput:
-    """What :func:`reconstructor.raster.rasterize` returns (all float32 on the CPU).
+    """What :func:`reconstructor.raster.rasterize` returns (float32, on the CPU; with
+    ``backend="gsplat"``, on the device of the Gaussians' means).
 
     Attributes:
         image: (H, W, 3) colour composited over the background; differentiable.

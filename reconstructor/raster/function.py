@@ -96,10 +96,18 @@ def rasterize(
         ValueError: naming the argument, for wrong shapes/dtypes/devices, non-finite values,
             zero quaternions or a non-positive image size or focal length.
     """
+    on_gpu = config.backend == "gsplat"
     validate_inputs(
         means_m, quats_wxyz, log_scales, opacity_logits, colors, viewmat, K,
-        width_px, height_px, background,
+        width_px, height_px, background, any_device=on_gpu,
     )  # fmt: skip
+    if on_gpu:
+        from reconstructor.raster.gsplat_backend import rasterize_gsplat
+
+        return rasterize_gsplat(
+            means_m, quats_wxyz, log_scales, opacity_logits, colors, viewmat, K,
+            width_px, height_px, background, config,
+        )  # fmt: skip
     viewmat = viewmat.detach().to(torch.float64)
     K = K.detach().to(torch.float64)
     if config.backend == "torch":
@@ -129,8 +137,13 @@ def validate_inputs(
     width_px: int,
     height_px: int,
     background: Tensor,
+    *,
+    any_device: bool = False,
 ) -> None:
-    """Raise ValueError, naming the argument, unless the inputs are what ``rasterize`` takes."""
+    """Raise ValueError, naming the argument, unless the inputs are what ``rasterize`` takes.
+
+    ``any_device`` (the gsplat backend): the Gaussians and the background may sit on any one
+    device (viewmat and K anywhere); the value checks then cost one synchronisation."""
     for name, value in (("width_px", width_px), ("height_px", height_px)):
         if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
             raise ValueError(f"{name} must be a positive int, got {value!r}")
@@ -151,19 +164,40 @@ def validate_inputs(
         if tuple(t.shape) != shape or n < 0:
             want = "(N, 3)" if n < 0 else str(shape)
             raise ValueError(f"{name} must have shape {want}, got {tuple(t.shape)}")
-        if t.device.type != "cpu":
-            raise ValueError(f"{name} must be on the CPU, got {t.device}")
         if name in ("viewmat", "K"):
             if not t.is_floating_point():
                 raise ValueError(f"{name} must be a floating-point tensor, got {t.dtype}")
         elif t.dtype != torch.float32:
             raise ValueError(f"{name} must be float32, got {t.dtype}")
-        if not _all_finite(t.detach().numpy()):
-            raise ValueError(f"{name} has non-finite values")
-    if n > 0 and _min_sq_norm(_np32(quats_wxyz)) < 1e-24:
-        raise ValueError("quats_wxyz has a zero quaternion; it cannot be normalised")
+        if any_device:
+            if name not in ("viewmat", "K") and t.device != means_m.device:
+                raise ValueError(f"{name} is on {t.device}, the means on {means_m.device}")
+        elif t.device.type != "cpu":
+            raise ValueError(f"{name} must be on the CPU, got {t.device}")
+    if any_device and means_m.device.type != "cpu":
+        _check_values_on_device(expected, n)
+    else:
+        for name, (_, t) in expected.items():
+            if not _all_finite(t.detach().cpu().numpy()):
+                raise ValueError(f"{name} has non-finite values")
+        if n > 0 and _min_sq_norm(_np32(quats_wxyz.cpu())) < 1e-24:
+            raise ValueError("quats_wxyz has a zero quaternion; it cannot be normalised")
     if float(K[0, 0]) <= 0 or float(K[1, 1]) <= 0:
         raise ValueError(f"K must have positive focal lengths, got fx={K[0, 0]}, fy={K[1, 1]}")
+
+
+def _check_values_on_device(expected: dict[str, tuple[tuple[int, ...], Tensor]], n: int) -> None:
+    """The finite and non-zero-quaternion checks on a GPU, read back in one synchronisation."""
+    checks = [torch.isfinite(t.detach()).all() for _, t in expected.values()]
+    if n > 0:
+        q = expected["quats_wxyz"][1].detach()
+        checks.append((q * q).sum(dim=1).min() >= 1e-24)
+    ok = torch.stack([c.to(checks[0].device) for c in checks]).cpu().tolist()
+    for name, good in zip(expected, ok, strict=False):
+        if not good:
+            raise ValueError(f"{name} has non-finite values")
+    if n > 0 and not ok[-1]:
+        raise ValueError("quats_wxyz has a zero quaternion; it cannot be normalised")
 
 
 _PARALLEL_CHECK_MIN = 1 << 16  # below this many values numpy's serial check is quicker

@@ -123,6 +123,12 @@ class Gaussians:
     ) -> Gaussians:
         return Gaussians(**{k: v.to(dtype=dtype, device=device) for k, v in self._items()})
 
+    def move_to(self, device: torch.device | str) -> None:
+        """Move every tensor to ``device`` in place (leaf tensors keep requires_grad)."""
+        for name, t in self._items():
+            moved = t.detach().to(device)
+            setattr(self, name, moved.requires_grad_(t.requires_grad))
+
     def detach_clone(self) -> Gaussians:
         return Gaussians(**{k: v.detach().clone() for k, v in self._items()})
 

@@ -60,11 +60,13 @@ def image_loss(
     ``fill``: an RGB (3,) that stands in for the target where it has no content, i.e. the
     target compared is ``target · mask + fill · (1 - mask)`` (the trainer passes its random
     background). Returns (loss, l1, ssim); l1 and ssim are detached, for logging.
-    ``backend="torch"`` is the twin: ``metrics.l1`` and ``metrics.ssim`` under autograd.
+    ``backend="torch"`` is the twin: ``metrics.l1`` and ``metrics.ssim`` under autograd; it
+    is also what runs on a GPU (the fused kernels are for the CPU), on the images' device.
     """
     if backend not in BACKENDS:
         raise ValueError(f"image_loss backend must be one of {BACKENDS}, got {backend!r}")
-    if backend == "torch" or rendered.shape[2] != 3 or rendered.dtype != torch.float32:
+    cpu = rendered.device.type == "cpu"
+    if backend == "torch" or not cpu or rendered.shape[2] != 3 or rendered.dtype != torch.float32:
         if fill is not None:
             target = target * mask[..., None] + fill * (1 - mask[..., None])
         l1_v = l1(rendered, target, mask)

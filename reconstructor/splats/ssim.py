@@ -33,7 +33,7 @@ def _gauss_1d(size: int, sigma: float) -> torch.Tensor:
 def blur_reference(x: torch.Tensor) -> torch.Tensor:
     """Separable Gaussian blur of (B, C, H, W) with zero padding (3DGS's conv2d), by torch's
     grouped convolution: the slow, obvious twin of ``blur``."""
-    g = _gauss_1d(SSIM_WINDOW_PX, SSIM_SIGMA_PX).to(x.dtype)
+    g = _gauss_1d(SSIM_WINDOW_PX, SSIM_SIGMA_PX).to(x.device, x.dtype)
     c = x.shape[1]
     pad = SSIM_WINDOW_PX // 2
     x = F.conv2d(x, g.view(1, 1, 1, -1).expand(c, 1, 1, -1), padding=(0, pad), groups=c)
@@ -63,8 +63,9 @@ class _BlurHWC(torch.autograd.Function):
 
 
 def blur(x: torch.Tensor) -> torch.Tensor:
-    """SSIM's Gaussian window over (H, W, C) float32 (channels last), differentiable."""
-    if x.dtype != torch.float32 or x.shape[2] > 512:
+    """SSIM's Gaussian window over (H, W, C) float32 (channels last), differentiable; off the
+    CPU (a GPU), torch's convolution on that device."""
+    if x.dtype != torch.float32 or x.shape[2] > 512 or x.device.type != "cpu":
         return blur_reference(x.permute(2, 0, 1)[None])[0].permute(1, 2, 0)
     return _BlurHWC.apply(x)
 

@@ -146,25 +146,50 @@ def render(
     raster: RasterConfig,
     background: torch.Tensor | None = None,
 ) -> RenderOutput:
-    """Render ``gaussians`` into ``view``'s camera."""
-    bg = torch.zeros(3) if background is None else background
+    """Render ``gaussians`` into ``view``'s camera; the outputs are on the CPU, for callers that
+    read pixels, whichever device ``raster`` computes on (the model may sit on either)."""
+    dev = gaussians.means_m.device
+    bg = torch.zeros(3, device=dev) if background is None else background.to(dev)
+    out = _rasterize(gaussians, view.viewmat, view.K, view.width_px, view.height_px, bg, raster)
+    if out.image.device.type == "cpu":
+        return out
+    return RenderOutput(*(t.cpu() for t in (out.image, out.alpha, out.depth_m, out.radii_px)))
+
+
+def _rasterize(
+    g: Gaussians,
+    viewmat: torch.Tensor,
+    K: torch.Tensor,
+    width_px: int,
+    height_px: int,
+    background: torch.Tensor,
+    raster: RasterConfig,
+) -> RenderOutput:
     return rasterize(
-        gaussians.means_m,
-        gaussians.quats_wxyz,
-        gaussians.log_scales,
-        gaussians.opacity_logits,
-        gaussians.colors(),
-        view.viewmat,
-        view.K,
-        view.width_px,
-        view.height_px,
-        bg,
-        raster,
-    )
+        g.means_m, g.quats_wxyz, g.log_scales, g.opacity_logits, g.colors(),
+        viewmat, K, width_px, height_px, background, raster,
+    )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class _DeviceView:
+    """A training view's tensors on the trainer's device (copied there once per run)."""
+
+    view: View  # kept alive, so that its id() is not reused while this entry exists
+    image: torch.Tensor
+    mask: torch.Tensor
+    viewmat: torch.Tensor
+    K: torch.Tensor
 
 
 class Trainer:
-    """Adam over the Gaussians' parameters, kept across the stages of a schedule."""
+    """Adam over the Gaussians' parameters, kept across the stages of a schedule.
+
+    On a GPU backend (``raster.device == "cuda"``) the trainer moves the model's tensors to the
+    GPU in place (``gaussians`` then lives there; ``Gaussians.to`` brings a copy back) and each
+    view's image, mask and camera the first time it is drawn: the loss, the rasterizer and Adam
+    all run there, and only the random background (3 floats) and the logged values cross.
+    """
 
     def __init__(
         self,
@@ -176,6 +201,13 @@ class Trainer:
         self.g = gaussians
         self.config = config
         self.raster = raster
+        self.device = torch.device(raster.device)
+        if self.device.type != "cpu":
+            from reconstructor.raster.gsplat_backend import require_gpu
+
+            require_gpu()
+            gaussians.move_to(self.device)
+        self._device_views: dict[int, _DeviceView] = {}
         self.step_index = 0
         self.log = TrainLog()
         self._rng = np.random.default_rng(config.seed)
@@ -222,10 +254,11 @@ class Trainer:
             bg = torch.rand(3, generator=self._bg_gen)
         else:
             bg = torch.zeros(3)
-        out = render(self.g, view, self.raster, bg)
-        mask = view.mask
+        dv = self._on_device(view)
+        bg = bg.to(self.device)
+        out = _rasterize(self.g, dv.viewmat, dv.K, view.width_px, view.height_px, bg, self.raster)
         # where the recorded image has no content, compare against the background itself
-        image_term, l1_v, ssim_v = image_loss(out.image, view.image, mask, cfg.ssim_weight, bg)
+        image_term, l1_v, ssim_v = image_loss(out.image, dv.image, dv.mask, cfg.ssim_weight, bg)
         loss = weight * image_term
         if cfg.opacity_reg_weight > 0 and self.g.num > 0:
             loss = loss + cfg.opacity_reg_weight * torch.sigmoid(self.g.opacity_logits).mean()
@@ -247,6 +280,23 @@ class Trainer:
         )
         self.log.steps.append(stats)
         return stats
+
+    def _on_device(self, view: View) -> _DeviceView:
+        """``view``'s tensors on the trainer's device; on the CPU, the view's own."""
+        if self.device.type == "cpu":
+            return _DeviceView(view, view.image, view.mask, view.viewmat, view.K)
+        dv = self._device_views.get(id(view))
+        if dv is None:
+            dev = self.device
+            dv = _DeviceView(
+                view,
+                view.image.to(dev),
+                view.mask.to(dev),
+                view.viewmat.to(dev, torch.float32),
+                view.K.to(dev, torch.float32),
+            )
+            self._device_views[id(view)] = dv
+        return dv
 
     def run(
         self,
