@@ -91,11 +91,13 @@ def render_fps(g: Gaussians, views, raster: RasterConfig, frames: int) -> float:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--steps", type=int, default=2000, help="the schedule's steps (2000)")
-    p.add_argument("--cpu-steps", type=int, default=40, help="steps timed on the CPU (40)")
+    p.add_argument("--cpu-steps", type=int, default=20, help="steps timed on both backends (20)")
     p.add_argument("--frames", type=int, default=300, help="GPU renders timed (300)")
     p.add_argument("--cpu-only", action="store_true", help="train the schedule on the CPU only")
     p.add_argument("--reference", help="a --cpu-only run's JSON: its PSNR beside the GPU's")
     p.add_argument("--json", help="write the results here")
+    p.add_argument("--cpu-schedule", action="store_true", help="also time the CPU's schedule")
+    p.add_argument("--compare", action="store_true", help="first, gsplat vs numba per scene")
     args = p.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")  # step progress
 
@@ -118,12 +120,22 @@ def main() -> int:
         import gsplat
 
         res.update(gpu=torch.cuda.get_device_name(), gsplat=gsplat.__version__)
+        if args.compare:
+            try:  # a table for the docs: the timings below must not depend on it
+                res["compare"] = compare_table()
+            except Exception as e:
+                print(f"comparison failed: {type(e).__name__}: {e}", flush=True)
         gpu_ms = ms_per_step(scene, GPU, args.cpu_steps)
         cpu_ms = ms_per_step(scene, CPU, args.cpu_steps)
         print(f"first {args.cpu_steps} steps: GPU {gpu_ms:.1f} ms/step, CPU {cpu_ms:.0f} ms/step",
               flush=True)  # fmt: skip
         g, s = train(scene, GPU, args.steps)
         print(f"GPU schedule: {s:.1f} s", flush=True)
+        if args.cpu_schedule:
+            g_ref, cpu_s = train(scene, CPU, args.steps)
+            cpu_psnr = held_out_psnr(g_ref, scene.held_out, CPU)
+            res.update(cpu_schedule_s=cpu_s, cpu_psnr_numba=cpu_psnr)
+            print(f"CPU schedule: {cpu_s:.1f} s", flush=True)
         gpu_fps = render_fps(g, scene.held_out, GPU, args.frames)
         g_cpu = g.to(device="cpu")
         cpu_fps = render_fps(g_cpu, scene.held_out, CPU, 10)
@@ -135,7 +147,7 @@ def main() -> int:
             gpu_warm_s=warm_s, gpu_psnr_gsplat=held_out_psnr(g, scene.held_out, GPU),
             gpu_psnr_numba=held_out_psnr(g_cpu, scene.held_out, CPU),
         )  # fmt: skip
-        if args.reference and Path(args.reference).is_file():
+        if args.reference and Path(args.reference).is_file() and not args.cpu_schedule:
             ref = json.loads(Path(args.reference).read_text())
             res["cpu_psnr_numba"] = ref["cpu_psnr_numba"]
             res["cpu_schedule_s_reference_machine"] = ref["cpu_schedule_s"]
@@ -146,9 +158,26 @@ def main() -> int:
     return 0
 
 
+def compare_table() -> dict[str, dict[str, float]]:
+    """gsplat against numba on the rasterizer tests' scenes (the differences
+    tests/reconstructor/test_raster_gsplat.py bounds), printed as a table."""
+    from tests.reconstructor.test_raster import SCENES, make_scene
+    from tests.reconstructor.test_raster_gsplat import compare
+
+    rows = {name: compare(make_scene(**kw)) for name, kw in SCENES.items()}
+    print("| scene | image mean / max | alpha mean / max | depth rel. max | worst gradient |")
+    print("|---|---:|---:|---:|---|")
+    for name, d in rows.items():
+        worst = max((k for k in d if k.startswith("grad_")), key=lambda k: d[k])
+        print(f"| {name} | {d['image_mean']:.1e} / {d['image_max']:.1e} | {d['alpha_mean']:.1e} "
+              f"/ {d['alpha_max']:.1e} | {d['depth_rel_max']:.1e} | {worst[5:]} "
+              f"{d[worst]:.1e} |", flush=True)  # fmt: skip
+    return rows
+
+
 def print_table(r: dict, cpu_steps: int) -> None:
     steps = r["steps"]
-    cpu_sched = r["cpu_ms_per_step"] * steps / 1e3
+    cpu_sched = r.get("cpu_schedule_s") or r["cpu_ms_per_step"] * steps / 1e3
     rows = [
         (f"ms per step (first {cpu_steps} steps)", r["gpu_ms_per_step"], r["cpu_ms_per_step"]),
         (f"{steps}-step SVGA schedule, s", r["gpu_schedule_s"], cpu_sched),
@@ -161,7 +190,8 @@ def print_table(r: dict, cpu_steps: int) -> None:
     print("|---|---:|---:|---:|")
     for name, gpu, cpu in rows:
         ratio = cpu / gpu if name.startswith(("ms", f"{steps}")) else gpu / cpu
-        cpu_txt = "" if cpu != cpu else f"{cpu:.1f}" + (" (est.)" if "schedule" in name else "")
+        est = "schedule" in name and "cpu_schedule_s" not in r
+        cpu_txt = "" if cpu != cpu else f"{cpu:.1f}" + (" (est.)" if est else "")
         ratio_txt = "" if ratio != ratio else f"{ratio:.0f}x"
         print(f"| {name} | {gpu:.2f} | {cpu_txt} | {ratio_txt} |")
     print(f"\nheld-out PSNR after {steps} steps on the GPU: {r['gpu_psnr_gsplat']:.2f} dB rendered "

@@ -41,6 +41,8 @@ from reconstructor.evaluation.methods import (
     EvalSettings,
     EvaluationArgumentError,
 )
+from reconstructor.raster import RasterConfig
+from reconstructor.raster.device import add_device_option, for_device
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenes", nargs="+", default=[], help="the set's scenes to use (all)")
     p.add_argument("--phases", nargs="+", default=[], help="use the scenes of these phases (all)")
     p.add_argument("--steps", type=int, default=2000, help="training steps per reconstruction")
+    add_device_option(p, "the --config's [raster] backend, the CPU's numba kernels")
     p.add_argument("--train-width", type=int, default=960, help="training image width, px")
     p.add_argument("--refiner", default="guided", help="EgoSurg's refiner: guided, difix, none")
     p.add_argument("--refiner-weights", default="", help="local weights for the refiner")
@@ -116,6 +119,7 @@ def settings_from_args(args: argparse.Namespace) -> EvalSettings:
         refiner_weights=args.refiner_weights,
         lpips_weights=args.lpips_weights,
         config=args.config,
+        device=args.device or "",
     )
 
 
@@ -134,6 +138,8 @@ def _check_refiner(settings: EvalSettings) -> None:
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
     settings = settings_from_args(args)
+    if settings.device:
+        for_device(RasterConfig(), settings.device)  # no GPU: one line now, before any work
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise EvaluationArgumentError(f"--out {out} is a file; give a folder")

@@ -30,6 +30,7 @@ from reconstructor.depth.fusion import FusedCloud
 from reconstructor.errors import ReconstructError
 from reconstructor.evaluation.baselines import reproject_points
 from reconstructor.pipeline import Reconstruction
+from reconstructor.raster.device import for_device
 from reconstructor.splats.train import render
 
 
@@ -94,6 +95,7 @@ class EvalSettings:
     refiner_weights: str = ""
     lpips_weights: str = ""
     config: str = ""  # a reconstruction config (TOML) every method starts from; "" = defaults
+    device: str = ""  # "cuda": train and render on gsplat's CUDA backend; "" = as the config says
 
     def __post_init__(self) -> None:
         def bad(option: str, value: object, why: str) -> EvaluationArgumentError:
@@ -144,6 +146,7 @@ class EvalSettings:
             f"training width {self.train_width_px} px, refiner {refiner}, "
             f"evaluation set {self.eval_set or '?'} ({which}), LPIPS weights {lpips}, "
             f"base config {self.config or 'the defaults'}"
+            + (f", device {self.device}" if self.device else "")
         )
 
     def as_dict(self) -> dict[str, Any]:
@@ -170,7 +173,10 @@ def method_config(
     }
     start = ReconstructConfig.read(settings.config) if settings.config else ReconstructConfig()
     cfg = apply_overrides(start, base, "evaluation settings")
-    return apply_overrides(cfg, overrides, f"method {key}")
+    cfg = apply_overrides(cfg, overrides, f"method {key}")
+    if settings.device:
+        cfg = dataclasses.replace(cfg, raster=for_device(cfg.raster, settings.device))
+    return cfg
 
 
 def render_splats(recon: Reconstruction, view: View, near_m: float = 0.0) -> np.ndarray:
