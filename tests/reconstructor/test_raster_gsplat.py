@@ -160,6 +160,17 @@ def test_device_cuda_without_a_gpu_is_one_clear_line(tmp_path) -> None:
 
 
 @cpu_only
+def test_evaluate_on_cuda_without_a_gpu_stops_before_reading_anything(tmp_path) -> None:
+    done = run_egosurg(
+        "evaluate", str(tmp_path / "none"), "--out", str(tmp_path / "eval"),
+        "--device", "cuda", timeout=120,
+    )  # fmt: skip
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert "--device cuda" in done.stderr and len(done.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "eval").exists()
+
+
+@cpu_only
 def test_training_on_cuda_without_a_gpu_is_refused_before_any_step() -> None:
     from reconstructor.splats.gaussians import init_from_points
     from reconstructor.splats.train import TrainConfig, Trainer
