@@ -29,6 +29,7 @@ from reconstructor.evaluation.tables import (
     Row,
     count_label,
     fmt,
+    holes_note,
     mean_seconds,
     method_label,
     summary_rows,
@@ -137,6 +138,8 @@ def _method_table(results: EvalResults, protocol: str, paper: dict, metrics) -> 
         p = paper.get(r.method)
         cells += [_paper(p[i], m) if p else "—" for i, (m, _) in enumerate(metrics)]
         out.append("| " + " | ".join(cells) + " |")
+    note = holes_note(results, protocol)
+    out += ["", note] if note else []
     return [*out, "", "Ordering:", "", *_ordering_lines(results, rows, paper, metrics)]
 
 

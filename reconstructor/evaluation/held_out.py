@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from reconstructor.data.views import View
-from reconstructor.evaluation.baselines import reproject_points
+from reconstructor.evaluation.baselines import hole_fraction, reproject_depth_maps
 from reconstructor.evaluation.metrics import psnr, ssim_value
 from reconstructor.pipeline import Reconstruction
 from reconstructor.splats.train import render
@@ -48,12 +48,14 @@ def evaluate(recon: Reconstruction, out_dir: Path | None = None) -> list[ViewSco
         truth = view.image.numpy()
         with torch.no_grad():
             splat = render(recon.gaussians, view, recon.config.raster).image.clamp(0, 1).numpy()
-        base, _ = reproject_points(
-            recon.fused.points_m,
-            recon.fused.colours,
-            view.camera,
-            point_size_m=max(recon.config.fusion.voxel_m, recon.fused.spacing_m),
-        )
+        sources = [
+            (recon.depth[f"SN{left.camera_serial}"], left.camera.pose)
+            for left, _ in recon.timestamp.stereo_pairs()
+            if f"SN{left.camera_serial}" in recon.depth
+        ]
+        base, holes = reproject_depth_maps(sources, view.camera)
+        log.info("%s: depth reprojection leaves %.1f %% of the pixels empty", view.name,
+                 100 * hole_fraction(holes, mask))  # fmt: skip
         for method, img in (("egosurg (splats)", splat), ("depth reprojection", base)):
             scores.append(
                 ViewScore(view.name, method, psnr(img, truth, mask), ssim_value(img, truth, mask))

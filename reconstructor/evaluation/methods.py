@@ -2,9 +2,10 @@
 
 Methods (``--methods`` keys), each a switch of ``ReconstructConfig`` (see config.py):
 
-- ``depth-reprojection``: the fused stereo points drawn straight into the target camera
-  (``baselines.reproject_points``); no training. It reuses the fused cloud of a depth-initialised
-  run of the same timestamp, or runs stereo and fusion alone;
+- ``depth-reprojection``: every valid pixel of every stereo depth map drawn straight into the
+  target camera, holes left as holes and counted (``baselines.reproject_depth_maps``); no
+  training. It reuses the depth maps of a depth-initialised run of the same timestamp, or runs
+  stereo alone;
 - ``image-only``: "image-only 3DGS": ``init_method = "random"``, no auxiliary views;
 - ``no-refinement``: "EgoSurg w/o refinement" (the paper's "w/o diffusion"): depth init,
   ``auxiliary.enabled = false``;
@@ -24,11 +25,12 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
+from protocol.camera import Pose
 from reconstructor.config import ReconstructConfig, apply_overrides
 from reconstructor.data.views import View
-from reconstructor.depth.fusion import FusedCloud
+from reconstructor.depth.stereo import DepthMap
 from reconstructor.errors import ReconstructError
-from reconstructor.evaluation.baselines import reproject_points
+from reconstructor.evaluation.baselines import reproject_depth_maps
 from reconstructor.pipeline import Reconstruction
 from reconstructor.raster.device import for_device
 from reconstructor.splats.train import render
@@ -190,13 +192,9 @@ def render_splats(recon: Reconstruction, view: View, near_m: float = 0.0) -> np.
     return out.image.clamp(0, 1).numpy()
 
 
-def render_points(fused: FusedCloud, view: View, voxel_m: float, near_m: float = 0.0) -> np.ndarray:
-    """(H, W, 3) float32 in [0, 1]: the depth-reprojection baseline seen from ``view``."""
-    image, _ = reproject_points(
-        fused.points_m,
-        fused.colours,
-        view.camera,
-        point_size_m=max(voxel_m, fused.spacing_m),
-        near_m=near_m,
-    )
-    return image
+def render_depth_maps(
+    sources: list[tuple[DepthMap, Pose]], view: View, near_m: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """((H, W, 3) float32 in [0, 1], holes (H, W) bool): the depth-reprojection baseline seen
+    from ``view`` (every valid pixel of every depth map, ``baselines.reproject_depth_maps``)."""
+    return reproject_depth_maps(sources, view.camera, near_m=near_m)

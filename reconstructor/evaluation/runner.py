@@ -21,13 +21,13 @@ from protocol.rig_calibration import RigCalibration
 from protocol.session import SessionReader
 from reconstructor.data.frames import Timestamp, check_calibration, load_timestamp
 from reconstructor.data.views import EYE_NEAR_M, View, novel_view
-from reconstructor.depth.fusion import fuse
+from reconstructor.evaluation.baselines import hole_fraction
 from reconstructor.evaluation.lpips import Lpips
 from reconstructor.evaluation.methods import (
     METHODS,
     EvalSettings,
     method_config,
-    render_points,
+    render_depth_maps,
     render_splats,
 )
 from reconstructor.evaluation.metrics import psnr, ssim_value
@@ -173,7 +173,8 @@ class JobRunner:
         near = [0.0] * len(held_out) + [EYE_NEAR_M] * len(job.ego_views)
 
         renders: dict[str, list[np.ndarray]] = {}
-        fused, voxel_m = None, probe.fusion.voxel_m
+        self._holes: dict[str, list[np.ndarray]] = {}  # per method that leaves holes, per target
+        depth_maps = None
         for key in (m for m in s.methods if METHODS[m].trained):
             t0 = time.perf_counter()
             cfg = method_config(s, key, job.train_views, bounds)
@@ -182,8 +183,8 @@ class JobRunner:
             )
             recon = reconstruct(ts, cfg, calibration=calibration)
             renders[key] = [render_splats(recon, v, n) for v, n in zip(targets, near, strict=True)]
-            if METHODS[key].depth_init and fused is None:
-                fused, voxel_m = recon.fused, recon.config.fusion.voxel_m
+            if METHODS[key].depth_init and depth_maps is None:
+                depth_maps = recon.depth
             if key == "egosurg":
                 self.results.refiner = str(recon.auxiliary.get("refiner", s.refiner))
             del recon
@@ -191,13 +192,17 @@ class JobRunner:
             self.results.recon_seconds.setdefault(key, []).append(seconds)
             self._tick(key, job, seconds)
         if "depth-reprojection" in s.methods:
-            if fused is None:
+            if depth_maps is None:
                 t0 = time.perf_counter()
-                fused = fuse(stereo_clouds(ts, probe)[0], probe.fusion)
-                self._tick("stereo + fusion for depth reprojection", job, time.perf_counter() - t0)
-            renders["depth-reprojection"] = [
-                render_points(fused, v, voxel_m, n) for v, n in zip(targets, near, strict=True)
+                depth_maps = stereo_clouds(ts, probe)[1]
+                self._tick("stereo for depth reprojection", job, time.perf_counter() - t0)
+            sources = [
+                (depth_maps[f"SN{left.camera_serial}"], left.camera.pose)
+                for left, _ in ts.stereo_pairs()
             ]
+            drawn = [render_depth_maps(sources, v, n) for v, n in zip(targets, near, strict=True)]
+            renders["depth-reprojection"] = [image for image, _ in drawn]
+            self._holes["depth-reprojection"] = [holes for _, holes in drawn]
         methods = [m for m in s.methods if m in renders]
         self._score_held_out(job, held_out, methods, renders)
         self._score_ego(job, len(held_out), methods, renders)
@@ -205,6 +210,10 @@ class JobRunner:
     def _scores(self, img: np.ndarray, truth: np.ndarray, mask: np.ndarray | None) -> tuple:
         lp = None if self.lpips is None else self.lpips.distance(img, truth, mask)
         return psnr(img, truth, mask), ssim_value(img, truth, mask), lp
+
+    def _hole_fraction(self, method: str, i: int, mask: np.ndarray | None) -> float | None:
+        holes = self._holes.get(method)
+        return None if holes is None else hole_fraction(holes[i], mask)
 
     def _score_held_out(self, job: Job, views: list[View], methods: list[str], renders) -> None:
         for i, view in enumerate(views):
@@ -215,7 +224,15 @@ class JobRunner:
                     for protocol in job.held_out_protocols:
                         self.results.image_scores.append(
                             ImageScore(
-                                protocol, m, job.scene.phase, job.scene.label, view.name, p, q, lp
+                                protocol,
+                                m,
+                                job.scene.phase,
+                                job.scene.label,
+                                view.name,
+                                p,
+                                q,
+                                lp,
+                                self._hole_fraction(m, i, mask),
                             )
                         )
                 tiles = [
@@ -240,7 +257,17 @@ class JobRunner:
                 img = renders[m][offset + i]
                 p, q, lp = self._scores(img, truth, None)
                 self.results.image_scores.append(
-                    ImageScore("egocentric", m, job.scene.phase, scene, view.name, p, q, lp)
+                    ImageScore(
+                        "egocentric",
+                        m,
+                        job.scene.phase,
+                        scene,
+                        view.name,
+                        p,
+                        q,
+                        lp,
+                        self._hole_fraction(m, offset + i, None),
+                    )
                 )
                 tiles.append((self.settings.label(m), img))
             name = _file_name(f"{job.scene.label}_{view.name}")

@@ -44,6 +44,7 @@ class ImageScore:
     psnr_db: float
     ssim: float
     lpips: float | None
+    holes: float | None = None  # share of the compared pixels the method drew nothing on
 
 
 @dataclass(frozen=True)
@@ -154,7 +155,28 @@ def markdown_table(results: EvalResults, protocol: str, *, by_phase: bool = Fals
         cells += [fmt(row.stats[m], m) for m, _ in metrics]
         cells.append(str(row.scenes))
         lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    note = holes_note(results, protocol)
+    return "\n".join(lines) + (f"\n\n{note}" if note else "")
+
+
+def holes_note(results: EvalResults, protocol: str) -> str:
+    """One sentence per method that leaves pixels empty (depth reprojection): the share of the
+    compared pixels it drew nothing on, mean ± SD over the protocol's units."""
+    parts = []
+    for method in results.settings.methods:
+        chosen = [
+            s for s in results.image_scores
+            if s.protocol == protocol and s.method == method and s.holes is not None
+        ]  # fmt: skip
+        per_scene = _per_scene(chosen, "holes") if chosen else None
+        if per_scene:
+            st = stat([100 * v for v in per_scene])
+            sd = "" if math.isnan(st.sd) else f" ± {st.sd:.1f}"
+            parts.append(
+                f"{method_label(results, method)} leaves {st.mean:.1f}{sd} % of the compared "
+                "pixels empty (holes, scored as black)."
+            )
+    return " ".join(parts)
 
 
 def count_label(protocol: str) -> str:
