@@ -20,7 +20,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
 from reconstructor.errors import FusionError, ReconstructConfigError
@@ -95,6 +94,8 @@ def fuse(
     cfg = config or FusionConfig()
     points, colours = _concatenate(clouds)
     stats = {"input_points": len(points)}
+    import open3d as o3d  # here, not at import: 4 s, and the config and the GPU machine need none
+
     pcd = o3d.geometry.PointCloud()
     pcd.points = o3d.utility.Vector3dVector(points.astype(np.float64))
     pcd.colors = o3d.utility.Vector3dVector(colours.astype(np.float64))
