@@ -211,9 +211,16 @@ class JobRunner:
         lp = None if self.lpips is None else self.lpips.distance(img, truth, mask)
         return psnr(img, truth, mask), ssim_value(img, truth, mask), lp
 
-    def _hole_fraction(self, method: str, i: int, mask: np.ndarray | None) -> float | None:
+    def _hole_stats(
+        self, method: str, i: int, img: np.ndarray, truth: np.ndarray, mask: np.ndarray | None
+    ) -> tuple[float | None, float | None]:
+        """(share of the compared pixels left empty, PSNR over the drawn ones), or Nones for a
+        method that leaves no holes."""
         holes = self._holes.get(method)
-        return None if holes is None else hole_fraction(holes[i], mask)
+        if holes is None:
+            return None, None
+        drawn = ~holes[i] if mask is None else mask & ~holes[i]
+        return hole_fraction(holes[i], mask), (psnr(img, truth, drawn) if drawn.any() else None)
 
     def _score_held_out(self, job: Job, views: list[View], methods: list[str], renders) -> None:
         for i, view in enumerate(views):
@@ -232,7 +239,7 @@ class JobRunner:
                                 p,
                                 q,
                                 lp,
-                                self._hole_fraction(m, i, mask),
+                                *self._hole_stats(m, i, renders[m][i], truth, mask),
                             )
                         )
                 tiles = [
@@ -266,7 +273,7 @@ class JobRunner:
                         p,
                         q,
                         lp,
-                        self._hole_fraction(m, offset + i, None),
+                        *self._hole_stats(m, offset + i, img, truth, None),
                     )
                 )
                 tiles.append((self.settings.label(m), img))

@@ -45,6 +45,7 @@ class ImageScore:
     ssim: float
     lpips: float | None
     holes: float | None = None  # share of the compared pixels the method drew nothing on
+    drawn_psnr_db: float | None = None  # PSNR over the pixels it drew (methods with holes)
 
 
 @dataclass(frozen=True)
@@ -172,9 +173,13 @@ def holes_note(results: EvalResults, protocol: str) -> str:
         if per_scene:
             st = stat([100 * v for v in per_scene])
             sd = "" if math.isnan(st.sd) else f" ± {st.sd:.1f}"
+            drawn = _per_scene(chosen, "drawn_psnr_db")
+            over = (
+                f"; over the pixels it drew, PSNR {fmt(stat(drawn), 'psnr_db')} dB" if drawn else ""
+            )
             parts.append(
                 f"{method_label(results, method)} leaves {st.mean:.1f}{sd} % of the compared "
-                "pixels empty (holes, scored as black)."
+                f"pixels empty (holes, scored as black){over}."
             )
     return " ".join(parts)
 
