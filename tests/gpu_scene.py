@@ -105,7 +105,7 @@ def save_scene(path: Path, scene: SimScene, later: list[View]) -> None:
     for f in fields(scene.gaussians):
         arrays[f"g_{f.name}"] = getattr(scene.gaussians, f.name).detach().numpy()
     arrays["extent_m"] = np.array(scene.extent_m)
-    np.savez_compressed(path, **arrays)
+    np.savez_compressed(path, **arrays)  # type: ignore[arg-type]  # numpy's stub: allow_pickle
 
 
 def load_scene(path: Path) -> tuple[SimScene, list[View]]:

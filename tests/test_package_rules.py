@@ -30,7 +30,7 @@ _SHARED = {"errors", "plugins"}
 RECONSTRUCTOR_PARTS: dict[str, set[str]] = {
     "errors": set(),
     "plugins": set(),
-    "raster": set(),
+    "raster": {"errors"},  # the GPU backend's one-line refusal is a ReconstructError
     "data": {"errors"},
     "depth": {"data"} | _SHARED,
     "splats": {"data", "raster"} | _SHARED,

@@ -33,7 +33,12 @@ def for_device(raster: RasterConfig, device: str | None) -> RasterConfig:
     if device is None:
         result = raster
     elif device == "cuda":
-        result = dataclasses.replace(raster, backend="gsplat", **GSPLAT_FIXED)
+        result = dataclasses.replace(
+            raster,
+            backend="gsplat",
+            alpha_min=GSPLAT_FIXED["alpha_min"],
+            transmittance_min=GSPLAT_FIXED["transmittance_min"],
+        )
     elif device == "cpu":
         result = dataclasses.replace(raster, backend="numba") if raster.device != "cpu" else raster
     else:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -85,7 +86,7 @@ def assert_grads_close(fast: dict, twin: dict, rel: float = 1e-3) -> None:
         assert err <= rel * scale + 1e-7, f"{k}: max error {err:.3g} vs scale {scale:.3g}"
 
 
-SCENES = {
+SCENES: dict[str, dict[str, Any]] = {
     "random": dict(n=300, seed=0),
     # many overlapping, nearly opaque Gaussians: pixels terminate early, alpha hits the clamp
     "dense": dict(n=400, seed=1, opacity_logit=(2.0, 8.0), scale_m=(0.03, 0.12), spread=0.4),

@@ -164,7 +164,9 @@ def test_the_render_command_on_cuda_draws_what_the_cpu_draws(tmp_path) -> None:
             "--out", str(out), "--device", device, timeout=300,
         )  # fmt: skip
         assert done.returncode == 0, done.stderr
-        images[device] = cv2.imread(str(out)).astype(int)
+        png = cv2.imread(str(out))
+        assert png is not None, f"{out} was not written"
+        images[device] = png.astype(int)
     assert images["cpu"].std() > 10  # the Gaussians are in view
     diff = np.abs(images["cpu"] - images["cuda"])
     assert diff.max() <= 3 and diff.mean() < 0.05, (diff.max(), diff.mean())
