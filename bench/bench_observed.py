@@ -9,7 +9,10 @@ it saved: ``summary.json``'s training views in its ``calibration.toml``), count 
 views (reconstructor/replay/observed.py) and render every egocentric view and its observed map
 from the person's eye (near plane 0.2 m, as the evaluation). Scores: PSNR over the pixels
 marked well observed and over those marked inferred, per view and pooled (one PSNR of the
-squared error summed over all views' pixels of the class), for each ``--min-views``.
+squared error summed over all views' pixels of the class), for each ``--min-views``; and the
+same over textured pixels alone (the sim truth's grey level varies by more than
+``--texture-sd`` (standard deviation in a 7 x 7 window): like against like, since a uniform wall
+renders right whatever its geometry).
 
 Example (the evaluation set of EVALUATION.md's first command)::
 
@@ -59,6 +62,12 @@ def psnr_db(sse: float, n: float) -> float:
     return float("nan") if n == 0 else float(10 * np.log10(1.0 / max(sse / (3 * n), 1e-12)))
 
 
+def local_sd(grey: np.ndarray, size_px: int = 7) -> np.ndarray:
+    """(H, W) standard deviation of ``grey`` in a ``size_px`` square around each pixel."""
+    mean = cv2.blur(grey, (size_px, size_px))
+    return np.sqrt(np.maximum(cv2.blur(grey * grey, (size_px, size_px)) - mean * mean, 0.0))
+
+
 def run_folder(args, source: EvalSource, scene, set_index: int) -> Path:
     """The scene's reconstruction at the instant, made (or reused) in its run folder."""
     folder = args.out / f"{scene.name}_set{set_index}"
@@ -98,6 +107,7 @@ def main() -> int:
     p.add_argument("--train-width", type=int, default=480)
     p.add_argument("--config", default="", help="a base reconstruction config (TOML)")
     p.add_argument("--min-views", default="1,2,3,4", help="thresholds to score, e.g. 1,2,3,4")
+    p.add_argument("--texture-sd", type=float, default=0.05, help="textured: local SD above")
     p.add_argument("--retrain", action="store_true")
     args = p.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
@@ -106,6 +116,7 @@ def main() -> int:
     source = EvalSource(eval_set)
     # per threshold: [sse well, pixels well, sse inferred, pixels inferred]
     pooled = {m: [0.0, 0.0, 0.0, 0.0] for m in thresholds}
+    textured = {m: [0.0, 0.0, 0.0, 0.0] for m in thresholds}  # the same, textured pixels only
     rows = []
     for scene in eval_set.scenes:
         for k in scene.eval_sets:
@@ -122,15 +133,16 @@ def main() -> int:
                 with torch.no_grad():
                     img = render(g, novel_view(view.camera), eye).image.clamp(0, 1).numpy()
                 se = ((img - truth) ** 2).sum(axis=2)
+                tex = local_sd(truth.mean(axis=2)) > args.texture_sd
                 for m in thresholds:
                     cfg = ObservedConfig(min_views=m)
                     obs = observed_map(g, counts, view.camera, eye, cfg)
                     well = obs.well_observed(cfg)
-                    acc = pooled[m]
-                    acc[0] += float(se[well].sum())
-                    acc[1] += float(well.sum())
-                    acc[2] += float(se[~well].sum())
-                    acc[3] += float((~well).sum())
+                    for acc, sel in ((pooled[m], np.ones_like(tex)), (textured[m], tex)):
+                        acc[0] += float(se[well & sel].sum())
+                        acc[1] += float((well & sel).sum())
+                        acc[2] += float(se[~well & sel].sum())
+                        acc[3] += float((~well & sel).sum())
                     rows.append([scene.name, view.name, m, well.mean(),
                                  psnr_db(se[well].sum(), int(well.sum())),
                                  psnr_db(se[~well].sum(), int((~well).sum())),
@@ -145,15 +157,17 @@ def main() -> int:
         w.writerows([[*r[:3], *(f"{x:.4f}" for x in r[3:])] for r in rows])
     lines = [
         "| min views | pixels well observed | PSNR well observed (dB) | PSNR inferred (dB) | "
-        "views where well > inferred |",
-        "|---:|---:|---:|---:|---:|",
+        "views where well > inferred | textured pixels: PSNR well / inferred (dB) |",
+        "|---:|---:|---:|---:|---:|---:|",
     ]
     for m, (s_w, n_w, s_i, n_i) in pooled.items():
+        t = textured[m]
         per = [r for r in rows if r[2] == m and np.isfinite(r[4]) and np.isfinite(r[5])]
         better = sum(r[4] > r[5] for r in per)
         lines.append(
             f"| {m} | {100 * n_w / max(n_w + n_i, 1):.1f} % | {psnr_db(s_w, n_w):.2f} | "
-            f"{psnr_db(s_i, n_i):.2f} | {better} of {len(per)} |"
+            f"{psnr_db(s_i, n_i):.2f} | {better} of {len(per)} | "
+            f"{psnr_db(t[0], t[1]):.2f} / {psnr_db(t[2], t[3]):.2f} |"
         )
     table = "\n".join(lines)
     (args.out / "observed.md").write_text(table + "\n")

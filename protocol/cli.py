@@ -41,6 +41,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "reconstructor.replay.cli:main_sightline",
         "a target's visible fraction from a viewer over a case, and from a moved position",
     ),
+    "sterile": (
+        "reconstructor.replay.cli:main_sterile",
+        "moving things entering a sterile field box over a case: events, renders",
+    ),
     "evaluate": (
         "reconstructor.evaluation.cli:main",
         "the paper's evaluation protocols and baselines on an evaluation set",

@@ -224,6 +224,7 @@ def cmd_eval_set(args: argparse.Namespace) -> int:
             jpeg_quality=args.jpeg_quality,
             view_size_px=_size(args.view_size),
             view_hfov_deg=args.view_hfov,
+            contact=args.contact,
         )
     except ValueError as exc:
         print(f"egosurg sim eval-set: {exc}", file=sys.stderr)
@@ -304,11 +305,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--jpeg-quality", type=int, default=90, help="as the agents encode (90)")
     p.add_argument("--view-size", default="960x600", help="egocentric view size WxH")
     p.add_argument("--view-hfov", type=float, default=90.0, help="egocentric hfov, degrees")
+    p.add_argument("--contact", action="store_true", help="script a drape contact (sim/contact.py)")
     p.set_defaults(func=cmd_eval_set)
 
     from sim.roles import add_parser as add_roles_parser  # egosurg sim roles (issue 21)
 
     add_roles_parser(sub)
+    from sim.contact_cli import add_parser as add_contact_parser  # egosurg sim contact (issue 21)
+
+    add_contact_parser(sub)
     return parser
 
 

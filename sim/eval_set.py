@@ -54,6 +54,7 @@ class EvalSetSpec:
     jpeg_quality: int = 90  # the agents' default
     view_size_px: tuple[int, int] = (960, 600)
     view_hfov_deg: float = 90.0
+    contact: bool = False  # the scripted sterile-field contact (sim/contact.py)
 
     def __post_init__(self) -> None:
         bad = [p for p in self.phases if p not in WORKFLOW_PHASES]
@@ -78,6 +79,7 @@ class EvalSetSpec:
             f"{self.resolution} --fps {self.fps:g} --t-start {self.t_start_s:g} --sets "
             f"{self.sets} --eval-sets {','.join(map(str, self.eval_sets))} --jpeg-quality "
             f"{self.jpeg_quality} --view-size {w}x{h} --view-hfov {self.view_hfov_deg:g}"
+            + (" --contact" if self.contact else "")
         )
 
 
@@ -87,7 +89,7 @@ def write_eval_set(out: Path | str, spec: EvalSetSpec) -> EvalSet:
     scenes = []
     for phase in spec.phases:
         t0 = time.perf_counter()
-        world = World.from_seed(spec.seed, phase=phase)
+        world = World.from_seed(spec.seed, phase=phase, contact=spec.contact)
         scenes.append(_write_scene(root, phase, world, spec))
         log.info("phase %s written in %.1f s", phase, time.perf_counter() - t0)
     eval_set = EvalSet(
@@ -128,7 +130,8 @@ def _write_scene(root: Path, phase: str, world: World, spec: EvalSetSpec) -> Eva
     with SessionWriter(
         session,
         session_name=f"sim-{phase}",
-        case_metadata={"source": "egosurg sim eval-set", "phase": phase, "seed": str(spec.seed)},
+        case_metadata={"source": "egosurg sim eval-set", "phase": phase, "seed": str(spec.seed)}
+        | ({"contact": "1"} if spec.contact else {}),
         cameras=cameras,
         tolerance_ns=period_ns // 2,
         software_version=__version__,

@@ -140,7 +140,8 @@ def cmd_roles(args: argparse.Namespace) -> int:
         raise RolesArgumentError("without a session, give --from and --to (seconds)")
     if phase not in PHASES:
         raise RolesArgumentError(f"--phase {phase!r}: choose one of {', '.join(PHASES)}")
-    world = World.from_seed(0 if seed is None else int(seed), phase=phase)
+    contact = bool(args.session) and meta.get("contact") == "1"  # sim/contact.py
+    world = World.from_seed(0 if seed is None else int(seed), phase=phase, contact=contact)
     times = _times(args, first_s, last_s)
     if times[0] + offset_s < 0:
         raise RolesArgumentError(f"--from {times[0]} lies before the simulation starts")

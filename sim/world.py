@@ -21,6 +21,7 @@ import numpy as np
 
 from protocol.camera import Camera, Intrinsics, Pose, Resolution
 from protocol.wand import WandSpec
+from sim.contact import contact_script
 from sim.geometry import Mesh, cylinder
 from sim.people import Person, PersonState, Waypoint, person_objects, person_state
 from sim.phases import phase_script
@@ -47,6 +48,7 @@ class WorldConfig:
     wand: WandSpec = field(default_factory=WandSpec)
     show_wand: bool | None = None  # None: the phase decides (only 'wand' shows it)
     wand_floor_lie_s: float = 2.0
+    contact: bool = False  # the scripted sterile-field contact (sim/contact.py)
 
     def __post_init__(self) -> None:
         if not isinstance(self.seed, int) or self.seed < 0:
@@ -98,6 +100,7 @@ class World:
         self._scene_cache = functools.lru_cache(maxsize=2)(self._build_scene)
         self._static_scene = FrameScene(list(self.static_objects), self.lights, self.textures)
         self._backgrounds: dict[tuple, RayImage] = {}
+        self.contact = contact_script(cfg.seed) if cfg.contact else None
 
     @classmethod
     def from_seed(cls, seed: int, phase: str = "intraoperative", **kwargs: object) -> World:
@@ -114,6 +117,8 @@ class World:
         op = self._wand_operator(t)
         if op is not None:
             states.append(op[1])
+        if self.contact is not None:
+            states.append(self.contact.state(t))
         return states
 
     def head_poses(self, t_s: float) -> dict[str, Pose]:
@@ -290,6 +295,8 @@ class World:
         objects: list[SceneObject] = list(self.static_objects)
         for person in self.script.people:
             objects += person_objects(person, person_state(person, t))
+        if self.contact is not None:
+            objects += self.contact.objects(t)
         spheres = None
         if self.show_wand:
             centres = self.wand_motion.sphere_centres(t)

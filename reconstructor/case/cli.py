@@ -21,7 +21,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from reconstructor.case.index import INDEX_NAME, CaseFolderError, CaseIndex, verify
+from reconstructor.case.index import INDEX_NAME, CaseFolderError, CaseIndex
 from reconstructor.case.plan import (
     config_hash,
     parse_duration_s,
@@ -142,8 +142,8 @@ def info(folder: Path) -> str:
 
 def export(folder: Path, out: Path, at: list[str] | None, fmt: str) -> list[Path]:
     """Each done (or each named) timestamp as a standard 3DGS PLY (or .splat) with unit
-    quaternions, checked against its checksum first."""
-    from reconstructor.case.work import unit_quaternions
+    quaternions, checked against its checksum (and those of the files it is stored against)."""
+    from reconstructor.case.storage import load_model
     from reconstructor.splats import ply
 
     index = _read(folder)
@@ -159,15 +159,12 @@ def export(folder: Path, out: Path, at: list[str] | None, fmt: str) -> list[Path
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for name in names:
-        e = rows[name]
-        if not verify(folder, e):
-            raise CaseFolderError(
-                f"{name} is {e.status}, or its model fails its checksum; rerun the reconstruct "
-                "command to (re)make it"
-            )
-        g = unit_quaternions(ply.read_ply(folder / e.model))
+        g = load_model(folder, rows[name])  # one clear line if not done or damaged
         target = out / f"{name}.{fmt}"
-        (ply.write_splat if fmt == "splat" else ply.write_ply)(target, g)
+        if fmt == "splat":
+            ply.write_splat(target, g)
+        else:
+            ply.write_ply(target, g, unit_quats=True)
         written.append(target)
     return written
 

@@ -29,7 +29,6 @@ from reconstructor.case.index import (
     CaseIndex,
     Entry,
     atomic_write_bytes,
-    verify,
 )
 from reconstructor.case.plan import PlannedTimestamp, chains
 from reconstructor.case.work import ChainJob, StepJob, StepResult, limit_threads, run_chain
@@ -118,6 +117,8 @@ def open_index(req: CaseRequest) -> CaseIndex:
             created_unix_ns=time.time_ns(),
         )
     index = replace(index, warm_start=bool(req.warm_toml))
+    from reconstructor.case.storage import entry_is_intact  # torch: not before workers start
+
     known = index.by_name()
     names = [p.name for p in req.planned]
     chain_of = dict(zip(names, chains(names, req.warm.get("keyframe_every", 0)), strict=True))
@@ -130,7 +131,9 @@ def open_index(req: CaseRequest) -> CaseIndex:
     for e in rows:
         if e.name in chain_of:
             e = replace(e, chain=chain_of[e.name])
-        if e.status == "done" and not verify(folder, e):
+        # a compact model is checked with the files it is stored against: one whose parent is
+        # damaged (and so redone) is redone too
+        if e.status == "done" and not entry_is_intact(folder, e):
             log.warning("%s: its model is missing or damaged; it is redone", e.name)
             e = replace(e, status="pending", model="", xxh3_64="", bytes=0)
         out.append(e)
@@ -227,6 +230,7 @@ def _job(req: CaseRequest, steps: list[StepJob], threads: int = 0) -> ChainJob:
         warm=dict(req.warm),
         steps=tuple(steps),
         threads=threads,
+        storage="compact" if req.warm_toml else "ply",  # chains share Gaussians: docs/case.md
     )
 
 

@@ -2,10 +2,12 @@
 or a Ray task): read each set from the session on shared storage, reconstruct it, publish its
 model atomically, and say what was made. Only the runner writes the index.
 
-A model is published as ``models/<name>.ply``: written to ``.<name>.ply.<pid>.partial`` beside
-it, fsynced, then renamed, so a reader (and the index) sees the whole file or none. Its
-quaternions are normalised on the way out: viewers assume unit length, and training leaves them
-between about 0.74 and 1.06. The run folder (log, summary, config) goes to ``runs/<name>/``.
+A model is published as ``models/<name>.ply`` (or, in a warm-started case, ``<name>.npz``:
+``storage.py``, the chain's keyframe in full and each later timestamp as its changes): written
+to ``.<name>.<ext>.<pid>.partial`` beside it, fsynced, then renamed, so a reader (and the
+index) sees the whole file or none. Its quaternions are normalised on the way out: viewers
+assume unit length, and training leaves them between about 0.74 and 1.06. The run folder (log,
+summary, config) goes to ``runs/<name>/``.
 
 This module imports torch only inside functions, so a spawned worker can set its thread count
 (``limit_threads``) before torch or numba start their pools.
@@ -45,6 +47,8 @@ class ChainJob:
     warm: dict[str, Any] = field(default_factory=dict)  # WarmStartConfig fields
     steps: tuple[StepJob, ...] = ()
     threads: int = 0  # 0: leave torch's and numba's defaults
+    # "ply": a full PLY per timestamp; "compact": storage.py (keyframes once, then changes)
+    storage: str = "ply"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -115,37 +119,63 @@ def run_step(job: ChainJob, step: StepJob, warm_from: str, progress: Any) -> Ste
 
 
 def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) -> dict[str, Any]:
+    import numpy as np
+
     from protocol.rig_calibration import RigCalibration
-    from reconstructor.case.warm import WarmStartConfig, warm_seed
+    from reconstructor.case import storage
+    from reconstructor.case.index import CaseIndex
+    from reconstructor.case.warm import WarmStartConfig, in_free_space, warm_seed
     from reconstructor.config import ReconstructConfig
     from reconstructor.data.frames import load_timestamp
     from reconstructor.pipeline import reconstruct
-    from reconstructor.splats import ply
 
     case = Path(job.case_dir)
     calibration = RigCalibration.read(job.calibration)
     ts = load_timestamp(job.session, calibration, f"set:{step.set_index}")
     init = None
     counts: dict[str, int] = {}
+    parent: Any = None  # the previous model as stored, when this one is stored as its changes
+    lineage: dict[str, Any] = {}
     if warm_from:
         config = ReconstructConfig.from_toml(job.warm_toml, "the case's warm config")
-        previous = ply.read_ply(case / "models" / f"{warm_from}.ply")
+        # the runner records each timestamp in the index before its follower starts
+        entry = CaseIndex.read(case).by_name()[warm_from]
+        if job.storage == "compact" and storage.is_compact(entry):
+            parent = storage.load_stored(case, entry.model, entry.xxh3_64, entry.bytes, warm_from)
+            previous = parent.gaussians()
+            lineage["ref"] = {"model": entry.model, "xxh3_64": entry.xxh3_64, "bytes": entry.bytes}
+        else:
+            previous = storage.load_model(case, entry)
         warm = WarmStartConfig(**job.warm)
 
         def init(ts_, fused, depths):
             g, c = warm_seed(previous, ts_, fused, depths, warm, config.init)
             counts.update(c)
+            # which of the previous rows warm_seed kept (it keeps them in order, first): the
+            # same test on the same values, so the stored form can name them
+            means = previous.means_m.detach().cpu().numpy().astype(np.float64)
+            lineage["alive"] = ~in_free_space(means, ts_, depths, warm)
             return g
     else:
         config = ReconstructConfig.from_toml(job.config_toml, "the case's config")
     work = case / ".work" / f"{step.name}.{os.getpid()}"
     shutil.rmtree(work, ignore_errors=True)
     result = reconstruct(ts, config, work, calibration=calibration, progress=progress, init=init)
-    model = publish_model(result.gaussians, case / "models" / f"{step.name}.ply")
+    if job.storage == "compact":
+        rel = f"models/{step.name}{storage.SUFFIX}"
+        alive = lineage.get("alive")
+        if parent is None or alive is None or int(alive.sum()) != counts.get("kept"):
+            parent, alive = None, None  # a keyframe, or a chain that cannot be followed
+        storage.write_model(case / rel, result.gaussians, parent=parent,
+                            parent_ref=lineage.get("ref"), alive=alive)  # fmt: skip
+        model = case / rel
+    else:
+        rel = f"models/{step.name}.ply"
+        model = publish_model(result.gaussians, case / rel)
     digest, size = _checksum(model)
     _keep_run_folder(work, case / "runs" / step.name)
     return {
-        "model": f"models/{step.name}.ply",
+        "model": rel,
         "xxh3_64": digest,
         "bytes": size,
         "gaussians": result.gaussians.num,
@@ -159,26 +189,12 @@ def publish_model(gaussians: Any, path: Path) -> Path:
 
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
-    ply.write_ply(tmp, unit_quaternions(gaussians))
+    ply.write_ply(tmp, gaussians, unit_quats=True)
     with tmp.open("rb") as f:
         os.fsync(f.fileno())
     os.replace(tmp, path)
     fsync_dir(path.parent)
     return path
-
-
-def unit_quaternions(gaussians: Any) -> Any:
-    """The same Gaussians with each quaternion scaled to length 1 (the rotation is unchanged;
-    a zero quaternion becomes the identity)."""
-    import torch
-
-    from reconstructor.splats.gaussians import Gaussians
-
-    q = gaussians.quats_wxyz.detach()
-    norm = q.norm(dim=1, keepdim=True)
-    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=q.dtype)
-    unit = torch.where(norm > 1e-12, q / norm.clamp_min(1e-12), identity)
-    return Gaussians(**{**gaussians.parameters_dict(), "quats_wxyz": unit})
 
 
 def _checksum(path: Path) -> tuple[str, int]:

@@ -41,8 +41,7 @@ from reconstructor.evaluation.methods import (
     EvalSettings,
     EvaluationArgumentError,
 )
-from reconstructor.raster import RasterConfig
-from reconstructor.raster.device import add_device_option, for_device
+from reconstructor.raster.device import add_device_option, check_device
 
 log = logging.getLogger(__name__)
 
@@ -138,8 +137,7 @@ def _check_refiner(settings: EvalSettings) -> None:
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
     settings = settings_from_args(args)
-    if settings.device:
-        for_device(RasterConfig(), settings.device)  # no GPU: one line now, before any work
+    check_device(settings.device or None)  # no GPU: one line now, before any work
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise EvaluationArgumentError(f"--out {out} is a file; give a folder")

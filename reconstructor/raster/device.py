@@ -48,3 +48,9 @@ def for_device(raster: RasterConfig, device: str | None) -> RasterConfig:
 
         require_gpu()
     return result
+
+
+def check_device(device: str | None) -> None:
+    """Fail now, in one line, if ``device`` cannot be used here: before a command's work."""
+    if device is not None:
+        for_device(RasterConfig(), device)

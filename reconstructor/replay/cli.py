@@ -6,6 +6,8 @@ Examples::
     egosurg replay case/ --trajectory walk.toml --out walk.mp4 --fps 15 --size 960x600
     egosurg sightline case/ --viewer anaesthetist --roles roles.toml --target monitor-a \\
         --site site.toml --offset "1m left-posterior" --out los/
+    egosurg sterile case/ --field field.toml --roles roles.toml \\
+        --sterile-roles surgeon,assistant,nurse_scrub --out sterile/
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from protocol.errors import UserError
 from protocol.trajectory import Trajectory, read_trajectories
 from reconstructor.data.views import EYE_NEAR_M
 from reconstructor.errors import ReconstructError
+from reconstructor.raster.device import add_device_option, check_device
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +104,12 @@ def main_replay(argv: list[str]) -> int:
     p.add_argument("--no-preload", action="store_true", help="read each model when first shown")
     p.add_argument("--allow-gaps", action="store_true", help="show the model before a gap")
     p.add_argument("--near-m", type=float, help=f"near plane, m ({EYE_NEAR_M:g} for a role)")
+    p.add_argument(
+        "--observed", action="store_true", help="also OUT.observed.mp4 and .csv (docs/replay.md)"
+    )
+    add_device_option(p)
     args = p.parse_args(argv)
+    check_device(args.device)
     folder = Path(args.case)
     traj = pick_trajectory(args.trajectory, args.role, args.roles)
     near = args.near_m if args.near_m is not None else (EYE_NEAR_M if args.roles else 0.0)
@@ -111,7 +119,7 @@ def main_replay(argv: list[str]) -> int:
         config = ReplayConfig(
             fps=args.fps, size_px=parse_size(args.size), t_from_s=args.t_from,
             t_to_s=args.t_to, preload=not args.no_preload, near_m=near, pip=args.pip,
-            allow_gaps=args.allow_gaps,
+            allow_gaps=args.allow_gaps, observed=args.observed, device=args.device or "cpu",
         )  # fmt: skip
     except ValueError as exc:
         if isinstance(exc, UserError):
@@ -126,6 +134,10 @@ def main_replay(argv: list[str]) -> int:
         f"{stats.models} models; {stats.fps:.1f} frames/s rendered, "
         f"{stats.load_wait_s:.2f} s waiting on models (preload {'on' if config.preload else 'off'})"
     )
+    if config.observed:
+        from reconstructor.replay.observed_case import observed_paths
+
+        print("observed versus inferred: {} and {}".format(*observed_paths(out)))
     return 0
 
 
@@ -147,7 +159,9 @@ def main_sightline(argv: list[str]) -> int:
     p.add_argument("--site", required=True, help="the site file naming the boxes")
     p.add_argument("--offset", help='a counterfactual position, e.g. "1m left-posterior"')
     p.add_argument("--out", required=True, help="folder: sightline.csv, timeline.png, worst_*.png")
+    add_device_option(p)
     args = p.parse_args(argv)
+    check_device(args.device)
     traj = pick_trajectory(args.trajectory, args.viewer, args.roles)
     boxes = read_site(args.site)
     if args.target not in boxes:
@@ -158,12 +172,71 @@ def main_sightline(argv: list[str]) -> int:
     out = Path(args.out)
     rows = sightline(
         Path(args.case), CameraPath(traj), boxes[args.target], offset, out,
-        progress=_progress("timestamp"),
+        progress=_progress("timestamp"), device=args.device or "cpu",
     )  # fmt: skip
     for label in dict.fromkeys(r.position for r in rows):
         sel = [r.visible_fraction for r in rows if r.position == label]
         blocked = sum(f < VISIBLE_ENOUGH for f in sel)
+        inferred = sum(r.rests_on_inferred for r in rows if r.position == label)
         print(f"{args.viewer} {label}: {args.target} visible {min(sel):.2f}-{max(sel):.2f}, "
-              f"less than half visible at {blocked} of {len(sel)} timestamps")  # fmt: skip
+              f"less than half visible at {blocked} of {len(sel)} timestamps; the answer "
+              f"rests on inferred content at {inferred}")  # fmt: skip
     print(f"wrote {out / 'sightline.csv'}, {out / 'timeline.png'} and the worst instants' renders")
+    return 0
+
+
+def main_sterile(argv: list[str]) -> int:
+    """``egosurg sterile CASE/ --field field.toml --out sterile/`` (docs/replay.md)."""
+    from protocol.site import read_site
+    from reconstructor.replay.sterile import SterileConfig
+    from reconstructor.replay.sterile_run import read_roles, sterile
+
+    p = argparse.ArgumentParser(
+        prog="egosurg sterile", description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )  # fmt: skip
+    p.add_argument("case", help="a case folder")
+    p.add_argument("--field", required=True, help="a site file with the field box(es)")
+    p.add_argument("--box", help="one box of --field (default: every box in it)")
+    p.add_argument("--roles", help="a roles TOML: each event's nearest role")
+    p.add_argument("--sterile-roles", default="", help="roles whose entries are allowed, a,b")
+    p.add_argument("--out", required=True, help="folder: events.csv, timeline.png, event_*.png")
+    p.add_argument("--from", dest="t_from", type=float, help="first case time, s")
+    p.add_argument("--to", dest="t_to", type=float, help="last case time, s")
+    p.add_argument("--min-gaussians", type=int, default=8, help="in the field for a contact (8)")
+    p.add_argument("--min-timestamps", type=int, default=1, help="an event's shortest run (1)")
+    p.add_argument("--static-fraction", type=float, default=0.5,
+                   help="occupied this often: static scene (0.5)")  # fmt: skip
+    p.add_argument("--allow-gaps", action="store_true", help="skip pending or failed timestamps")
+    add_device_option(p)
+    args = p.parse_args(argv)
+    check_device(args.device)
+    boxes = read_site(args.field)
+    if args.box is not None:
+        if args.box not in boxes:
+            raise ReplayArgumentError(
+                f"no box {args.box!r} in {args.field}; it has: {', '.join(boxes)}"
+            )
+        boxes = {args.box: boxes[args.box]}
+    sterile_roles = tuple(r.strip() for r in args.sterile_roles.split(",") if r.strip())
+    try:
+        config = SterileConfig(
+            min_gaussians=args.min_gaussians, static_fraction=args.static_fraction,
+            min_timestamps=args.min_timestamps,
+            sterile_roles=sterile_roles,
+        )  # fmt: skip
+    except ValueError as exc:
+        raise ReplayArgumentError(str(exc)) from None
+    paths = read_roles(args.roles, sterile_roles)
+    out = Path(args.out)
+    result = sterile(
+        Path(args.case), list(boxes.values()), paths, out, config, t_from_s=args.t_from,
+        t_to_s=args.t_to, allow_gaps=args.allow_gaps, progress=_progress("timestamp"),
+        device=args.device or "cpu",
+    )  # fmt: skip
+    for k, ev in enumerate(result.events, 1):
+        kind = "sterile role" if ev.sterile_role else "CONTACT"
+        print(f"{k}: {kind} {ev.role or '?'} in {ev.field} {ev.start_s:.3f}-{ev.end_s:.3f} s")
+    print(f"{len(result.contacts)} contact events ({len(result.events) - len(result.contacts)} "
+          f"of sterile roles); wrote {out / 'events.csv'}, {out / 'timeline.png'}")  # fmt: skip
     return 0

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from reconstructor.case.index import INDEX_NAME, CaseIndex, Entry, checksum_file
+from reconstructor.case.index import INDEX_NAME, CaseIndex, Entry
+from reconstructor.case.storage import load_model
 from reconstructor.errors import ReconstructError
-from reconstructor.splats import ply
 from reconstructor.splats.gaussians import Gaussians
 
 log = logging.getLogger(__name__)
@@ -78,18 +78,9 @@ class CaseModels:
         return self.entries[k]
 
     def load(self, entry: Entry) -> Gaussians:
-        """The entry's model, after checking it is the file the index names."""
-        path = self.folder / entry.model
-        if not path.is_file():
-            raise CaseReplayError(
-                f"{path} ({entry.name}) is missing; rerun the case's reconstruct command to redo it"
-            )
-        if checksum_file(path) != (entry.xxh3_64, entry.bytes):
-            raise CaseReplayError(
-                f"{path} ({entry.name}) fails its checksum; rerun the case's reconstruct "
-                "command, which redoes damaged timestamps"
-            )
-        return ply.read_ply(path)
+        """The entry's model (a full PLY or compact storage), after checking it is the file
+        the index names; one line naming the file and what to do otherwise."""
+        return load_model(self.folder, entry)
 
 
 class ModelSource:

@@ -22,7 +22,9 @@ from protocol.rig_calibration import RigCalibration
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.views import novel_view
 from reconstructor.raster import RasterConfig
+from reconstructor.raster.device import for_device
 from reconstructor.replay.models import CaseModels, CaseReplayError, ModelSource
+from reconstructor.replay.observed_case import ReplayObserved
 from reconstructor.replay.path import CameraPath
 from reconstructor.replay.video import Mp4Writer, burn_text, paste_pip, timecode
 from reconstructor.splats.gaussians import Gaussians
@@ -41,6 +43,8 @@ class ReplayConfig:
     near_m: float = 0.0  # 0: the model's near plane; 0.2 from a person's eye (EYE_NEAR_M)
     pip: bool = False
     allow_gaps: bool = False
+    observed: bool = False  # also OUT.observed.mp4 and .csv (replay/observed_case.py)
+    device: str = "cpu"  # "cuda": render on gsplat's CUDA rasterizer (docs/gpu.md)
 
     def __post_init__(self) -> None:
         if not 0.1 <= self.fps <= 240:
@@ -63,9 +67,10 @@ class ReplayStats:
         return self.frames / self.wall_s if self.wall_s > 0 else 0.0
 
 
-def case_raster(folder: Path, near_m: float = 0.0) -> RasterConfig:
+def case_raster(folder: Path, near_m: float = 0.0, device: str = "cpu") -> RasterConfig:
     cfg = folder / "config.toml"
     raster = ReconstructConfig.read(cfg).raster if cfg.is_file() else RasterConfig()
+    raster = for_device(raster, device)  # a GPU-made case replays on the CPU by default
     if near_m > raster.near_m:
         raster = dataclasses.replace(raster, near_m=near_m)
     return raster
@@ -144,17 +149,26 @@ def replay(
     models = CaseModels(folder)
     times = frame_times(path, models, config)
     order = [models.entry_at(float(t)) for t in times]
-    raster = case_raster(folder, config.near_m)
+    raster = case_raster(folder, config.near_m, config.device)
     real = RealCameras(models) if config.pip else None
     t_start = time.perf_counter()
     try:
         with (
             ModelSource(models, order, preload=config.preload) as source,
             Mp4Writer(out, config.size_px, config.fps) as video,
+            ReplayObserved(
+                folder,
+                out,
+                config.size_px,
+                config.fps,
+                case_raster(folder, device=config.device),
+                enabled=config.observed,
+            ) as observed,  # fmt: skip
         ):
             for k, (t, entry) in enumerate(zip(times, order, strict=True)):
                 camera = path.camera(float(t), config.size_px)
                 rgb, _, _ = render_view(source.get(entry), camera, raster)
+                observed.add(float(t), entry, source.get(entry), camera, rgb, raster)
                 rgb = burn_text(rgb, [f"{timecode(float(t))}  {path.name}", f"model {entry.name}"])
                 if real is not None:
                     pip = real.frame(camera.pose.centre_m, float(t))

@@ -14,6 +14,7 @@ import numpy as np
 from protocol.site import SiteBox
 from reconstructor.data.views import EYE_NEAR_M
 from reconstructor.replay.models import CaseModels, CaseReplayError, ModelSource
+from reconstructor.replay.observed_case import CaseObserved
 from reconstructor.replay.path import CameraPath
 from reconstructor.replay.run import case_raster, render_view
 from reconstructor.replay.sightline import Offset, in_view_fraction, visible_fraction
@@ -31,11 +32,14 @@ class SightRow:
     eye_m: tuple[float, float, float]
     visible_fraction: float
     in_view_fraction: float
+    observed_share: float = float("nan")  # of the target's pixels (replay/observed_case.py)
+    rests_on_inferred: bool = False
 
 
 def sightline(
     folder: Path, path: CameraPath, box: SiteBox, offset: Offset | None, out: Path,
     *, size_px: tuple[int, int] = (480, 300), worst: int = 2, progress=None,
+    device: str = "cpu",
 ) -> list[SightRow]:  # fmt: skip
     models = CaseModels(folder)
     p0, p1 = path.span_s
@@ -47,7 +51,8 @@ def sightline(
             "share no timestamp"
         )
     models.require_span(entries[0].t_s, entries[-1].t_s)
-    raster = case_raster(folder, EYE_NEAR_M)
+    raster = case_raster(folder, EYE_NEAR_M, device)
+    observed = CaseObserved(folder, case_raster(folder, device=device))
     out.mkdir(parents=True, exist_ok=True)
     rows: list[SightRow] = []
     with ModelSource(models, entries) as source:
@@ -59,9 +64,11 @@ def sightline(
                 positions.append((offset.text, offset.world_shift_m(pose)))
             for label, shift in positions:
                 cam = path.camera(e.t_s, size_px, shift)
-                frac, _ = visible_fraction(g, cam.pose.centre_m, box, raster)
+                frac, det = visible_fraction(g, cam.pose.centre_m, box, raster)
                 eye = tuple(float(v) for v in cam.pose.centre_m)
-                rows.append(SightRow(e.t_s, e.name, label, eye, frac, in_view_fraction(cam, box)))  # type: ignore[arg-type]
+                share = observed.target_share(e, g, det, raster)
+                rows.append(SightRow(e.t_s, e.name, label, eye, frac, in_view_fraction(cam, box),  # type: ignore[arg-type]
+                                     share, observed.rests_on_inferred(share)))  # fmt: skip
             if progress is not None:
                 progress(k + 1, len(entries))
         _write_csv(out / "sightline.csv", rows, box)
@@ -74,10 +81,12 @@ def _write_csv(path: Path, rows: list[SightRow], box: SiteBox) -> None:
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["t_s", "model", "position", "eye_x_m", "eye_y_m", "eye_z_m", "target",
-                    "visible_fraction", "in_view_fraction"])  # fmt: skip
+                    "visible_fraction", "in_view_fraction", "observed_share",
+                    "rests_on_inferred"])  # fmt: skip
         for r in rows:
             eye = [f"{v:.3f}" for v in r.eye_m]
-            fractions = [f"{r.visible_fraction:.3f}", f"{r.in_view_fraction:.3f}"]
+            fractions = [f"{r.visible_fraction:.3f}", f"{r.in_view_fraction:.3f}",
+                         f"{r.observed_share:.3f}", int(r.rests_on_inferred)]  # fmt: skip
             w.writerow([f"{r.t_s:.3f}", r.model, r.position, *eye, box.name, *fractions])
 
 

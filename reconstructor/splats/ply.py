@@ -14,7 +14,8 @@
     <N records of float32, little endian, in that order>
 
 Values are raw model parameters: opacity as a logit, scales as natural logs, the quaternion as
-w, x, y, z (not normalised); normals are zero. ``f_rest`` is channel-major: the K coefficients of
+w, x, y, z (not normalised, unless ``unit_quats``: files for viewers and case models are
+written with unit quaternions); normals are zero. ``f_rest`` is channel-major: the K coefficients of
 red, then those of green, then blue (3DGS's ``features_rest.transpose(1, 2).flatten(1)``).
 ``read_ply`` reads any PLY with this vertex layout (any SH degree; binary little/big endian or
 ascii; other properties and elements are ignored).
@@ -66,9 +67,11 @@ def ply_property_names(sh_degree: int) -> list[str]:
     return [*BASE_PROPERTIES, *(f"f_rest_{i}" for i in range(n_rest)), *TAIL_PROPERTIES]
 
 
-def write_ply(path: Path | str, gaussians: Gaussians) -> Path:
+def write_ply(path: Path | str, gaussians: Gaussians, *, unit_quats: bool = False) -> Path:
+    """The INRIA PLY; ``unit_quats`` writes each quaternion scaled to length 1 (what a file
+    for viewers must hold: training leaves lengths of 0.74-1.06, and viewers assume 1)."""
     p = Path(path)
-    g = _numpy(gaussians)
+    g = _numpy(unit_quaternions(gaussians) if unit_quats else gaussians)
     n = len(g["means_m"])
     k = g["sh_rest"].shape[1]
     rest = g["sh_rest"].transpose(0, 2, 1).reshape(n, 3 * k)  # (N, K, 3) -> channel-major
@@ -278,6 +281,16 @@ def read_splat(path: Path | str) -> Gaussians:
         sh_dc=torch.as_tensor((rgba[:, :3] - 0.5) / SH_C0, dtype=f32),
         sh_rest=torch.zeros((len(rec), 0, 3), dtype=f32),
     )
+
+
+def unit_quaternions(gaussians: Gaussians) -> Gaussians:
+    """The same Gaussians with each quaternion scaled to length 1 (the rotation is unchanged;
+    a zero quaternion becomes the identity)."""
+    q = gaussians.quats_wxyz.detach()
+    norm = q.norm(dim=1, keepdim=True)
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=q.dtype, device=q.device)
+    unit = torch.where(norm > 1e-12, q / norm.clamp_min(1e-12), identity)
+    return Gaussians(**{**gaussians.parameters_dict(), "quats_wxyz": unit})
 
 
 def _numpy(g: Gaussians) -> dict[str, np.ndarray]:

@@ -1,0 +1,320 @@
+"""Compact storage of a warm-started case: each chain's keyframe once, each later timestamp as
+its changes to the one before (docs/case.md, "Compact storage").
+
+Warm start keeps Gaussians in order: timestamp t+1's model is t's Gaussians that were kept (in
+t's order) followed by the ones seeded new. So t+1 is stored as
+
+- ``alive``: which of t's rows it kept (a bit per row, ``np.packbits``);
+- ``diff``: for the kept rows, the change of each quantised value since t (mostly zero);
+- ``new``: the seeded rows, quantised in full.
+
+A keyframe has no parent: every row is ``new``. Values are quantised on a fixed grid per
+parameter (``QuantSteps``); a value is re-sent only when it moved more than one step from the
+value its parent stores (closed loop: the comparison is against what a reader decodes, so the
+error never grows along a chain), so every stored value is within one step of the trained one.
+Quaternions are normalised first (the rotation is the same; viewers want unit length). Integer
+tables are zigzag-coded, split into byte planes and compressed with zlib, where the many zeros
+and small changes cost almost nothing.
+
+File (``models/<name>.npz``, a NumPy ``.npz`` read with ``allow_pickle=False``): ``meta`` (UTF-8
+JSON: ``format`` ``egosurg-splat-store``, ``format_version``, ``n``, ``sh_degree``, ``steps``
+per column, ``parent`` ``{model, xxh3_64, bytes, n}`` or null), ``alive``, ``diff``, ``new``.
+The child names its parent's checksum, so a parent that was redone or damaged is found.
+
+``load_model(case, entry)`` reads any done entry (a compact file, or the full PLY of older
+cases) after checking its checksum and its parents'; replay and ``egosurg case export`` use it.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import zipfile
+import zlib
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from threading import Lock
+from typing import Any
+
+import numpy as np
+import torch
+
+from reconstructor.case.index import CaseFolderError, Entry, atomic_write_bytes, checksum_file
+from reconstructor.splats import ply
+from reconstructor.splats.gaussians import Gaussians
+
+log = logging.getLogger(__name__)
+
+STORE_FORMAT = "egosurg-splat-store"
+STORE_FORMAT_VERSION = 1
+SUFFIX = ".npz"
+_CACHE_SIZE = 4  # decoded models kept: a chain is read forward, each from the one before
+
+
+class CaseStorageError(CaseFolderError):
+    """A stored model that is missing, damaged or of an unknown format."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class QuantSteps:
+    """The grid step of each parameter; every stored value is within one step of the trained
+    one. Chosen so that the error is far below what a render shows (measured in docs/case.md):
+    0.24 mm of position (a pixel is about 8 mm at 3 m at SVGA), 0.8 % of scale, 0.002 of
+    opacity, 0.3 of a grey level of colour. Half these steps cost 12 % more bytes for no
+    measurable PSNR (BENCHMARKS.md)."""
+
+    position_m: float = 2.0**-12
+    quat: float = 2.0**-10  # of a unit quaternion: about 2e-3 rad of rotation
+    log_scale: float = 2.0**-7
+    opacity_logit: float = 2.0**-7  # sigmoid's slope is at most 1/4
+    sh_dc: float = 2.0**-8  # colour = 0.5 + 0.282 sh_dc: 1.1e-3 per step
+    sh_rest: float = 2.0**-7
+
+    def columns(self, sh_degree: int) -> np.ndarray:
+        """(C,) the step of each column of a quantised table (``_columns`` order)."""
+        k = 3 * ((sh_degree + 1) ** 2 - 1)
+        return np.array(
+            [self.position_m] * 3 + [self.quat] * 4 + [self.log_scale] * 3
+            + [self.opacity_logit] + [self.sh_dc] * 3 + [self.sh_rest] * k
+        )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Stored:
+    """A stored model as its integer grid values, (N, C) int64 in ``_columns`` order."""
+
+    q: np.ndarray
+    sh_degree: int
+    steps: np.ndarray  # (C,)
+
+    @property
+    def num(self) -> int:
+        return len(self.q)
+
+    def gaussians(self) -> Gaussians:
+        v = (self.q * self.steps).astype(np.float32)
+        n, k = len(v), (self.sh_degree + 1) ** 2 - 1
+        t = torch.from_numpy
+        return Gaussians(
+            means_m=t(v[:, 0:3].copy()),
+            quats_wxyz=t(v[:, 3:7].copy()),
+            log_scales=t(v[:, 7:10].copy()),
+            opacity_logits=t(v[:, 10].copy()),
+            sh_dc=t(v[:, 11:14].copy()),
+            sh_rest=t(v[:, 14:].reshape(n, 3, k).transpose(0, 2, 1).copy()),
+        )
+
+
+def _columns(g: Gaussians) -> np.ndarray:
+    """(N, C) float64: means, unit quaternion, log scales, opacity logit, sh_dc, sh_rest
+    (channel-major, as the PLY holds it)."""
+    u = ply.unit_quaternions(g)
+    p = {k: v.detach().cpu().double().numpy() for k, v in u.parameters_dict().items()}
+    n = len(p["means_m"])
+    rest = p["sh_rest"].transpose(0, 2, 1).reshape(n, -1)
+    parts = [p["means_m"], p["quats_wxyz"], p["log_scales"], p["opacity_logits"][:, None]]
+    return np.concatenate([*parts, p["sh_dc"], rest], axis=1)
+
+
+def encode(
+    g: Gaussians,
+    parent: Stored | None = None,
+    alive: np.ndarray | None = None,
+    steps: QuantSteps | None = None,
+) -> Stored:
+    """The model on the grid. With a parent, ``g``'s first ``alive.sum()`` rows are the
+    parent's kept rows (warm start's order); their values stay the parent's unless they moved
+    more than one step."""
+    values = _columns(g)
+    step = (steps or QuantSteps()).columns(g.sh_degree)
+    q = np.rint(values / step).astype(np.int64)
+    if parent is not None and alive is not None:
+        kept = int(alive.sum())
+        ref = parent.q[alive]
+        hold = np.abs(values[:kept] - ref * step) <= step
+        q[:kept] = np.where(hold, ref, q[:kept])
+    return Stored(q=q, sh_degree=g.sh_degree, steps=step)
+
+
+def write_model(
+    path: Path,
+    g: Gaussians,
+    *,
+    parent: Stored | None = None,
+    parent_ref: dict[str, Any] | None = None,
+    alive: np.ndarray | None = None,
+    steps: QuantSteps | None = None,
+) -> Stored:
+    """Store ``g`` at ``path`` (atomically), as changes to ``parent`` when given (with
+    ``parent_ref`` = the parent's ``{model, xxh3_64, bytes}`` and ``alive`` = which of the
+    parent's rows ``g`` kept, in order, as its first rows). Returns what a reader decodes."""
+    if parent is not None:
+        if alive is None or parent_ref is None or len(alive) != parent.num:
+            raise ValueError("a delta needs the parent's reference and one alive flag per row")
+        if int(alive.sum()) > g.num or parent.sh_degree != g.sh_degree:
+            raise ValueError("the model does not start with the parent's kept rows")
+    stored = encode(g, parent, alive, steps)
+    kept = int(alive.sum()) if parent is not None and alive is not None else 0
+    meta = {
+        "format": STORE_FORMAT,
+        "format_version": STORE_FORMAT_VERSION,
+        "n": stored.num,
+        "sh_degree": stored.sh_degree,
+        "steps": stored.steps.tolist(),
+        "parent": None if parent is None else {**(parent_ref or {}), "n": parent.num},
+    }
+    arrays = {
+        "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8),
+        "alive": np.packbits(alive) if alive is not None else np.zeros(0, np.uint8),
+        "diff": _pack(stored.q[:kept] - parent.q[alive]) if parent is not None else _pack(None),
+        "new": _pack(stored.q[kept:]),
+    }
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as zf:
+        for key, value in arrays.items():
+            # a fixed entry time (np.savez stamps the clock): the same model, the same bytes
+            with zf.open(zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0)), "w") as f:
+                np.lib.format.write_array(f, value, allow_pickle=False)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, buf.getvalue())
+    return stored
+
+
+def _pack(table: np.ndarray | None) -> np.ndarray:
+    """(N, C) int64 -> zigzag uint32, one byte plane after another, zlib; small magnitudes
+    of either sign become runs of zero bytes."""
+    if table is None or table.size == 0:
+        return np.zeros(0, np.uint8)
+    z = ((table << 1) ^ (table >> 63)).astype(np.uint32)
+    planes = np.ascontiguousarray(z.T).view(np.uint8).reshape(-1, 4).T
+    return np.frombuffer(zlib.compress(planes.tobytes(), 6), np.uint8)
+
+
+def _unpack(blob: np.ndarray, rows: int, cols: int) -> np.ndarray:
+    if rows * cols == 0:
+        return np.zeros((rows, cols), np.int64)
+    raw = np.frombuffer(zlib.decompress(blob.tobytes()), np.uint8)
+    z = np.ascontiguousarray(raw.reshape(4, -1).T).view(np.uint32).reshape(cols, rows).T
+    z = z.astype(np.int64)
+    return (z >> 1) ^ -(z & 1)
+
+
+def _read_file(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in ("meta", "alive", "diff", "new")}
+        meta = json.loads(arrays["meta"].tobytes())
+    except (OSError, ValueError, KeyError, zlib.error, zipfile.BadZipFile) as exc:
+        raise CaseStorageError(
+            f"{path} cannot be read as a stored model ({exc}); rerun the case's reconstruct "
+            "command, which redoes damaged timestamps"
+        ) from None
+    if meta.get("format") != STORE_FORMAT or meta.get("format_version") != STORE_FORMAT_VERSION:
+        raise CaseStorageError(
+            f"{path} is stored as {meta.get('format')} {meta.get('format_version')}; this egosurg "
+            f"reads {STORE_FORMAT} {STORE_FORMAT_VERSION}: use the egosurg version that wrote it"
+        )
+    return meta, arrays
+
+
+_cache: OrderedDict[tuple[str, str, int, int], Stored] = OrderedDict()
+_cache_lock = Lock()
+
+
+def _checked(folder: Path, model: str, xxh3: str, size: int, name: str) -> Path:
+    path = folder / model
+    if not path.is_file():
+        raise CaseStorageError(
+            f"{path} ({name}) is missing; rerun the case's reconstruct command to redo it"
+        )
+    if checksum_file(path) != (xxh3, size):
+        raise CaseStorageError(
+            f"{path} ({name}) fails its checksum: it is damaged or cut short; rerun the case's "
+            "reconstruct command, which redoes it and the timestamps stored as changes to it"
+        )
+    return path
+
+
+def load_stored(folder: Path, model: str, xxh3: str, size: int, name: str = "") -> Stored:
+    """A compact model and, through its parents, everything it is stored against; each file
+    is checked against the checksum that names it (the index's, or its child's)."""
+    folder = Path(folder)
+    chain: list[tuple[tuple[str, str, int, int], dict[str, Any], dict[str, np.ndarray]]] = []
+    ref: tuple[str, str, int] | None = (model, xxh3, size)
+    base: Stored | None = None
+    while ref is not None:
+        path = folder / ref[0]
+        try:  # a file rewritten or damaged since it was decoded has another mtime
+            mtime_ns = path.stat().st_mtime_ns
+        except OSError:
+            mtime_ns = -1
+        key = (str(path.resolve()), ref[1], ref[2], mtime_ns)
+        with _cache_lock:
+            base = _cache.get(key)
+        if base is not None:
+            break
+        path = _checked(folder, *ref, name or Path(ref[0]).stem)
+        meta, arrays = _read_file(path)
+        chain.append((key, meta, arrays))
+        parent = meta["parent"]
+        ref = None if parent is None else (parent["model"], parent["xxh3_64"], parent["bytes"])
+        name = ""
+        if len(chain) > 100_000:
+            raise CaseStorageError(f"{folder / model}: its parents form a loop; redo the case")
+    for key, meta, arrays in reversed(chain):
+        n, cols = int(meta["n"]), len(meta["steps"])
+        steps = np.asarray(meta["steps"], dtype=np.float64)
+        try:
+            if meta["parent"] is None:
+                q = _unpack(arrays["new"], n, cols)
+            else:
+                assert base is not None
+                alive = np.unpackbits(arrays["alive"], count=base.num).astype(bool)
+                kept = int(alive.sum())
+                diff = _unpack(arrays["diff"], kept, cols)
+                q = np.concatenate([base.q[alive] + diff, _unpack(arrays["new"], n - kept, cols)])
+        except (ValueError, zlib.error) as exc:
+            raise CaseStorageError(
+                f"{key[0]} does not decode ({exc}); rerun the case's reconstruct command"
+            ) from None
+        q.setflags(write=False)
+        base = Stored(q=q, sh_degree=int(meta["sh_degree"]), steps=steps)
+        with _cache_lock:
+            _cache[key] = base
+            while len(_cache) > _CACHE_SIZE:
+                _cache.popitem(last=False)
+    assert base is not None
+    return base
+
+
+def is_compact(entry: Entry) -> bool:
+    return entry.model.endswith(SUFFIX)
+
+
+def load_model(case: Path | str, entry: Entry) -> Gaussians:
+    """The model of a done entry, compact or a full PLY (older cases), after checking it and
+    the files it is stored against; one clear error line otherwise."""
+    folder = Path(case)
+    if entry.status != "done" or not entry.model:
+        raise CaseStorageError(
+            f"{entry.name} is {entry.status}; rerun the case's reconstruct command to make it"
+        )
+    if is_compact(entry):
+        return load_stored(folder, entry.model, entry.xxh3_64, entry.bytes, entry.name).gaussians()
+    path = _checked(folder, entry.model, entry.xxh3_64, entry.bytes, entry.name)
+    return ply.read_ply(path)
+
+
+def entry_is_intact(folder: Path, entry: Entry) -> bool:
+    """True when a done entry's file, and every file it is stored against, is there with the
+    checksum that names it (a resume redoes the rest)."""
+    try:
+        if is_compact(entry):
+            load_stored(folder, entry.model, entry.xxh3_64, entry.bytes, entry.name)
+        else:
+            _checked(folder, entry.model, entry.xxh3_64, entry.bytes, entry.name)
+    except CaseStorageError:
+        return False
+    return entry.status == "done"

@@ -1,0 +1,252 @@
+"""``sterile`` over a case: the moving things in each field box over time, the contact events,
+and for each event a render from the best unoccluded viewpoint (``reconstructor/replay/sterile.py``
+has the method).
+
+Writes ``events.csv``, ``instants.csv`` (each timestamp: moving Gaussians in each field and the
+blobs touching it), ``timeline.png`` and ``event_<k>.png`` per contact."""
+
+from __future__ import annotations
+
+import csv
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from protocol.camera import Camera, Intrinsics, Pose
+from protocol.rig_calibration import RigCalibration
+from protocol.site import SiteBox
+from reconstructor.data.views import EYE_NEAR_M
+from reconstructor.replay.models import CaseModels, ModelSource
+from reconstructor.replay.path import CameraPath
+from reconstructor.replay.run import case_raster, render_view
+from reconstructor.replay.sightline import SightlineError, visible_fraction
+from reconstructor.replay.sightline_run import _outline
+from reconstructor.replay.sterile import (
+    Event,
+    Instant,
+    Region,
+    SterileConfig,
+    SterileError,
+    group_events,
+    moving_blobs,
+    static_scene,
+)
+from reconstructor.replay.video import burn_text, timecode
+
+log = logging.getLogger(__name__)
+MIN_TIMESTAMPS = 3  # fewer cannot tell the static scene from what moves
+
+
+@dataclass(frozen=True)
+class SterileResult:
+    instants: dict[str, list[Instant]]  # per field
+    events: list[Event]
+    renders: dict[int, tuple[Path, str, float]]  # event number -> (png, viewpoint, unoccluded)
+
+    @property
+    def contacts(self) -> list[Event]:
+        return [e for e in self.events if not e.sterile_role]
+
+
+def _eyes(paths: list[CameraPath], t_s: float) -> dict[str, np.ndarray]:
+    """Each role's eye at ``t_s`` (held at its first or last keyframe outside them)."""
+    return {p.name: p.pose(float(np.clip(t_s, *p.span_s))).centre_m for p in paths}
+
+
+def sterile(
+    folder: Path, boxes: list[SiteBox], paths: list[CameraPath], out: Path,
+    config: SterileConfig | None = None, *, t_from_s: float | None = None,
+    t_to_s: float | None = None, allow_gaps: bool = False, progress=None, device: str = "cpu",
+) -> SterileResult:  # fmt: skip
+    config = config or SterileConfig()
+    models = CaseModels(folder)
+    c0, c1 = models.span_s
+    t0 = c0 if t_from_s is None else t_from_s
+    t1 = c1 if t_to_s is None else t_to_s
+    entries = [e for e in models.entries if t0 - 1e-6 <= e.t_s <= t1 + 1e-6]
+    if len(entries) < MIN_TIMESTAMPS:
+        raise SterileError(
+            f"{folder} has {len(entries)} finished timestamps in {t0:.3f}-{t1:.3f} s; the static "
+            f"scene needs at least {MIN_TIMESTAMPS}: reconstruct more (--every) or widen the span"
+        )
+    models.require_span(entries[0].t_s, entries[-1].t_s, allow_gaps)
+    regions = [Region(b, config) for b in boxes]
+    frames: list[list[np.ndarray]] = [[] for _ in boxes]
+    with ModelSource(models, entries) as source:
+        for k, e in enumerate(entries):
+            g = source.get(e)
+            keep = g.opacities().detach().numpy() >= config.min_opacity
+            pts = g.means_m.detach().numpy()[keep].astype(np.float64)
+            for r, reg in enumerate(regions):
+                frames[r].append(reg.select(pts))
+            if progress is not None:
+                progress(k + 1, len(entries))
+    instants: dict[str, list[Instant]] = {}
+    events: list[Event] = []
+    for reg, pts_t in zip(regions, frames, strict=True):
+        static = static_scene(reg, pts_t)
+        rows = []
+        for e, pts in zip(entries, pts_t, strict=True):
+            count, blobs = moving_blobs(reg, static, pts, _eyes(paths, e.t_s))
+            rows.append(Instant(e.t_s, e.name, count, blobs))
+        instants[reg.box.name] = rows
+        events += group_events(reg.box, rows, config)
+    events.sort(key=lambda ev: (ev.start_s, ev.field, ev.role))
+    out.mkdir(parents=True, exist_ok=True)
+    renders = _event_renders(out, folder, models, events, boxes, device)
+    result = SterileResult(instants, events, renders)
+    _write_events(out / "events.csv", result)
+    _write_instants(out / "instants.csv", instants)
+    _plot(out / "timeline.png", result, config)
+    return result
+
+
+def _candidates(folder: Path, contact_m: np.ndarray) -> list[tuple[str, np.ndarray]]:
+    """Eyes to judge: the rig's cameras (what was really seen), and eight around the contact."""
+    out = []
+    cal = folder / "calibration.toml"
+    if cal.is_file():
+        for s in RigCalibration.read(cal).sensors:
+            if s.side == "left":
+                out.append((s.name, s.pose.centre_m))
+    for k in range(8):
+        a = 2 * np.pi * k / 8
+        eye = contact_m + np.array([1.6 * np.cos(a), 1.6 * np.sin(a), 0.0])
+        eye[2] = 1.9  # a standing person's eye, looking down on the field
+        out.append((f"ring {45 * k} deg", eye))
+    return out
+
+
+def best_viewpoint(g, folder: Path, raster, points_m: np.ndarray) -> tuple[str, np.ndarray, float]:
+    """(name, eye, unoccluded fraction) of the candidate that sees the contact's box best;
+    nearer wins a tie."""
+    lo, hi = points_m.min(axis=0) - 0.02, points_m.max(axis=0) + 0.02
+    centre = (lo + hi) / 2
+    c, size = (float(v) for v in centre), (float(v) for v in hi - lo)
+    box = SiteBox(name="contact", centre_m=(*c,), size_m=(*size,))  # type: ignore[arg-type]
+    best: tuple[float, float, str, np.ndarray] | None = None
+    for name, eye in _candidates(folder, centre):
+        try:
+            frac, _ = visible_fraction(g, eye, box, raster, per_face=6)
+        except SightlineError:  # the eye is inside or around the contact
+            continue
+        key = (round(frac, 2), -float(np.linalg.norm(eye - centre)))
+        if best is None or key > best[:2]:
+            best = (*key, name, eye)
+    if best is None:
+        raise SterileError("no viewpoint sees the contact: the contact surrounds every camera")
+    return best[2], best[3], best[0]
+
+
+def _event_renders(
+    out, folder, models, events, boxes, device: str
+) -> dict[int, tuple[Path, str, float]]:
+    raster = case_raster(folder, EYE_NEAR_M, device)
+    by_name = {b.name: b for b in boxes}
+    renders = {}
+    for k, ev in enumerate(events, 1):
+        if ev.sterile_role:
+            continue
+        peak = ev.peak
+        blob, inst = ev.blobs[peak], ev.instants[peak]
+        g = models.load(models.entry_at(inst.t_s))
+        pts = blob.points_m[blob.in_field]
+        name, eye, frac = best_viewpoint(g, folder, raster, pts)
+        pose = Pose.look_at(eye, pts.mean(axis=0))
+        cam = Camera(name=name, intrinsics=Intrinsics.from_fov(480, 300, 55.0), pose=pose)
+        rgb, _, _ = render_view(g, cam, raster)
+        _outline(rgb, cam, by_name[ev.field])
+        px, z = cam.project(pts)
+        for (u, v), zz in zip(px, z, strict=True):
+            if zz > 0:
+                cv2.circle(rgb, (int(u), int(v)), 2, (255, 40, 40), -1, cv2.LINE_AA)
+        who = ev.role or "unknown role"
+        rgb = burn_text(rgb, [
+            f"event {k}: {who} in {ev.field}, {timecode(ev.start_s)} - {timecode(ev.end_s)}",
+            f"shown {timecode(inst.t_s)} from {name} ({frac:.0%} unoccluded)",
+        ])  # fmt: skip
+        path = out / f"event_{k:03d}.png"
+        cv2.imwrite(str(path), np.ascontiguousarray(rgb[:, :, ::-1]))
+        renders[k] = (path, name, frac)
+    return renders
+
+
+def _write_events(path: Path, result: SterileResult) -> None:
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["event", "field", "kind", "role", "role_distance_m", "start_s", "end_s",
+                    "timestamps", "peak_t_s", "peak_gaussians", "contact_x_m", "contact_y_m",
+                    "contact_z_m", "viewpoint", "unoccluded_fraction", "render"])  # fmt: skip
+        for k, ev in enumerate(result.events, 1):
+            blob, inst = ev.blobs[ev.peak], ev.instants[ev.peak]
+            png, view, frac = result.renders.get(k, (None, "", float("nan")))
+            w.writerow([
+                k, ev.field, "sterile-role" if ev.sterile_role else "contact", ev.role,
+                f"{blob.role_distance_m:.2f}", f"{ev.start_s:.3f}", f"{ev.end_s:.3f}",
+                len(ev.instants), f"{inst.t_s:.3f}", blob.count,
+                *(f"{v:.3f}" for v in blob.contact_m), view, f"{frac:.2f}",
+                png.name if png else "",
+            ])  # fmt: skip
+
+
+def _write_instants(path: Path, instants: dict[str, list[Instant]]) -> None:
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t_s", "model", "field", "moving_gaussians_in_field", "blobs", "roles"])
+        for name, rows in instants.items():
+            for i in rows:
+                roles = ";".join(f"{b.role or '?'}:{b.count}" for b in i.blobs)
+                w.writerow([f"{i.t_s:.3f}", i.model, name, i.moving_in_field, len(i.blobs), roles])
+
+
+def _plot(path: Path, result: SterileResult, config: SterileConfig) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fields = list(result.instants)
+    fig, axes = plt.subplots(len(fields), 1, figsize=(8, 2.6 * len(fields)), dpi=110,
+                             squeeze=False)  # fmt: skip
+    roles = list(dict.fromkeys(e.role for e in result.events if not e.sterile_role))
+    for ax, name in zip(axes[:, 0], fields, strict=True):
+        rows = result.instants[name]
+        t = np.array([i.t_s for i in rows])
+        dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.5
+        ax.plot(t, [i.moving_in_field for i in rows], "-", color="0.3", lw=1,
+                label="moving Gaussians in the field")  # fmt: skip
+        ax.axhline(config.min_gaussians, color="grey", ls=":", lw=1)
+        for ev in (e for e in result.events if e.field == name):
+            span = (ev.start_s - dt / 2, ev.end_s + dt / 2)
+            if ev.sterile_role:  # allowed: a thin grey strip along the bottom
+                ax.axvspan(*span, ymin=0, ymax=0.05, color="0.55", lw=0)
+            else:
+                colour = f"C{roles.index(ev.role) % 10}"
+                ax.axvspan(*span, color=colour, alpha=0.3, lw=0)
+        for role in roles:
+            ax.plot([], [], "s", color=f"C{roles.index(role) % 10}", alpha=0.5,
+                    label=role or "contact")  # fmt: skip
+        ax.set(xlabel="case time (s)", ylabel="Gaussians")
+        ax.set_title(f"{name}: contacts shaded by role (grey strip: sterile roles)", fontsize=10)
+        ax.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def read_roles(path: str | None, sterile_roles: tuple[str, ...]) -> list[CameraPath]:
+    from protocol.trajectory import read_trajectories
+
+    if path is None:
+        if sterile_roles:
+            raise SterileError("--sterile-roles needs --roles (a roles TOML naming them)")
+        return []
+    paths = [CameraPath(t) for t in read_trajectories(path)]
+    names = [p.name for p in paths]
+    unknown = [r for r in sterile_roles if r not in names]
+    if unknown:
+        raise SterileError(f"no role {unknown[0]!r} in {path}; it has: {', '.join(names)}")
+    return paths

@@ -1,0 +1,60 @@
+"""``egosurg sim contact``: the drape's field box and the true contact intervals of a sim
+session made with ``egosurg sim eval-set --contact`` (the script is in ``sim/contact.py``).
+
+Example::
+
+    egosurg sim contact es/intraoperative/session.h5 --field-out field.toml --truth-out truth.csv
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from protocol.errors import UserError
+from protocol.site import site_toml
+from sim.contact import DRAPE_FIELD, true_field_intervals, write_truth_csv
+
+
+class ContactArgumentError(UserError, ValueError):
+    pass
+
+
+def cmd_contact(args: argparse.Namespace) -> int:
+    from protocol.session import SessionReader
+    from sim.timing import SIM_EPOCH_UNIX_NS
+    from sim.world import World
+
+    path = Path(args.session)
+    if not path.is_file():
+        raise ContactArgumentError(f"the session {path} does not exist")
+    with SessionReader(path) as reader:
+        meta, start = reader.info.case_metadata, reader.info.started_unix_ns
+        set_ns = reader.sets().set_unix_ns
+    if meta.get("contact") != "1" or "seed" not in meta or "phase" not in meta:
+        raise ContactArgumentError(
+            f"{path} is not a sim session with the scripted contact; make one with "
+            "'egosurg sim eval-set --contact --phases intraoperative ...'"
+        )
+    if len(set_ns) == 0:
+        raise ContactArgumentError(f"the session {path} holds no synchronised sets")
+    world = World.from_seed(int(meta["seed"]), phase=meta["phase"], contact=True)
+    offset_s = (start - SIM_EPOCH_UNIX_NS) / 1e9
+    t0, t1 = (set_ns[0] - start) / 1e9, (set_ns[-1] - start) / 1e9
+    rows = true_field_intervals(world, DRAPE_FIELD, t0 + offset_s, t1 + offset_s)
+    rows = [(n, a - offset_s, b - offset_s) for n, a, b in rows]  # back to case time
+    Path(args.field_out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.field_out).write_text(site_toml([DRAPE_FIELD]))
+    write_truth_csv(Path(args.truth_out), rows)
+    print(f"{args.field_out}: the field box {DRAPE_FIELD.name!r}; {args.truth_out}: "
+          f"{len(rows)} true intervals in the field, {t0:.3f}-{t1:.3f} s")  # fmt: skip
+    return 0
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register ``egosurg sim contact`` on the ``egosurg sim`` subparsers."""
+    p = sub.add_parser("contact", help="the drape's field box and the true contact intervals")
+    p.add_argument("session", help="a sim session made with 'egosurg sim eval-set --contact'")
+    p.add_argument("--field-out", required=True, help="the field box as a site file (TOML)")
+    p.add_argument("--truth-out", required=True, help="CSV of true in-field intervals")
+    p.set_defaults(func=cmd_contact)

@@ -1,0 +1,243 @@
+"""``egosurg sterile`` against the simulator's exact truth: the scripted contact (a non-sterile
+radiographer's hand on the drape, ``sim/contact.py``) is found, starts within 0.5 s of when the
+true body enters the field box, is given to the radiographer, and nothing else non-sterile is
+reported; bad input gets one clear line.
+
+The fast case is made of Gaussians sampled from the true surfaces the rig's eight sensors see
+(a model exact up to its Gaussians' size, as in ``test_replay_truth.py``), seven timestamps
+2 Hz apart around the first touch. The same check on real reconstructions is the slow test."""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from protocol.site import site_toml
+from reconstructor.case.index import CaseIndex, Entry, checksum_file
+from reconstructor.splats import ply
+from reconstructor.splats.gaussians import GaussianInitConfig, init_from_points
+from sim.contact import DRAPE_FIELD, true_field_intervals
+from sim.roles import role_trajectories
+from sim.world import World
+from tests.helpers import run_egosurg
+
+TIMES_S = [5.0, 5.5, 6.0, 6.5, 7.0, 7.5, 8.0]
+STERILE = "surgeon,assistant,nurse_scrub"  # the gowned team: their work in the field is allowed
+# the true-surface model samples a quarter-size depth map: a hand is 5-7 Gaussians, not 10-30
+SPARSE = ("--min-gaussians", "4")
+
+
+def _true_surface_gaussians(world: World, t_s: float, shrink: int = 4):
+    points, colours = [], []
+    for unit in world.rig:
+        for side in ("left", "right"):
+            k = unit.sensor(side, "SVGA").intrinsics.undistorted()
+            small = replace(
+                k, width_px=k.width_px // shrink, height_px=k.height_px // shrink,
+                fx_px=k.fx_px / shrink, fy_px=k.fy_px / shrink,
+                cx_px=(k.cx_px + 0.5) / shrink - 0.5, cy_px=(k.cy_px + 0.5) / shrink - 0.5,
+            )  # fmt: skip
+            pose = unit.sensor(side, "SVGA").pose
+            r = world.render(world.virtual_camera(pose, small, name="truth"), t_s)
+            v, u = np.nonzero(np.isfinite(r.depth_m))
+            z = r.depth_m[v, u]
+            xyz = np.stack([(u - small.cx_px) / small.fx_px * z,
+                            (v - small.cy_px) / small.fy_px * z, z], 1)  # fmt: skip
+            points.append((xyz - pose.t_m) @ pose.R)
+            colours.append(r.image_rgb[v, u] / 255.0)
+    return init_from_points(
+        np.concatenate(points), np.concatenate(colours), GaussianInitConfig(opacity=0.9)
+    )
+
+
+def write_truth_case(folder: Path, world: World, times_s: list[float]) -> None:
+    """A case folder (case.json, models/) whose models are the true surfaces at ``times_s``."""
+    (folder / "models").mkdir(parents=True)
+    rows = []
+    for k, t in enumerate(times_s):
+        name = f"t{t:09.3f}"
+        path = ply.write_ply(folder / "models" / f"{name}.ply", _true_surface_gaussians(world, t))
+        digest, size = checksum_file(path)
+        rows.append(Entry(name=name, t_s=t, set_index=k, model=f"models/{name}.ply",
+                          xxh3_64=digest, bytes=size, status="done"))  # fmt: skip
+    CaseIndex(session="/nonexistent/session.h5", session_started_unix_ns=0, config_hash="truth",
+              warm_start=False, created_unix_ns=time.time_ns(),
+              timestamps=tuple(rows)).write(folder)  # fmt: skip
+
+
+def egosurg(capsys, *args: str) -> tuple[int, str]:
+    from protocol.cli import main
+
+    capsys.readouterr()
+    code = main(list(args))
+    return code, capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def truth_case(tmp_path_factory) -> dict:
+    from protocol.trajectory import write_trajectories
+
+    root = tmp_path_factory.mktemp("sterile")
+    world = World.from_seed(3, phase="intraoperative", contact=True)
+    write_truth_case(root / "case", world, TIMES_S)
+    write_trajectories(root / "roles.toml", role_trajectories(world, np.array(TIMES_S)))
+    (root / "field.toml").write_text(site_toml([DRAPE_FIELD]))
+    truth = true_field_intervals(world, DRAPE_FIELD, TIMES_S[0], TIMES_S[-1])
+    return {"root": root, "truth": truth}
+
+
+def _events(path: Path) -> list[dict]:
+    return list(csv.DictReader(path.open()))
+
+
+def check_against_truth(
+    events: list[dict], truth: list, sterile: set[str], t0: float, t1: float, start_s: float = 0.5
+):
+    """Every true non-sterile interval in [t0, t1] at least 0.5 s long (so that a timestamp of
+    a 2 Hz case falls in it) is found by a contact event of the same person starting within
+    ``start_s``; every contact matches some true interval (else it is a false event)."""
+    contacts = [e for e in events if e["kind"] == "contact"]
+    wanted = [(n, a, b) for n, a, b in truth if n not in sterile and b >= t0 and a <= t1]
+    for name, a, b in (w for w in wanted if min(w[2], t1) - max(w[1], t0) >= 0.5):
+        hits = [e for e in contacts if e["role"] == name
+                and float(e["start_s"]) <= b + 1e-6 and float(e["end_s"]) >= a - 0.5]  # fmt: skip
+        assert hits, f"missed {name} {a:.3f}-{b:.3f} s; found {contacts}"
+        assert abs(float(hits[0]["start_s"]) - max(a, t0)) <= start_s, (hits[0], a)
+    for e in contacts:
+        s, f = float(e["start_s"]), float(e["end_s"])
+        assert any(n == e["role"] and s <= b + 0.5 and f >= a - 0.5 for n, a, b in wanted), e
+
+
+def test_the_scripted_contact_is_found_on_time_and_given_to_the_radiographer(truth_case, capsys):
+    root, truth = truth_case["root"], truth_case["truth"]
+    radiographer = [(a, b) for n, a, b in truth if n == "radiographer"]
+    assert len(radiographer) == 1 and 6.0 < radiographer[0][0] < 6.5  # the script's first touch
+    out = root / "out"
+    code, err = egosurg(capsys, "sterile", str(root / "case"), "--field", str(root / "field.toml"),
+                        "--roles", str(root / "roles.toml"), "--sterile-roles", STERILE, *SPARSE,
+                        "--out", str(out))  # fmt: skip
+    assert code == 0, err[-2000:]
+    events = _events(out / "events.csv")
+    check_against_truth(events, truth, set(STERILE.split(",")), TIMES_S[0], TIMES_S[-1])
+    contact = next(e for e in events if e["kind"] == "contact")
+    assert (out / contact["render"]).stat().st_size > 5000
+    assert (out / "timeline.png").stat().st_size > 5000
+    # the contact point is the drape's edge the script's hand reaches, within a hand's size
+    p = np.array([float(contact[k]) for k in ("contact_x_m", "contact_y_m", "contact_z_m")])
+    assert DRAPE_FIELD.contains(p[None], margin_m=0.01)[0]
+    assert np.linalg.norm(p[:2] - np.array([0.92, -0.38])) < 0.2
+
+
+def test_without_the_scripted_contact_no_contact_is_reported(tmp_path, capsys):
+    """The same scene and field without the radiographer: nobody non-sterile enters, so a
+    reviewer is shown no event (only the sterile team's, marked as such)."""
+    world = World.from_seed(3, phase="intraoperative")
+    times = TIMES_S[:3]
+    write_truth_case(tmp_path / "case", world, times)
+    from protocol.trajectory import write_trajectories
+
+    write_trajectories(tmp_path / "roles.toml", role_trajectories(world, np.array(times)))
+    (tmp_path / "field.toml").write_text(site_toml([DRAPE_FIELD]))
+    code, err = egosurg(capsys, "sterile", str(tmp_path / "case"), "--field",
+                        str(tmp_path / "field.toml"), "--roles", str(tmp_path / "roles.toml"),
+                        "--sterile-roles", STERILE, *SPARSE,
+                        "--out", str(tmp_path / "out"))  # fmt: skip
+    assert code == 0, err[-2000:]
+    truth = true_field_intervals(world, DRAPE_FIELD, times[0], times[-1])
+    assert all(n in STERILE.split(",") for n, _, _ in truth)
+    assert [e for e in _events(tmp_path / "out" / "events.csv") if e["kind"] == "contact"] == []
+
+
+def _bad_cases(root: Path) -> list[tuple[list[str], str]]:
+    case, field, roles = str(root / "case"), str(root / "field.toml"), str(root / "roles.toml")
+    (root / "inverted.toml").write_text(
+        site_toml([DRAPE_FIELD]).replace("size_m = [1.7800", "size_m = [-1.7800")
+    )
+    return [
+        ([case, "--field", str(root / "nope.toml")], "does not exist"),
+        ([case, "--field", str(root / "inverted.toml")], "size_m positive"),
+        (
+            [case, "--field", field, "--roles", roles, "--sterile-roles", "janitor"],
+            "no role 'janitor'",
+        ),
+        ([case, "--field", field, "--sterile-roles", "surgeon"], "needs --roles"),
+        ([case, "--field", field, "--box", "back-table"], "no box 'back-table'"),
+    ]
+
+
+def test_bad_input_gets_one_clear_line_and_exit_2(truth_case, capsys, tmp_path):
+    root = truth_case["root"]
+    for args, message in _bad_cases(root):
+        code, err = egosurg(capsys, "sterile", *args, "--out", str(tmp_path / "o"))
+        assert code == 2 and "Traceback" not in err and message in err, (args, err)
+        assert len(err.strip().splitlines()) == 1, err
+    # a case whose middle timestamp is still pending: refused, naming it
+    import shutil
+
+    gappy = tmp_path / "gappy"
+    shutil.copytree(root / "case", gappy)
+    index = json.loads((gappy / "case.json").read_text())
+    index["timestamps"][3]["status"] = "pending"
+    (gappy / "case.json").write_text(json.dumps(index))
+    code, err = egosurg(capsys, "sterile", str(gappy), "--field", str(root / "field.toml"),
+                        "--out", str(tmp_path / "o"))  # fmt: skip
+    assert code == 2 and "misses timestamps t00006.500" in err and "--allow-gaps" in err, err
+    # two timestamps cannot tell the static scene from what moves
+    code, err = egosurg(capsys, "sterile", str(root / "case"), "--field", str(root / "field.toml"),
+                        "--to", "5.5", "--out", str(tmp_path / "o"))  # fmt: skip
+    assert code == 2 and "needs at least 3" in err, err
+
+
+TINY = """
+train_max_width_px = 160
+[stereo]
+match_scale = 1.0
+[fill]
+enabled = false
+[fusion]
+max_points = 200000
+[train]
+warmup_steps = 3
+refine_steps = 0
+[auxiliary]
+enabled = false
+"""
+
+
+@pytest.mark.slow
+def test_on_a_real_reconstruction_the_scripted_contact_is_found(tmp_path, capsys):
+    """The whole chain: a contact session, a real reconstruction (full-scale stereo, 3 steps),
+    the sim's roles and field, then ``egosurg sterile`` against the truth: the touch found and
+    the radiographer's, no false contact. The start may be one 2 Hz timestamp late (1 s): the
+    static scene of 7 timestamps is thinner than a whole case's, and at 6.5 s the arm's blob
+    lies 0.42 m from the eye, past the 0.4 m limit. The 0.5 s goal is measured on a 60 s case
+    (docs/replay.md: 0.18 s) and checked on the true surfaces above."""
+    es = tmp_path / "es"
+    done = run_egosurg("sim", "eval-set", "--out", str(es), "--phases", "intraoperative",
+                       "--fps", "2", "--t-start", "5", "--sets", "7", "--view-size", "64x40",
+                       "--contact")  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    h5 = es / "intraoperative" / "session.h5"
+    (tmp_path / "tiny.toml").write_text(TINY)
+    done = run_egosurg("reconstruct", str(h5), "--config", str(tmp_path / "tiny.toml"),
+                       "--every", "0.5s", "--out", str(tmp_path / "case"), timeout=900)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    for args in (["roles", str(h5), "--every", "0.5", "--out", str(tmp_path / "roles.toml")],
+                 ["contact", str(h5), "--field-out", str(tmp_path / "field.toml"),
+                  "--truth-out", str(tmp_path / "truth.csv")]):  # fmt: skip
+        done = run_egosurg("sim", *args)
+        assert done.returncode == 0, done.stderr[-2000:]
+    code, err = egosurg(capsys, "sterile", str(tmp_path / "case"), "--field",
+                        str(tmp_path / "field.toml"), "--roles", str(tmp_path / "roles.toml"),
+                        "--sterile-roles", STERILE, "--out", str(tmp_path / "out"))  # fmt: skip
+    assert code == 0, err[-2000:]
+    truth = [(r["person"], float(r["start_s"]), float(r["end_s"]))
+             for r in csv.DictReader((tmp_path / "truth.csv").open())]  # fmt: skip
+    check_against_truth(_events(tmp_path / "out" / "events.csv"), truth,
+                        set(STERILE.split(",")), TIMES_S[0], TIMES_S[-1], start_s=1.0)  # fmt: skip
