@@ -55,6 +55,7 @@ timeout 240 python3 -m pytest -q -s -m gpu -p no:cacheprovider -o addopts="" \
   2>&1 | tee "$OUT/pytest_gpu.log" | tail -40
 fi
 
+if [ -n "${SKIP_BENCH:-}" ]; then stamp "bench skipped"; exit 0; fi
 stamp "bench"
 timeout 400 python3 bench/bench_gpu.py --compare ${BENCH_ARGS:-} \
   --reference bench/results/gpu_cpu_reference.json --json "$OUT/bench_gpu.json" 2>&1 \
