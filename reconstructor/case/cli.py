@@ -123,8 +123,15 @@ def info(folder: Path) -> str:
         f"{c['failed']} failed",
     ]
     if done:
+        from reconstructor.case.storage import is_compact
+
         total_mb = sum(e.bytes for e in done) / 1e6
         secs = [e.seconds for e in done]
+        compact = sum(is_compact(e) for e in done)
+        lines.append(
+            f"storage: {compact} compact (stored as changes, docs/case.md), "
+            f"{len(done) - compact} full PLY"
+        )
         lines.append(
             f"models {total_mb:.1f} MB ({total_mb / len(done):.2f} MB per timestamp); "
             f"seconds per timestamp: mean {sum(secs) / len(secs):.1f}, min {min(secs):.1f}, "

@@ -132,7 +132,7 @@ def _worst_renders(out, rows, path, box, source, models, raster, size_px, offset
         for label, shift in shifts:
             cam = path.camera(r.t_s, size_px, shift)
             rgb, _, _ = render_view(g, cam, raster)
-            _outline(rgb, cam, box)
+            outline_box(rgb, cam, box)
             frac = next(x.visible_fraction for x in rows if x.t_s == r.t_s and x.position == label)
             panels.append(burn_text(rgb, [f"{timecode(r.t_s)} {path.name} {label}",
                                           f"{box.name} visible {frac:.2f}"]))  # fmt: skip
@@ -140,7 +140,7 @@ def _worst_renders(out, rows, path, box, source, models, raster, size_px, offset
         cv2.imwrite(str(name), np.concatenate(panels, axis=1)[:, :, ::-1])
 
 
-def _outline(rgb: np.ndarray, cam, box: SiteBox) -> None:
+def outline_box(rgb: np.ndarray, cam, box: SiteBox) -> None:
     c = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) / 2
     pts = (c * np.asarray(box.size_m)) @ box.rotation.T + np.asarray(box.centre_m)
     px, z = cam.project(pts)

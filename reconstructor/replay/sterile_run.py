@@ -23,7 +23,7 @@ from reconstructor.replay.models import CaseModels, ModelSource
 from reconstructor.replay.path import CameraPath
 from reconstructor.replay.run import case_raster, render_view
 from reconstructor.replay.sightline import SightlineError, visible_fraction
-from reconstructor.replay.sightline_run import _outline
+from reconstructor.replay.sightline_run import outline_box
 from reconstructor.replay.sterile import (
     Event,
     Instant,
@@ -158,7 +158,7 @@ def _event_renders(
         pose = Pose.look_at(eye, pts.mean(axis=0))
         cam = Camera(name=name, intrinsics=Intrinsics.from_fov(480, 300, 55.0), pose=pose)
         rgb, _, _ = render_view(g, cam, raster)
-        _outline(rgb, cam, by_name[ev.field])
+        outline_box(rgb, cam, by_name[ev.field])
         px, z = cam.project(pts)
         for (u, v), zz in zip(px, z, strict=True):
             if zz > 0:

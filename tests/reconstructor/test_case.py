@@ -92,6 +92,7 @@ def test_a_case_holds_one_checked_model_per_timestamp_and_a_rerun_skips_them(ses
 
     info = run_egosurg("case", "info", str(out))
     assert info.returncode == 0 and "4 done, 0 pending, 0 failed" in info.stdout
+    assert "storage: 0 compact (stored as changes, docs/case.md), 4 full PLY" in info.stdout
 
     exported = tmp_path / "export"
     exp = run_egosurg("case", "export", str(out), "--out", str(exported), "--at", rows[0]["name"])
