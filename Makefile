@@ -30,13 +30,17 @@ bench: $(STAMP)
 # libusb-1.0-0: open3d needs it at import. hdf5-tools: h5dump/h5ls/h5clear, to read sessions with
 # the standard tools (and for the test that checks a session opens in h5dump). libfaketime: the
 # fault test that steps one agent's clock (tests/e2e/test_faults.py; it skips without it).
+# chromium: the headless browser of egosurg view's page test (tests/reconstructor/test_view.py;
+# it skips without it).
 system-deps:
 	@if ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' && command -v h5dump >/dev/null \
-			&& ls /usr/lib/*/faketime/libfaketime.so.1 >/dev/null 2>&1; then \
-		echo "system: libusb-1.0-0, hdf5-tools and libfaketime present"; \
+			&& ls /usr/lib/*/faketime/libfaketime.so.1 >/dev/null 2>&1 && command -v chromium >/dev/null; then \
+		echo "system: libusb-1.0-0, hdf5-tools, libfaketime and chromium present"; \
 	elif [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
-		echo "system: installing libusb-1.0-0 (for open3d), hdf5-tools (h5dump) and libfaketime (a fault test)"; \
-		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 hdf5-tools libfaketime; \
+		echo "system: installing libusb-1.0-0 (for open3d), hdf5-tools (h5dump), libfaketime and chromium (tests)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 hdf5-tools libfaketime \
+			&& { DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium \
+				|| echo "system: chromium not installed (optional: the browser test skips)"; }; \
 	elif ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
 		echo "system: hdf5-tools missing (optional: sudo apt-get install hdf5-tools for h5dump)"; \
 	else \

@@ -45,6 +45,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "reconstructor.replay.cli:main_sterile",
         "moving things entering a sterile field box over a case: events, renders",
     ),
+    "view": ("reconstructor.replay.cli:main_view", "browse a case in a web browser (localhost)"),
     "evaluate": (
         "reconstructor.evaluation.cli:main",
         "the paper's evaluation protocols and baselines on an evaluation set",

@@ -240,3 +240,41 @@ def main_sterile(argv: list[str]) -> int:
     print(f"{len(result.contacts)} contact events ({len(result.events) - len(result.contacts)} "
           f"of sterile roles); wrote {out / 'events.csv'}, {out / 'timeline.png'}")  # fmt: skip
     return 0
+
+
+def main_view(argv: list[str]) -> int:
+    """``egosurg view CASE/ [--roles roles.toml] [--site site.toml] [--field field.toml]``."""
+    from reconstructor.replay.view import CaseViewer, ViewConfig
+
+    p = argparse.ArgumentParser(
+        prog="egosurg view", formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Browse a case in a web browser (docs/replay.md, Viewer). Example:\n\n"
+        "    egosurg view case/ --roles roles.toml --site site.toml --field field.toml",
+    )  # fmt: skip
+    p.add_argument("case", help="a case folder")
+    p.add_argument("--roles", help="a roles TOML: role cameras to look through")
+    p.add_argument("--site", action="append", default=[], help="target boxes (repeatable)")
+    p.add_argument("--field", action="append", default=[], help="field boxes (repeatable)")
+    p.add_argument("--port", type=int, default=8080, help="HTTP port (8080; 0: any free)")
+    p.add_argument("--host", default="127.0.0.1", help="bind address (127.0.0.1: this machine)")
+    p.add_argument("--save-to", default="viewpoints.toml", help="'Save viewpoint' adds here")
+    p.add_argument("--name", default="viewer", help="the trajectory saved viewpoints go in")
+    p.add_argument("--camera-from", help="a trajectory TOML: the page opens at its first keyframe")
+    args = p.parse_args(argv)
+    start = read_trajectories(args.camera_from)[0].keyframes[0] if args.camera_from else None
+    config = ViewConfig(
+        host=args.host, port=args.port, roles=Path(args.roles) if args.roles else None,
+        sites=tuple(map(Path, args.site)), fields=tuple(map(Path, args.field)),
+        save_to=Path(args.save_to), viewpoint_name=args.name, start=start,
+    )  # fmt: skip
+    if args.host not in ("127.0.0.1", "localhost", "::1"):
+        log.warning("serving on %s: anyone who reaches it sees the case (no login)", args.host)
+    viewer = CaseViewer(Path(args.case), config)
+    print(f"egosurg view: {args.case} at {viewer.url} (Ctrl-C to stop)", flush=True)
+    try:
+        viewer.wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.close()
+    return 0

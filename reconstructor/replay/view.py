@@ -1,0 +1,353 @@
+"""``egosurg view``: a case in the browser, through viser (a maintained web viewer that draws
+Gaussian splats with WebGL; nerfstudio's viewer is built on it).
+
+The page has a time slider and a play button (each step shows the case's next done timestamp),
+the role cameras at the shown time (drawn as frustums; pick one to look through it), the site's
+target and field boxes, and "Save viewpoint", which adds the browser's current camera at the
+shown time to a trajectory file that ``egosurg replay --trajectory`` reads.
+
+Security: the server binds 127.0.0.1 unless told otherwise (viser has no login: whoever reaches
+the port sees the case), and viser's "share" feature, which would tunnel the page through a
+public relay, is switched off in the page and refused by the server.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import threading
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from protocol.errors import UserError
+from protocol.site import SiteBox, read_site
+from protocol.trajectory import Keyframe, Trajectory, read_trajectories
+from reconstructor.case.index import Entry
+from reconstructor.errors import ReconstructError
+from reconstructor.replay.models import CaseModels
+from reconstructor.replay.path import CameraPath
+from reconstructor.replay.view_scene import (
+    VIEWER_UNIT_M,
+    ViserCamera,
+    box_wxyz,
+    check_viewpoint_file,
+    hfov_deg,
+    in_viewer_units,
+    pose_from_viser,
+    save_viewpoint,
+    splat_arrays,
+    viser_camera,
+)
+
+log = logging.getLogger(__name__)
+
+ROLE_COLOUR = (40, 110, 220)
+TARGET_COLOUR = (250, 170, 20)
+FIELD_COLOUR = (220, 30, 30)
+
+
+class ViewerError(ReconstructError, ValueError):
+    """The viewer cannot start: the message says what to do."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class ViewConfig:
+    host: str = "127.0.0.1"  # loopback only: anything else shows the case to the network
+    port: int = 8080  # 0: any free port
+    roles: Path | None = None  # a roles TOML (egosurg sim roles)
+    sites: tuple[Path, ...] = ()  # site files: target boxes (monitors)
+    fields: tuple[Path, ...] = ()  # site files: sterile field boxes
+    save_to: Path = Path("viewpoints.toml")
+    viewpoint_name: str = "viewer"  # the trajectory "Save viewpoint" adds to
+    start: Keyframe | None = None  # the page's first camera (default: the first role's)
+    start_aspect: float = 1.6  # width / height the start camera's horizontal fov is for
+    play_speed: float = 1.0  # case seconds per second when playing
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.port <= 65535:
+            raise ViewerError(f"--port {self.port}: give 1 to 65535 (0: any free port)")
+        if not 0.01 <= self.play_speed <= 100:
+            raise ViewerError(f"play speed {self.play_speed}: give 0.01 to 100")
+        if not self.viewpoint_name.replace("-", "").replace("_", "").isalnum():
+            raise ViewerError(
+                f"viewpoint name {self.viewpoint_name!r}: use letters, digits, '-' or '_'"
+            )
+
+
+def _import_viser() -> Any:
+    try:
+        import viser
+    except ImportError:
+        raise ViewerError(
+            "egosurg view needs the viser web viewer: pip install 'egosurg[view]'"
+        ) from None
+    return viser
+
+
+def _check_port_free(host: str, port: int) -> None:
+    """Viser quietly moves to the next port when one is taken; a user who typed --port must get
+    that port or a clear refusal."""
+    if port == 0:
+        return
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            raise ViewerError(
+                f"port {port} on {host} is in use or not allowed ({exc.strerror}): stop the "
+                "other server or pick another with --port"
+            ) from None
+
+
+class CaseViewer:
+    """A case served to the browser; starts in the constructor, ``close()`` stops it."""
+
+    def __init__(self, folder: Path | str, config: ViewConfig | None = None) -> None:
+        self.config = config = config or ViewConfig()
+        self.models = CaseModels(folder)
+        self.roles = self._read_roles(config.roles)
+        self.boxes = [(b, TARGET_COLOUR) for p in config.sites for b in read_site(p).values()]
+        self.boxes += [(b, FIELD_COLOUR) for p in config.fields for b in read_site(p).values()]
+        check_viewpoint_file(config.save_to)
+        viser = _import_viser()
+        _check_port_free(config.host, config.port)
+        first = self.models.load(self.models.entries[0])  # a damaged case fails before serving
+        self._lock = threading.RLock()
+        self._cache: dict[str, dict[str, np.ndarray]] = {}
+        self._loader = ThreadPoolExecutor(1, thread_name_prefix="view-preload")
+        self._ahead: dict[str, Future[dict[str, np.ndarray]]] = {}
+        self._play = threading.Event()
+        self._closed = threading.Event()
+        self.index = -1
+        self.splats: Any = None
+        self.frustums: dict[str, Any] = {}  # role -> its frustum in the scene
+        self.box_nodes: dict[str, Any] = {}  # site box -> its wireframe
+        self._player = threading.Thread(target=self._play_loop, name="view-play", daemon=True)
+
+        class LocalServer(viser.ViserServer):
+            def request_share_url(self, verbose: bool = True) -> str | None:
+                log.warning("refused a request to share the case through a public relay")
+                return None
+
+        self.server = LocalServer(host=config.host, port=config.port, verbose=False)
+        try:
+            self._start(first)
+        except BaseException:
+            self.close()
+            raise
+
+    def _start(self, first: Any) -> None:
+        config = self.config
+        if config.port and self.server.get_port() != config.port:
+            taken = self.server.get_port()
+            raise ViewerError(
+                f"port {config.port} on {config.host} is in use (viser took {taken}): stop the "
+                "other server or pick another with --port"
+            )
+        self.server.gui.configure_theme(show_share_button=False, show_logo=False)
+        self.server.scene.set_up_direction("+z")
+        self._cache[self.models.entries[0].name] = in_viewer_units(splat_arrays(first))
+        self._build_gui()
+        self._draw_boxes()
+        self._set_start_camera()
+        self.show(0)
+        self._player.start()
+
+    @property
+    def url(self) -> str:
+        host = self.config.host
+        return f"http://{f'[{host}]' if ':' in host else host}:{self.server.get_port()}/"
+
+    @property
+    def entry(self) -> Entry:
+        return self.models.entries[self.index]
+
+    # --- time -----------------------------------------------------------------------------
+    def show(self, index: int) -> None:
+        """Show the case's ``index``-th done timestamp (and the roles at its time)."""
+        entries = self.models.entries
+        index = int(np.clip(index, 0, len(entries) - 1))
+        with self._lock:
+            if index == self.index:
+                return
+            entry = entries[index]
+            try:
+                arrays = self._arrays(entry)
+            except UserError as exc:  # a damaged model: say so, keep showing the last one
+                log.error("%s", exc)
+                self.server.add_notification("Cannot show this model", str(exc), color="red")
+                return
+            self.splats = self.server.scene.add_gaussian_splats(
+                "/case/splats", **arrays, scale=VIEWER_UNIT_M
+            )
+            self.index = index
+            self.time_text.content = (
+                f"**{entry.t_s:.3f} s** of the case (model {entry.name}, {index + 1} of "
+                f"{len(entries)}, {arrays['centers'].shape[0]:,} Gaussians)"
+            )
+            if self.slider.value != index:
+                self.slider.value = index
+            self._draw_roles(entry.t_s)
+            self._preload(index + 1)
+
+    def _arrays(self, entry: Entry) -> dict[str, np.ndarray]:
+        if entry.name in self._cache:
+            return self._cache[entry.name]
+        fut = self._ahead.pop(entry.name, None)
+        arrays = fut.result() if fut is not None else self._convert(entry)
+        self._cache = {entry.name: arrays}  # one model kept besides the one read ahead
+        return arrays
+
+    def _convert(self, entry: Entry) -> dict[str, np.ndarray]:
+        return in_viewer_units(splat_arrays(self.models.load(entry)))
+
+    def _preload(self, index: int) -> None:
+        entries = self.models.entries
+        if index >= len(entries) or entries[index].name in self._ahead:
+            return
+        for fut in self._ahead.values():
+            fut.cancel()
+        self._ahead = {entries[index].name: self._loader.submit(self._convert, entries[index])}
+
+    def _play_loop(self) -> None:
+        times = self.models.times_s
+        while not self._closed.is_set():
+            if not self._play.wait(timeout=0.5):
+                continue
+            k = self.index
+            if k + 1 >= len(times):
+                self._set_playing(False)
+                continue
+            dt = (times[k + 1] - times[k]) / self.config.play_speed
+            if self._closed.wait(timeout=float(np.clip(dt, 0.05, 5.0))):
+                return
+            if self._play.is_set():
+                self.show(k + 1)
+
+    def _set_playing(self, on: bool) -> None:
+        if on and self.index + 1 >= len(self.models.entries):
+            self.show(0)  # play from the start after the end
+        (self._play.set if on else self._play.clear)()
+        self.play_button.label = "Pause" if on else "Play"
+
+    # --- page -----------------------------------------------------------------------------
+    def _build_gui(self) -> None:
+        gui, n = self.server.gui, len(self.models.entries)
+        self.time_text = gui.add_markdown("")
+        self.slider = gui.add_slider(
+            "Timestamp", min=0, max=max(n - 1, 1), step=1, initial_value=0, disabled=n < 2
+        )
+        self.slider.on_update(lambda _: self.show(int(self.slider.value)))
+        self.play_button = gui.add_button("Play", disabled=n < 2)
+        self.play_button.on_click(lambda _: self._set_playing(not self._play.is_set()))
+        if self.roles:
+            self.role_menu = gui.add_dropdown("Role", tuple(self.roles))
+            go = gui.add_button("Look through role")
+            go.on_click(lambda event: self.look_through(self.role_menu.value, event.client))
+        save = gui.add_button("Save viewpoint", hint=f"adds it to {self.config.save_to}")
+        save.on_click(lambda event: event.client and self.save_from_client(event.client))
+
+    def _draw_boxes(self) -> None:
+        for box, colour in self.boxes:
+            self._draw_box(box, colour)
+
+    def _draw_box(self, box: SiteBox, colour: tuple[int, int, int]) -> None:
+        scene = self.server.scene
+        self.box_nodes[box.name] = scene.add_box(
+            f"/boxes/{box.name}", color=colour, dimensions=box.size_m, wireframe=True,
+            wxyz=box_wxyz(box), position=box.centre_m,
+        )  # fmt: skip
+        top = np.add(box.centre_m, (0.0, 0.0, box.size_m[2] / 2 + 0.05))
+        scene.add_label(f"/boxes/{box.name}/label", box.name, position=top - box.centre_m)
+
+    def _read_roles(self, path: Path | None) -> dict[str, CameraPath]:
+        if path is None:
+            return {}
+        return {t.name: CameraPath(t) for t in read_trajectories(path)}
+
+    def _role_camera(self, name: str, t_s: float) -> tuple[ViserCamera, float]:
+        path = self.roles[name]
+        t = float(np.clip(t_s, *path.span_s))  # before or after its keyframes: the nearest
+        aspect = self.config.start_aspect
+        return viser_camera(path.pose(t), path.fov_deg(t), aspect), aspect
+
+    def _draw_roles(self, t_s: float) -> None:
+        for name in self.roles:
+            cam, aspect = self._role_camera(name, t_s)
+            frustum = self.server.scene.add_camera_frustum(
+                f"/roles/{name}", fov=cam.fov_rad, aspect=aspect, scale=0.15,
+                color=ROLE_COLOUR, wxyz=cam.wxyz, position=cam.position,
+            )  # fmt: skip
+            frustum.on_click(lambda event, name=name: self.look_through(name, event.client))
+            self.frustums[name] = frustum
+            self.server.scene.add_label(f"/roles/{name}/label", name)
+
+    def _set_start_camera(self) -> None:
+        start = self.config.start
+        if start is not None:
+            cam = viser_camera(start.pose(), start.fov_deg, self.config.start_aspect)
+        elif self.roles:
+            cam, _ = self._role_camera(next(iter(self.roles)), float(self.models.times_s[0]))
+        else:
+            return
+        initial = self.server.initial_camera
+        initial.position, initial.look_at = cam.position, cam.look_at
+        initial.up, initial.fov = cam.up, cam.fov_rad
+
+    def look_through(self, role: str, client: Any = None) -> None:
+        """Put one browser's camera (every browser's without ``client``) on a role's eye."""
+        cam, _ = self._role_camera(role, self.entry.t_s)
+        clients = [client] if client is not None else list(self.server.get_clients().values())
+        for c in clients:
+            with c.atomic():
+                c.camera.position = cam.position
+                c.camera.look_at = cam.look_at
+                c.camera.up_direction = cam.up
+                c.camera.fov = cam.fov_rad
+
+    # --- viewpoints -------------------------------------------------------------------------
+    def client_keyframe(self, client: Any) -> Keyframe:
+        """A browser's current camera at the shown time, as a trajectory keyframe."""
+        cam = client.camera
+        pose = pose_from_viser(cam.wxyz, cam.position)
+        return Keyframe.from_pose(self.entry.t_s, pose, hfov_deg(cam.fov, cam.aspect))
+
+    def save(self, keyframe: Keyframe) -> Trajectory:
+        with self._lock:
+            return save_viewpoint(self.config.save_to, self.config.viewpoint_name, keyframe)
+
+    def save_from_client(self, client: Any) -> Keyframe:
+        """What "Save viewpoint" does: that browser's camera, at the shown time, into the file."""
+        key = self.client_keyframe(client)
+        self.save(key)
+        log.info("saved the viewpoint at %.3f s to %s", key.time_s, self.config.save_to)
+        client.add_notification(
+            "Viewpoint saved",
+            f"{self.config.viewpoint_name} at {key.time_s:.3f} s in {self.config.save_to}",
+            auto_close_seconds=4.0,
+        )
+        return key
+
+    def wait(self, timeout_s: float | None = None) -> bool:
+        """Block until closed (or ``timeout_s``); True when closed."""
+        return self._closed.wait(timeout_s)
+
+    def close(self) -> None:
+        if self._closed.is_set():
+            return
+        self._closed.set()
+        self._play.clear()
+        self._loader.shutdown(wait=False, cancel_futures=True)
+        self.server.stop()
+        if self._player.is_alive():
+            self._player.join(timeout=5.0)
+
+    def __enter__(self) -> CaseViewer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
