@@ -321,6 +321,8 @@ class SimRig:
         ctx: zmq.Context = zmq.Context.instance()
         sock = self.files.control_socket(ctx)
         sock.setsockopt(zmq.RCVTIMEO, int(timeout_s * 1000))
+        # a REQ socket's send waits for a connection; one whose handshake fails never comes
+        sock.setsockopt(zmq.SNDTIMEO, int(timeout_s * 1000))
         try:
             sock.connect(self.files.recorder_url)
             sock.send(ControlRequest(verb=verb, args=args).to_bytes())

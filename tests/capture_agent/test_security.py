@@ -124,6 +124,9 @@ def _request(endpoint: str, server_key: bytes, key_file: Path | None) -> Control
     sock = zmq.Context.instance().socket(zmq.REQ)
     sock.setsockopt(zmq.LINGER, 0)
     sock.setsockopt(zmq.RCVTIMEO, 1500)
+    # a REQ send waits for a connection: once the refused handshake has dropped it, there is
+    # none (seen hanging a loaded CI run for 600 s), so the send is bounded too
+    sock.setsockopt(zmq.SNDTIMEO, 1500)
     if key_file is not None:
         sock.curve_publickey, sock.curve_secretkey = zmq.auth.load_certificate(key_file)
         sock.curve_serverkey = server_key
