@@ -173,8 +173,18 @@ def test_the_render_command_on_cuda_draws_what_the_cpu_draws(tmp_path) -> None:
 
 
 # ---- where there is no CUDA (CI) ----------------------------------------------------------------
+def _egosurg_here(capsys, *args: str) -> tuple[int, str]:
+    """The real dispatcher (protocol/cli.py) in this process: (exit code, stderr); torch is
+    loaded once, not per command."""
+    from protocol.cli import main
+
+    capsys.readouterr()
+    code = main(list(args))
+    return code, capsys.readouterr().err
+
+
 @cpu_only
-def test_device_cuda_without_a_gpu_is_one_clear_line(tmp_path) -> None:
+def test_device_cuda_without_a_gpu_is_one_clear_line(tmp_path, capsys) -> None:
     """``--device cuda`` on a machine without CUDA says so, and how to install the extra, in
     one line: no traceback from deep inside gsplat."""
     from reconstructor.splats import ply
@@ -183,25 +193,25 @@ def test_device_cuda_without_a_gpu_is_one_clear_line(tmp_path) -> None:
     model = tmp_path / "splats.ply"
     ply.write_ply(model, init_from_points(np.random.default_rng(0).random((20, 3)),
                                           np.full((20, 3), 0.5)))  # fmt: skip
-    done = run_egosurg(
-        "render", str(model), "--camera", "eye=2,2,2 target=0,0,0", "--out",
-        str(tmp_path / "v.png"), "--device", "cuda", timeout=120,
+    code, err = _egosurg_here(
+        capsys, "render", str(model), "--camera", "eye=2,2,2 target=0,0,0", "--out",
+        str(tmp_path / "v.png"), "--device", "cuda",
     )  # fmt: skip
-    assert done.returncode == 2, done.stderr
-    lines = done.stderr.strip().splitlines()
-    assert len(lines) == 1 and "Traceback" not in done.stderr, done.stderr
+    assert code == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
     assert "--device cuda" in lines[0] and "egosurg[gpu]" in lines[0]
     assert not (tmp_path / "v.png").exists()
 
 
 @cpu_only
-def test_evaluate_on_cuda_without_a_gpu_stops_before_reading_anything(tmp_path) -> None:
-    done = run_egosurg(
-        "evaluate", str(tmp_path / "none"), "--out", str(tmp_path / "eval"),
-        "--device", "cuda", timeout=120,
+def test_evaluate_on_cuda_without_a_gpu_stops_before_reading_anything(tmp_path, capsys) -> None:
+    code, err = _egosurg_here(
+        capsys, "evaluate", str(tmp_path / "none"), "--out", str(tmp_path / "eval"),
+        "--device", "cuda",
     )  # fmt: skip
-    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
-    assert "--device cuda" in done.stderr and len(done.stderr.strip().splitlines()) == 1
+    assert code == 2 and "Traceback" not in err, err
+    assert "--device cuda" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "eval").exists()
 
 
