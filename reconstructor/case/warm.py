@@ -102,7 +102,9 @@ def warm_seed(
     added = 0
     parts = [kept]
     if len(points) and kept.num:
-        dist, _ = cKDTree(means[~gone]).query(points, k=1)
+        # sliding-midpoint splits (scipy#5564): the median build segfaulted on a warm model's
+        # positions, which compact storage keeps on a 0.24 mm grid, so many share a coordinate
+        dist, _ = cKDTree(means[~gone], balanced_tree=False).query(points, k=1)
         new = dist > cfg.new_point_distance_m
     else:
         new = np.ones(len(points), dtype=bool)

@@ -83,7 +83,9 @@ def point_spacing_m(points_m: np.ndarray, *, sample: int = 20_000, seed: int = 0
         return 0.0
     rng = np.random.default_rng(seed)
     query = pts if len(pts) <= sample else pts[rng.choice(len(pts), sample, replace=False)]
-    dist, _ = cKDTree(pts).query(query, k=2)
+    # sliding-midpoint splits: the median build can recurse without end on points sharing a
+    # coordinate (scipy#5564; see gaussians.nearest_neighbour_scale)
+    dist, _ = cKDTree(pts, balanced_tree=False).query(query, k=2)
     return float(np.median(dist[:, 1]))
 
 
