@@ -21,7 +21,7 @@ import torch
 
 from protocol.rig_calibration import RigCalibration
 from reconstructor.case import storage
-from reconstructor.case.cli import warm_config
+from reconstructor.case.warm import warm_config
 from reconstructor.case.index import checksum_file
 from reconstructor.case.warm import WarmStartConfig, in_free_space, warm_seed
 from reconstructor.config import ReconstructConfig

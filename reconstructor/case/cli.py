@@ -29,15 +29,8 @@ from reconstructor.case.plan import (
     session_times,
 )
 from reconstructor.case.runner import CaseRequest, run_case
-from reconstructor.case.warm import WarmStartConfig
+from reconstructor.case.warm import WarmStartConfig, warm_config
 from reconstructor.config import ReconstructConfig
-
-
-def warm_config(config: ReconstructConfig, warm: WarmStartConfig) -> ReconstructConfig:
-    """A warm timestamp's settings: ``warm.steps`` on the input views, no auxiliary views."""
-    train = dataclasses.replace(config.train, warmup_steps=warm.steps, refine_steps=0)
-    aux = dataclasses.replace(config.auxiliary, enabled=False)
-    return dataclasses.replace(config, train=train, auxiliary=aux)
 
 
 def reconstruct_case(

@@ -10,6 +10,7 @@ as Dynamic 3D Gaussians (Luiten et al.) and 3DGStream do for later frames.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -18,6 +19,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import Timestamp
 from reconstructor.depth.stereo import DepthMap
 from reconstructor.errors import ReconstructConfigError
@@ -126,3 +128,11 @@ def warm_seed(
     counts = {"kept": kept.num, "dropped": int(gone.sum()), "added": added}
     log.info("warm start: kept %(kept)d, dropped %(dropped)d, added %(added)d Gaussians", counts)
     return merged, counts
+
+
+def warm_config(config: ReconstructConfig, warm: WarmStartConfig) -> ReconstructConfig:
+    """A warm timestamp's settings: ``warm.steps`` on the input views, no auxiliary views
+    (the case's warm timestamps and the evaluation's warm row use this one definition)."""
+    train = dataclasses.replace(config.train, warmup_steps=warm.steps, refine_steps=0)
+    aux = dataclasses.replace(config.auxiliary, enabled=False)
+    return dataclasses.replace(config, train=train, auxiliary=aux)

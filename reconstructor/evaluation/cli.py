@@ -35,8 +35,10 @@ import time
 from pathlib import Path
 
 from protocol.eval_set import EvalSet
+from reconstructor.case.warm import WarmStartConfig
 from reconstructor.evaluation.methods import (
     METHODS,
+    PAPER_ORDER,
     PROTOCOLS,
     EvalSettings,
     EvaluationArgumentError,
@@ -81,7 +83,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="one or more (default near-field)",
     )
     p.add_argument(
-        "--methods", nargs="+", default=list(METHODS), help=f"any of {', '.join(METHODS)} (all)"
+        "--methods",
+        nargs="+",
+        default=list(PAPER_ORDER),
+        help=f"any of {', '.join(METHODS)} (default: the paper's {', '.join(PAPER_ORDER)})",
+    )
+    p.add_argument(
+        "--warm-steps",
+        type=int,
+        default=WarmStartConfig.steps,
+        help="egosurg-warm: training steps of each later frame (default %(default)s)",
     )
     p.add_argument("--scenes", nargs="+", default=[], help="the set's scenes to use (all)")
     p.add_argument("--phases", nargs="+", default=[], help="use the scenes of these phases (all)")
@@ -110,6 +121,7 @@ def settings_from_args(args: argparse.Namespace) -> EvalSettings:
         eval_set=args.eval_set,
         protocols=protocols,
         methods=ordered,
+        warm_steps=args.warm_steps,
         scenes=_names(args.scenes),
         phases=_names(args.phases),
         steps=args.steps,

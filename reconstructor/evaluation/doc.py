@@ -22,6 +22,8 @@ from protocol.eval_set import SIM_COMMAND_MARK, EvalSet
 from reconstructor.evaluation.lpips import NO_WEIGHTS
 from reconstructor.evaluation.methods import PAPER_ORDER, PROTOCOLS
 from reconstructor.evaluation.tables import (
+    FIDELITY,
+    FIDELITY_TITLE,
     HIGHER_IS_BETTER,
     IMAGE_METRICS,
     TEMPORAL_METRICS,
@@ -30,6 +32,7 @@ from reconstructor.evaluation.tables import (
     count_label,
     fmt,
     holes_note,
+    markdown_table,
     mean_seconds,
     method_label,
     summary_rows,
@@ -144,12 +147,13 @@ def _method_table(results: EvalResults, protocol: str, paper: dict, metrics) -> 
 
 
 def _phase_table(results: EvalResults) -> list[str]:
-    headline = results.settings.methods[-1]
+    # the last of the paper's methods run (a warm-start row is beside them, not one of them)
+    headline = [m for m in results.settings.methods if m in PAPER_ORDER][-1]
     rows = {
         r.phase: r for r in summary_rows(results, "phases", by_phase=True) if r.method == headline
     }
     out = [
-        f"Method: {method_label(results, headline)} (the last of --methods).",
+        f"Method: {method_label(results, headline)} (the last of the paper's --methods).",
         "",
         "| Condition (paper) | phase | PSNR ↑ | SSIM ↑ | LPIPS ↓ | scenes | paper PSNR "
         "| paper SSIM | paper LPIPS |",
@@ -236,7 +240,13 @@ def write_evaluation_doc(results: EvalResults, eval_set: EvalSet, path: Path, co
         (
             "temporal",
             "Table 3B: temporal stability",
-            lambda: _method_table(results, "temporal", PAPER_TEMPORAL, TEMPORAL_METRICS),
+            lambda: [
+                *_method_table(results, "temporal", PAPER_TEMPORAL, TEMPORAL_METRICS),
+                "",
+                FIDELITY_TITLE,
+                "",
+                markdown_table(results, FIDELITY),
+            ],
         ),
         (
             "egocentric",

@@ -9,7 +9,12 @@ Methods (``--methods`` keys), each a switch of ``ReconstructConfig`` (see config
 - ``image-only``: "image-only 3DGS": ``init_method = "random"``, no auxiliary views;
 - ``no-refinement``: "EgoSurg w/o refinement" (the paper's "w/o diffusion"): depth init,
   ``auxiliary.enabled = false``;
-- ``egosurg``: the full method: depth init and auxiliary views refined by ``--refiner``.
+- ``egosurg``: the full method: depth init and auxiliary views refined by ``--refiner``;
+- ``egosurg-warm`` (not one of the paper's rows; temporal protocol only): a case's warm start
+  (``reconstructor/case/warm.py``, issue 20). A sequence's first frame is EgoSurg's cold model;
+  each later frame starts from the previous frame's warm model, drops what the new stereo depth
+  shows to be gone, seeds what is new and trains ``--warm-steps`` on the input views, as
+  ``egosurg reconstruct --every ... --warm-start`` does.
 
 ``--steps`` is the total schedule, split 25 % warm-up and 75 % refinement like the paper's
 500 + 1500.
@@ -26,13 +31,15 @@ import numpy as np
 import torch
 
 from protocol.camera import Pose
+from reconstructor.case.warm import WarmStartConfig
 from reconstructor.config import ReconstructConfig, apply_overrides
 from reconstructor.data.views import View
 from reconstructor.depth.stereo import DepthMap
 from reconstructor.errors import ReconstructError
 from reconstructor.evaluation.baselines import reproject_depth_maps
-from reconstructor.pipeline import Reconstruction
+from reconstructor.raster.config import RasterConfig
 from reconstructor.raster.device import for_device
+from reconstructor.splats.gaussians import Gaussians
 from reconstructor.splats.train import render
 
 
@@ -45,6 +52,7 @@ class Method:
     key: str  # the ``--methods`` name
     label: str  # the paper's row name
     overrides: dict[str, Any] | None  # config changes; None: no training (depth reprojection)
+    warm: bool = False  # frames after a sequence's first start from the previous frame's model
 
     @property
     def trained(self) -> bool:
@@ -70,9 +78,16 @@ METHODS: dict[str, Method] = {
             {"init_method": "depth", "auxiliary": {"enabled": False}},
         ),
         Method("egosurg", "EgoSurg", {"init_method": "depth", "auxiliary": {"enabled": True}}),
+        Method(
+            "egosurg-warm",
+            "EgoSurg (warm start)",
+            {"init_method": "depth", "auxiliary": {"enabled": True}},
+            warm=True,
+        ),
     )
 }
-PAPER_ORDER = tuple(METHODS)  # worst to best, as the paper reports them
+# worst to best, as the paper reports them; the default ``--methods``
+PAPER_ORDER = ("depth-reprojection", "image-only", "no-refinement", "egosurg")
 ProtocolName = Literal["near-field", "egocentric", "temporal", "phases"]
 PROTOCOLS: tuple[ProtocolName, ...] = typing.get_args(ProtocolName)
 
@@ -89,6 +104,7 @@ class EvalSettings:
     eval_set_description: str = ""  # its manifest's description: how it was made
     protocols: tuple[ProtocolName, ...] = ("near-field",)
     methods: tuple[str, ...] = PAPER_ORDER
+    warm_steps: int = WarmStartConfig.steps  # training steps of a warm frame (egosurg-warm)
     scenes: tuple[str, ...] = ()  # scene names to use; () = every scene of the set
     phases: tuple[str, ...] = ()  # phases to use; () = every phase
     steps: int = 2000
@@ -113,6 +129,10 @@ class EvalSettings:
                 raise bad("--methods", m, f"choose from {', '.join(METHODS)}")
         if self.steps < 1:
             raise bad("--steps", self.steps, "must be at least 1 (the paper uses 2000)")
+        if self.warm_steps < 1:
+            raise bad("--warm-steps", self.warm_steps, "must be at least 1 (3DGStream: 250)")
+        if self.has_warm and "temporal" not in self.protocols:
+            raise bad("--methods", "egosurg-warm", "continues a sequence: add --protocol temporal")
         if self.train_width_px < 64:
             raise bad("--train-width", self.train_width_px, "must be at least 64 px")
 
@@ -126,11 +146,17 @@ class EvalSettings:
 
     @property
     def uses_refiner(self) -> bool:
-        return "egosurg" in self.methods
+        return "egosurg" in self.methods or self.has_warm
+
+    @property
+    def has_warm(self) -> bool:
+        return any(METHODS[m].warm for m in self.methods if m in METHODS)
 
     def label(self, key: str) -> str:
         if key == "egosurg":
             return f"EgoSurg ({self.refiner} refiner)"
+        if METHODS[key].warm:
+            return f"EgoSurg, warm start ({self.warm_steps} steps per later frame)"
         return METHODS[key].label
 
     def describe(self) -> str:
@@ -149,6 +175,7 @@ class EvalSettings:
             f"evaluation set {self.eval_set or '?'} ({which}), LPIPS weights {lpips}, "
             f"base config {self.config or 'the defaults'}"
             + (f", device {self.device}" if self.device else "")
+            + (f", warm start {self.warm_steps} steps" if self.has_warm else "")
         )
 
     def as_dict(self) -> dict[str, Any]:
@@ -181,14 +208,15 @@ def method_config(
     return cfg
 
 
-def render_splats(recon: Reconstruction, view: View, near_m: float = 0.0) -> np.ndarray:
+def render_splats(
+    gaussians: Gaussians, raster: RasterConfig, view: View, near_m: float = 0.0
+) -> np.ndarray:
     """(H, W, 3) float32 in [0, 1]: the model seen from ``view`` over black, leaving out what
     is nearer than ``near_m`` (or the model's own near plane, whichever is further)."""
-    raster = recon.config.raster
     if near_m > raster.near_m:
         raster = dataclasses.replace(raster, near_m=near_m)
     with torch.no_grad():
-        out = render(recon.gaussians, view, raster)
+        out = render(gaussians, view, raster)
     return out.image.clamp(0, 1).numpy()
 
 

@@ -2,6 +2,11 @@
 reconstruct it once per method, render every target the protocols asked for, score the
 renders, and keep temporal frames for later.
 
+The warm-start row (``egosurg-warm``) carries a model from one frame of a temporal sequence to
+the next: the sequence's first frame reuses EgoSurg's cold model of the same run (or trains it,
+if EgoSurg is not among the methods); each later frame is warm-started from the row's model of
+the frame before (``reconstructor/case/warm.py``), so its time is the warm timestamp's alone.
+
 Progress: one log line per reconstruction with its time, the elapsed time and an ETA from the
 mean time per reconstruction so far (the first timestamp also pays for compiling kernels, so
 the first ETA is pessimistic).
@@ -19,6 +24,8 @@ import numpy as np
 from protocol.eval_set import EvalScene, EvalSet, ReferenceView
 from protocol.rig_calibration import RigCalibration
 from protocol.session import SessionReader
+from reconstructor.case.warm import WarmStartConfig, warm_config, warm_seed
+from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import Timestamp, check_calibration, load_timestamp
 from reconstructor.data.views import EYE_NEAR_M, View, novel_view
 from reconstructor.evaluation.baselines import hole_fraction
@@ -33,6 +40,7 @@ from reconstructor.evaluation.methods import (
 from reconstructor.evaluation.metrics import psnr, ssim_value
 from reconstructor.evaluation.plan import Job
 from reconstructor.evaluation.tables import (
+    FIDELITY,
     RECORDED,
     EvalResults,
     ImageScore,
@@ -42,6 +50,7 @@ from reconstructor.evaluation.tables import (
 )
 from reconstructor.evaluation.temporal import temporal_scores
 from reconstructor.pipeline import make_views, reconstruct, stereo_clouds
+from reconstructor.splats.gaussians import Gaussians
 
 log = logging.getLogger(__name__)
 
@@ -134,6 +143,8 @@ class JobRunner:
         # (sequence, camera, method) -> frame index -> uint8 render
         self.frames: dict[tuple[str, str, str], dict[int, np.ndarray]] = {}
         self.sequence_phase: dict[str, str] = {}
+        # sequence -> (frame, model): the warm row's chain, its last frame's Gaussians
+        self.warm_chain: dict[str, tuple[int, Gaussians]] = {}
 
     def _tick(self, what: str, job: Job, seconds: float) -> None:
         self.done += 1
@@ -175,18 +186,32 @@ class JobRunner:
         renders: dict[str, list[np.ndarray]] = {}
         self._holes: dict[str, list[np.ndarray]] = {}  # per method that leaves holes, per target
         depth_maps = None
-        for key in (m for m in s.methods if METHODS[m].trained):
+        cold_models: dict[str, Gaussians] = {}  # EgoSurg's model, if the warm row starts from it
+        trained = [m for m in s.methods if METHODS[m].trained]
+        for key in sorted(trained, key=lambda m: METHODS[m].warm):  # the warm row last
             t0 = time.perf_counter()
             cfg = method_config(s, key, job.train_views, bounds)
             self._save_config(
                 f"{key}-{job.train_views}", cfg.resolved(ts.resolution.width).to_toml()
             )
+            if METHODS[key].warm:
+                renders[key], what = self._warm_frame(job, ts, calibration, cfg, cold_models,
+                                                      targets, near)  # fmt: skip
+                if what == "warm":
+                    self.results.recon_seconds.setdefault(key, []).append(time.perf_counter() - t0)
+                self._tick(f"{key} ({what})", job, time.perf_counter() - t0)
+                continue
             recon = reconstruct(ts, cfg, calibration=calibration)
-            renders[key] = [render_splats(recon, v, n) for v, n in zip(targets, near, strict=True)]
+            renders[key] = [
+                render_splats(recon.gaussians, cfg.raster, v, n)
+                for v, n in zip(targets, near, strict=True)
+            ]
             if METHODS[key].depth_init and depth_maps is None:
                 depth_maps = recon.depth
             if key == "egosurg":
                 self.results.refiner = str(recon.auxiliary.get("refiner", s.refiner))
+                if s.has_warm:
+                    cold_models[key] = recon.gaussians
             del recon
             seconds = time.perf_counter() - t0
             self.results.recon_seconds.setdefault(key, []).append(seconds)
@@ -206,6 +231,41 @@ class JobRunner:
         methods = [m for m in s.methods if m in renders]
         self._score_held_out(job, held_out, methods, renders)
         self._score_ego(job, len(held_out), methods, renders)
+
+    def _warm_frame(
+        self,
+        job: Job,
+        ts: Timestamp,
+        calibration: RigCalibration,
+        cfg: ReconstructConfig,
+        cold_models: dict[str, Gaussians],
+        targets: list[View],
+        near: list[float],
+    ) -> tuple[list[np.ndarray], str]:
+        """The warm row's renders of this job, and how its model was made ("warm", "cold" or
+        "EgoSurg's cold model"). A frame whose previous frame has a warm model starts from it."""
+        sequence, frame = job.temporal[0] if job.temporal else ("", 0)
+        previous = self.warm_chain.get(sequence)
+        if frame > 0 and previous is not None and previous[0] == frame - 1:
+            warm = WarmStartConfig(steps=self.settings.warm_steps)
+            start = previous[1]
+
+            def init(ts_, fused, depths):
+                return warm_seed(start, ts_, fused, depths, warm, cfg.init)[0]
+
+            recon = reconstruct(ts, warm_config(cfg, warm), calibration=calibration, init=init)
+            gaussians, what = recon.gaussians, "warm"
+            del recon
+        elif "egosurg" in cold_models:
+            gaussians, what = cold_models["egosurg"], "EgoSurg's cold model"
+        else:
+            gaussians, what = reconstruct(ts, cfg, calibration=calibration).gaussians, "cold"
+        if sequence:
+            self.warm_chain[sequence] = (frame, gaussians)
+        drawn = [
+            render_splats(gaussians, cfg.raster, v, n) for v, n in zip(targets, near, strict=True)
+        ]
+        return drawn, what
 
     def _scores(self, img: np.ndarray, truth: np.ndarray, mask: np.ndarray | None) -> tuple:
         lp = None if self.lpips is None else self.lpips.distance(img, truth, mask)
@@ -249,6 +309,22 @@ class JobRunner:
                 for protocol in job.held_out_protocols:
                     name = _file_name(f"{job.scene.label}_{view.name}")
                     side_by_side(self.out_dir / protocol / "png" / name, tiles)
+            if job.temporal:  # how close each frame is to the recording, beside its stability
+                for m in methods:
+                    p, q, lp = self._scores(renders[m][i], truth, mask)
+                    self.results.image_scores.append(
+                        ImageScore(
+                            FIDELITY,
+                            m,
+                            job.scene.phase,
+                            job.scene.label,
+                            view.name,
+                            p,
+                            q,
+                            lp,
+                            *self._hole_stats(m, i, renders[m][i], truth, mask),
+                        )
+                    )
             for sequence, k in job.temporal:
                 self.sequence_phase[sequence] = job.scene.phase
                 self.frames.setdefault((sequence, view.name, RECORDED), {})[k] = _u8(truth)

@@ -334,6 +334,57 @@ def test_evaluate_command_writes_tables_pictures_and_the_report(eval_set, tmp_pa
     assert "Not run in this evaluation (add `--protocol egocentric`" in report
 
 
+def test_the_warm_start_row_continues_each_frame_from_the_one_before(eval_set, tmp_path, caplog):
+    """Table 3B's warm-start row is a real warm chain: the first frame is EgoSurg's own cold
+    model (identical renders), each later frame starts from the previous frame's warm model
+    (the warm start's kept/dropped/added log, once per later frame) and is scored for stability
+    and against the recorded right images like the paper's rows."""
+    out, config = tmp_path / "warm", tmp_path / "quick.toml"
+    # stereo at a quarter size, no hole fill, two auxiliary views per camera: the mechanism,
+    # not the quality, is under test (a fifth of the default settings' time)
+    config.write_text(
+        "[stereo]\nmatch_scale = 0.25\n[fill]\nenabled = false\n"
+        "[fusion]\nmax_points = 20000\n[auxiliary]\nnum_views = 2\n"
+    )
+    args = [
+        "evaluate", str(eval_set.root), "--out", str(out), "--protocol", "temporal",
+        "--steps", "8", "--train-width", "96", "--methods", "egosurg", "egosurg-warm",
+        "--warm-steps", "3", "--refiner", "none", "--config", str(config),
+    ]  # fmt: skip
+    caplog.set_level("INFO")
+    assert egosurg(args) == 0
+    assert caplog.text.count("warm start: kept") == 2  # sets 1 and 2, not set 0
+    assert "egosurg-warm (EgoSurg's cold model) at intraoperative@set0" in caplog.text
+    with open(out / "temporal" / "scores.csv") as fh:
+        temporal = list(csv.DictReader(fh))
+    assert {r["method"] for r in temporal} == {"egosurg", "egosurg-warm", "recorded"}
+    assert all(int(r["pairs"]) == 2 for r in temporal)
+    with open(out / "temporal" / "fidelity_scores.csv") as fh:
+        fidelity = list(csv.DictReader(fh))
+    psnr = {(r["method"], r["scene"], r["view"]): float(r["psnr_db"]) for r in fidelity}
+    assert len(psnr) == 2 * 3 * 4  # two rows, three sets, four held-out right cameras
+    for (method, scene, view), value in psnr.items():
+        if method == "egosurg-warm":
+            cold = psnr[("egosurg", scene, view)]
+            assert (value == cold) == scene.endswith("@set0"), (scene, view, value, cold)
+    table = (out / "temporal" / "table.md").read_text()
+    assert "| EgoSurg, warm start (3 steps per later frame) |" in table
+    assert "against the recorded right images" in table
+
+
+@pytest.mark.parametrize(
+    ("extra", "words"),
+    [
+        (["--methods", "egosurg-warm"], ["egosurg-warm", "--protocol temporal"]),
+        (["--protocol", "temporal", "--warm-steps", "0"], ["--warm-steps 0"]),
+    ],
+)
+def test_a_warm_start_row_that_cannot_work_is_one_line(extra, words, eval_set, tmp_path, capsys):
+    assert egosurg(["evaluate", str(eval_set.root), "--out", str(tmp_path / "o"), *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and all(w in err for w in words), err
+
+
 @pytest.mark.slow  # the whole reconstruction chain
 def test_egocentric_scores_renders_against_the_set_s_reference_views(eval_set, tmp_path, capsys):
     out = tmp_path / "ego"
