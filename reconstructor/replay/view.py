@@ -8,7 +8,10 @@ shown time to a trajectory file that ``egosurg replay --trajectory`` reads.
 
 Security: the server binds 127.0.0.1 unless told otherwise (viser has no login: whoever reaches
 the port sees the case), and viser's "share" feature, which would tunnel the page through a
-public relay, is switched off in the page and refused by the server.
+public relay, is switched off in the page and refused by the server. A client that sends a
+message viser cannot read (garbage, a wrong field, a 50 MB blob: viser's own size limit) loses
+its connection; the server, the shown case and every other browser go on, and the log says so
+in one line instead of a traceback (``OneLineClientErrors``).
 """
 
 from __future__ import annotations
@@ -88,6 +91,23 @@ def _import_viser() -> Any:
     return viser
 
 
+class OneLineClientErrors(logging.Filter):
+    """websockets logs a client whose message broke viser's handler with the whole traceback
+    ("connection handler failed"); the viewer keeps serving, so one warning line says it."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.exc_info and record.getMessage() == "connection handler failed":
+            exc = record.exc_info[1]
+            record.msg = "viewer: closed a browser connection whose message viser cannot read (%s)"
+            record.args = (f"{type(exc).__name__}: {exc}"[:200],)
+            record.levelno, record.levelname = logging.WARNING, "WARNING"
+            record.exc_info, record.exc_text = None, None
+        return True
+
+
+_CLIENT_ERRORS = OneLineClientErrors()
+
+
 def _check_port_free(host: str, port: int) -> None:
     """Viser quietly moves to the next port when one is taken; a user who typed --port must get
     that port or a clear refusal."""
@@ -115,6 +135,7 @@ class CaseViewer:
         check_viewpoint_file(config.save_to)
         viser = _import_viser()
         _check_port_free(config.host, config.port)
+        logging.getLogger("websockets.server").addFilter(_CLIENT_ERRORS)  # once: a set
         first = self.models.load(self.models.entries[0])  # a damaged case fails before serving
         self._lock = threading.RLock()
         self._cache: dict[str, dict[str, np.ndarray]] = {}
@@ -300,6 +321,9 @@ class CaseViewer:
 
     def look_through(self, role: str, client: Any = None) -> None:
         """Put one browser's camera (every browser's without ``client``) on a role's eye."""
+        if role not in self.roles:  # the page offers only the case's roles: a forged message
+            log.warning("viewer: a browser asked for role %.80r, which the case has none of", role)
+            return
         cam, _ = self._role_camera(role, self.entry.t_s)
         clients = [client] if client is not None else list(self.server.get_clients().values())
         for c in clients:
@@ -320,9 +344,16 @@ class CaseViewer:
         with self._lock:
             return save_viewpoint(self.config.save_to, self.config.viewpoint_name, keyframe)
 
-    def save_from_client(self, client: Any) -> Keyframe:
-        """What "Save viewpoint" does: that browser's camera, at the shown time, into the file."""
-        key = self.client_keyframe(client)
+    def save_from_client(self, client: Any) -> Keyframe | None:
+        """What "Save viewpoint" does: that browser's camera, at the shown time, into the file.
+        A camera that is no camera (a forged message: not finite, a zero rotation, a field of
+        view outside 1-179 degrees) is refused and the file left as it was."""
+        try:
+            key = self.client_keyframe(client)
+        except (ValueError, ZeroDivisionError, np.linalg.LinAlgError) as exc:
+            log.warning("viewer: not saved: the browser's camera is not a valid view (%s)", exc)
+            client.add_notification("Viewpoint not saved", str(exc)[:200], color="red")
+            return None
         self.save(key)
         log.info("saved the viewpoint at %.3f s to %s", key.time_s, self.config.save_to)
         client.add_notification(

@@ -223,6 +223,113 @@ def test_saved_viewpoint_reads_back_as_a_trajectory(viewer, tmp_path):
     np.testing.assert_allclose(back.centre_m, EYE_M, atol=1e-5)
 
 
+class RawBrowser:
+    """A websocket client that speaks viser's handshake and then sends what it likes: the
+    hostile (or broken) browser the viewer must survive."""
+
+    def __init__(self, viewer) -> None:
+        from websockets.sync.client import connect
+
+        self.ws = connect(
+            f"ws://127.0.0.1:{viewer.server.get_port()}", max_size=None, open_timeout=10,
+            subprotocols=[f"viser-v{viser.__version__}"],
+        )  # fmt: skip
+
+    def received_bytes(self, seconds: float) -> int:
+        """Bytes the server sent in ``seconds``; stops early when it closes the connection."""
+        from websockets.exceptions import ConnectionClosed
+
+        total, end = 0, time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0:
+            try:
+                total += len(self.ws.recv(timeout=left))
+            except (TimeoutError, ConnectionClosed):
+                break
+        return total
+
+    def closed_by_server(self, seconds: float = 10.0) -> bool:
+        from websockets.exceptions import ConnectionClosed
+
+        end = time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0:
+            try:
+                self.ws.recv(timeout=left)
+            except ConnectionClosed:
+                return True
+            except TimeoutError:
+                return False
+        return False
+
+    def send(self, message: dict) -> None:
+        import msgspec
+
+        self.ws.send(msgspec.msgpack.encode(message))
+
+    def close(self) -> None:
+        self.ws.close()
+
+
+def gui_uuid(viewer, label: str) -> str:
+    """The id the page uses for a control (the page learns it from the GUI messages)."""
+    handles = viewer.server.gui._gui_input_handle_from_uuid  # viser keeps no public index
+    return next(u for u, h in handles.items() if h._impl.props.label == label)
+
+
+def test_a_hostile_browser_is_dropped_and_the_viewer_goes_on(viewer, tmp_path, caplog):
+    """Anyone who reaches the port can send anything: unreadable messages lose their own
+    connection (one warning line each, no traceback), forged controls cannot break the shown
+    case or write a bad viewpoint, and the next browser gets the whole scene as before."""
+    import msgspec
+
+    caplog.set_level("INFO")
+    first = RawBrowser(viewer)
+    scene_bytes = first.received_bytes(3.0)
+    first.close()
+    assert scene_bytes > 100_000  # the wall's splats: 4,000 x 32 bytes
+    junk = [
+        b"\x00" * 10,
+        np.random.default_rng(0).bytes(4096),
+        b"\x81" * (5 << 20),  # nested maps: deep recursion in the decoder
+        msgspec.msgpack.encode({"type": "NoSuchMessage"}),
+        msgspec.msgpack.encode([1, 2, 3]),
+        msgspec.msgpack.encode({"type": "ViewerCameraMessage", "wxyz": "x"}),
+        msgspec.msgpack.encode({"type": "GuiUpdateMessage", "updates": {}}),
+    ]
+    for payload in junk:
+        browser = RawBrowser(viewer)
+        browser.ws.send(payload)
+        assert browser.closed_by_server(), payload[:20]
+    assert caplog.text.count("closed a browser connection whose message") == len(junk)
+
+    def camera(wxyz, position) -> dict:
+        return {"type": "ViewerCameraMessage", "wxyz": wxyz, "position": position, "fov": 0.9,
+                "near": 0.01, "far": 100.0, "image_height": 400, "image_width": 640,
+                "look_at": (0.0, 0.0, 1.0), "up_direction": (0.0, 0.0, 1.0)}  # fmt: skip
+
+    forged = RawBrowser(viewer)
+    forged.received_bytes(1.0)
+    forged.send(camera((1.0, 0.0, 0.0, 0.0), (0.0, -3.0, 1.0)))  # viser counts it in now
+    slider = gui_uuid(viewer, "Timestamp")
+    forged.send({"type": "GuiUpdateMessage", "uuid": slider, "updates": {"value": 10**9}})
+    forged.send(camera((0.0, 0.0, 0.0, 0.0), (float("nan"), 0.0, 1.0)))
+    forged.send({"type": "GuiUpdateMessage", "uuid": gui_uuid(viewer, "Save viewpoint"),
+                 "updates": {"value": True}})  # fmt: skip
+    deadline = time.monotonic() + 10
+    while "not saved" not in caplog.text and time.monotonic() < deadline:
+        time.sleep(0.05)
+    forged.close()
+    assert "not saved: the browser's camera is not a valid view" in caplog.text
+    assert not (tmp_path / "viewpoints.toml").exists()  # nothing half-written
+    assert viewer.entry.t_s == TIMES_S[-1]  # a slider forged past the end shows the last
+    assert "Traceback" not in caplog.text
+
+    after = RawBrowser(viewer)
+    assert after.received_bytes(3.0) >= 0.9 * scene_bytes
+    after.close()
+    with urllib.request.urlopen(viewer.url, timeout=10) as reply:
+        assert reply.status == 200
+
+
 def one_line_error(result) -> str:
     assert result.returncode == 2, result.stdout + result.stderr
     lines = result.stderr.strip().splitlines()
