@@ -21,9 +21,8 @@ import torch
 
 from protocol.rig_calibration import RigCalibration
 from reconstructor.case import storage
-from reconstructor.case.warm import warm_config
 from reconstructor.case.index import checksum_file
-from reconstructor.case.warm import WarmStartConfig, in_free_space, warm_seed
+from reconstructor.case.warm import WarmStartConfig, seed_from_previous, warm_config
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import load_timestamp
 from reconstructor.evaluation.metrics import psnr
@@ -89,10 +88,9 @@ def main() -> None:
             previous = parent.gaussians()
 
             def init(ts_, fused, depths, previous=previous, lineage=lineage):
-                g, _ = warm_seed(previous, ts_, fused, depths, wcfg, warm.init)
-                means = previous.means_m.numpy().astype(np.float64)
-                lineage["alive"] = ~in_free_space(means, ts_, depths, wcfg)
-                return g
+                seed = seed_from_previous(previous, ts_, fused, depths, wcfg, warm.init)
+                lineage["alive"] = seed.alive
+                return seed.gaussians
 
             result = reconstruct(ts, warm, init=init)
         name = f"t{k}"

@@ -189,8 +189,10 @@ def reconstruct(
         train_views, held_out = make_views(ts, cfg)
         bounds = world_bounds(cfg, calibration)
         with _timed(timings, "fusion_init"):
-            fused, gaussians = _init_stage(clouds, train_views, bounds, cfg)
-            if init is not None:
+            if init is None:
+                fused, gaussians = _init_stage(clouds, train_views, bounds, cfg)
+            else:  # the hook seeds its own Gaussians: a cold init would be thrown away
+                fused = fuse(clouds, cfg.fusion)
                 gaussians = init(ts, fused, depths)
         trainer = Trainer(gaussians, cfg.train, cfg.raster, scene_extent_m(train_views))
         with _timed(timings, "warmup"):

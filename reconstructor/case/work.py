@@ -119,12 +119,10 @@ def run_step(job: ChainJob, step: StepJob, warm_from: str, progress: Any) -> Ste
 
 
 def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) -> dict[str, Any]:
-    import numpy as np
-
     from protocol.rig_calibration import RigCalibration
     from reconstructor.case import storage
     from reconstructor.case.index import CaseIndex
-    from reconstructor.case.warm import WarmStartConfig, in_free_space, warm_seed
+    from reconstructor.case.warm import WarmStartConfig, seed_from_previous
     from reconstructor.config import ReconstructConfig
     from reconstructor.data.frames import load_timestamp
     from reconstructor.pipeline import reconstruct
@@ -149,13 +147,11 @@ def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) ->
         warm = WarmStartConfig(**job.warm)
 
         def init(ts_, fused, depths):
-            g, c = warm_seed(previous, ts_, fused, depths, warm, config.init)
-            counts.update(c)
-            # which of the previous rows warm_seed kept (it keeps them in order, first): the
-            # same test on the same values, so the stored form can name them
-            means = previous.means_m.detach().cpu().numpy().astype(np.float64)
-            lineage["alive"] = ~in_free_space(means, ts_, depths, warm)
-            return g
+            seed = seed_from_previous(previous, ts_, fused, depths, warm, config.init)
+            counts.update(seed.counts)
+            # which of the previous rows were kept (in order, first): the stored form names them
+            lineage["alive"] = seed.alive
+            return seed.gaussians
     else:
         config = ReconstructConfig.from_toml(job.config_toml, "the case's config")
     work = case / ".work" / f"{step.name}.{os.getpid()}"

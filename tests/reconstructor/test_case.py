@@ -201,3 +201,72 @@ def test_warm_start_chains_each_timestamp_to_the_one_before_and_keyframes_start_
     # a cold run of the same times is other settings: refused in this folder
     cold = run_egosurg(*_args(h5, config, out, "--every", "0.1s"))
     assert cold.returncode == 2 and "other settings" in cold.stderr
+
+
+def _splats(means_m, log_scales, quats_wxyz, opacity):
+    import torch
+
+    from reconstructor.splats.gaussians import Gaussians
+
+    n = len(means_m)
+    return Gaussians(
+        means_m=torch.tensor(means_m, dtype=torch.float32),
+        quats_wxyz=torch.tensor(quats_wxyz, dtype=torch.float32),
+        log_scales=torch.tensor(log_scales, dtype=torch.float32),
+        opacity_logits=torch.logit(torch.tensor(opacity, dtype=torch.float64)).float(),
+        sh_dc=torch.zeros(n, 3),
+        sh_rest=torch.zeros(n, 0, 3),
+    )
+
+
+def _no_cameras():
+    """A timestamp at which every camera is missing: nothing is seen, so nothing is in free
+    space, and the warm start's other rules act alone."""
+    from protocol.camera import Resolution
+    from reconstructor.data.frames import Timestamp
+
+    return Timestamp(Path("x.h5"), 0, 0, 0.0, (), (), Resolution.parse("SVGA"))
+
+
+def test_a_warm_start_drops_splats_too_faint_to_draw_and_names_the_rows_it_kept():
+    """A user's warm model does not carry splats that draw nothing (opacity below the
+    rasterizer's 1/255 cut-off) into every later step, and compact storage learns which of the
+    previous rows survive."""
+    from reconstructor.case.warm import WarmStartConfig, seed_from_previous
+    from reconstructor.depth.fusion import FusedCloud
+    from reconstructor.splats.gaussians import GaussianInitConfig
+
+    means = [[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [2.0, 0.0, 1.0]]
+    previous = _splats(means, np.log(np.full((3, 3), 0.05)), [[1.0, 0, 0, 0]] * 3,
+                       [0.5, 1 / 1000, 0.02])  # fmt: skip
+    fused = FusedCloud(np.asarray(means, np.float32), np.full((3, 3), 0.5, np.float32))
+    seed = seed_from_previous(previous, _no_cameras(), fused, {}, WarmStartConfig(),
+                              GaussianInitConfig())  # fmt: skip
+    assert seed.alive.tolist() == [True, False, True]
+    assert seed.counts == {"kept": 2, "dropped": 0, "faded": 1, "added": 0}
+    assert seed.gaussians.means_m[:, 0].tolist() == [0.0, 2.0]
+
+
+def test_a_point_inside_a_flat_splat_is_covered_and_one_in_front_of_it_is_new_content():
+    """A wall seen again is not seeded again (its new stereo points fall inside the trained
+    splats, though centimetres from their centres), yet a hand 8 cm in front of the wall is."""
+    from reconstructor.case.warm import WarmStartConfig, uncovered
+
+    # one flat splat at the origin, 10 x 10 cm across and 2 mm thick, turned 90 degrees about
+    # x: its thin axis is the world's y axis, its broad ones x and z
+    half = np.sqrt(0.5)
+    wall = _splats([[0.0, 0.0, 0.0]], np.log([[0.1, 0.1, 0.002]]), [[half, half, 0, 0]], [0.9])
+    points = np.array(
+        [
+            [0.08, 0.0, 0.0],  # 8 cm across the wall: 0.8 sd
+            [0.0, 0.0, 0.08],  # 8 cm across the wall the other way
+            [0.0, 0.08, 0.0],  # 8 cm in front of it: 40 sd
+            [0.0, 0.01, 0.0],  # 1 cm in front: stereo noise, nearer than new_point_distance_m
+            [0.5, 0.0, 0.0],  # 50 cm along: beyond the splat (5 sd)
+        ]
+    )
+    cfg = WarmStartConfig(new_point_distance_m=0.03, cover_sigmas=3.0)
+    assert uncovered(points, wall, cfg).tolist() == [False, False, True, False, True]
+    # in metres alone (the rule before cover_sigmas), the wall's own points were new
+    metres_only = WarmStartConfig(new_point_distance_m=0.03, cover_sigmas=0.0)
+    assert uncovered(points, wall, metres_only).tolist() == [True, True, True, False, True]

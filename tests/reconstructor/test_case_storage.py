@@ -14,9 +14,8 @@ import torch
 
 from protocol.rig_calibration import RigCalibration
 from reconstructor.case import storage
-from reconstructor.case.warm import warm_config
 from reconstructor.case.index import CaseIndex, Entry, checksum_file
-from reconstructor.case.warm import WarmStartConfig, in_free_space, warm_seed
+from reconstructor.case.warm import WarmStartConfig, seed_from_previous, warm_config
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import load_timestamp
 from reconstructor.evaluation.metrics import psnr
@@ -55,11 +54,10 @@ def test_a_stored_warm_chain_renders_within_a_tenth_of_a_db_of_the_trained_model
             previous = parent.gaussians()  # as a resumed run would: from the stored form
 
             def init(ts_, fused, depths, previous=previous, lineage=lineage):
-                g, counts = warm_seed(previous, ts_, fused, depths, wcfg, warm.init)
-                means = previous.means_m.numpy().astype(np.float64)
-                lineage["alive"] = ~in_free_space(means, ts_, depths, wcfg)
-                assert lineage["alive"].sum() == counts["kept"]
-                return g
+                seed = seed_from_previous(previous, ts_, fused, depths, wcfg, warm.init)
+                lineage["alive"] = seed.alive
+                assert seed.alive.sum() == seed.counts["kept"]
+                return seed.gaussians
 
             result = reconstruct(ts, warm, init=init)
         path = tmp_path / f"t{k}.npz"
