@@ -82,13 +82,16 @@ def true_visible_fraction(
     eye_m: np.ndarray,
     box: SiteBox,
     per_face: int = 12,
-    near_m: float = 0.2,
+    near_m: float = 0.3,
 ) -> float:
     """The fraction of ``box``'s points facing ``eye_m`` that a ray from the eye reaches
     unobstructed in the true scene at ``t_sim_s`` (0 when no counted face faces the eye).
 
-    Rays start ``near_m`` from the eye, as renders from an eye leave out the viewer's own head
-    (reconstructor's EYE_NEAR_M): the question is whether they could see it by turning."""
+    Rays start ``near_m`` from the eye, past the viewer's own head (the question is whether they
+    could see it by turning; reconstructor's sightline leaves out what lies that near, its
+    HEAD_CLEARANCE_M). The back of a head (cap) lies up to 0.25 m behind the eye: rays that
+    started at 0.2 m began inside it and hit its far side, so a screen behind a viewer counted
+    their own skull as the blocker."""
     pts = surface_points(box, eye_m, per_face)
     if len(pts) == 0:
         return 0.0

@@ -2,12 +2,29 @@
 (counterfactual) position.
 
 At each instant the viewer's eye comes from their trajectory. A camera at the eye, aimed at the
-target's centre and just wide enough to hold it, renders the case's model (our rasterizer, the
-eye's near plane leaving out the viewer's own head) with its far plane just before the target:
-the opacity of what lies in front. Each sampled target point (``protocol.site.surface_points``:
-the faces that face the eye) is visible where that opacity is under one half. Aiming at the
-target, not where the head points, asks "could they see it by looking", the question of a
-review; ``in_view_fraction`` says whether the target was in their field of view then.
+target's centre and just wide enough to hold it, renders the case's model (our rasterizer) with
+its far plane just before the target: the opacity of what lies in front. Each sampled target
+point (``protocol.site.surface_points``: the faces that face the eye) is visible where that
+opacity is under one half. Aiming at the target, not where the head points, asks "could they
+see it by looking", the question of a review; ``in_view_fraction`` says whether the target was
+in their field of view then.
+
+Two choices make the answer agree with rays cast through the true scene (bench/bench_sightline.py,
+docs/replay.md):
+- the viewer's own head never blocks (they could turn it): Gaussians within
+  ``head_clearance_m`` of the eye are left out, a sphere, as the truth's rays start that far
+  out. The back of a head lies up to 0.25 m behind the eye; the egocentric renders' 0.2 m near
+  plane cut through it, so a screen behind the viewer counted their own skull as the blocker.
+- occluders count at their core (``occluder_scale``): a Gaussian's opacity reaches past the
+  surface it stands for by about its own size, and along a grazing ray many such tails add up
+  to an opaque fringe around every silhouette. Seen from 0.3-0.5 m (the viewer's shoulders, a
+  neighbour's head), a 3 cm fringe is a sixth of a monitor. Shrinking the occluders' extent for
+  this render pulls their silhouette back towards their centres; inside a surface the
+  neighbours still overlap and stay opaque. Not too far: in a weakly trained model (opacity
+  about 0.1, a surface opaque only where many Gaussians overlap) half size already thins
+  people and walls into see-through. 0.7 improves both the true-surface models and a
+  reconstructed case over full size; 0.5 is better on the first, worse than full size on the
+  second (docs/replay.md has the numbers).
 """
 
 from __future__ import annotations
@@ -18,6 +35,7 @@ import re
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from protocol.camera import Camera, Intrinsics, Pose
 from protocol.site import SiteBox, surface_points
@@ -31,10 +49,30 @@ _DIRECTIONS = {
     "left": (0, 1, 0), "right": (0, -1, 0), "up": (0, 0, 1), "down": (0, 0, -1),
 }  # fmt: skip
 DEPTH_SIZE_PX = 192  # the aimed depth camera: enough for a grid of 12 x 12 points per face
+HEAD_CLEARANCE_M = 0.3  # past the back of the viewer's head (sim: up to 0.25 m behind the eye)
 
 
 class SightlineError(ReconstructError, ValueError):
     pass
+
+
+@dataclass(frozen=True)
+class SightlineConfig:
+    """How the occlusion test treats the model (module docstring says why)."""
+
+    head_clearance_m: float = HEAD_CLEARANCE_M  # Gaussians nearer the eye than this are left out
+    occluder_scale: float = 0.7  # occluders' extent in the occlusion render, x their own
+    visible_below_alpha: float = 0.5  # a point is visible where less opaque than this in front
+    size_px: int = DEPTH_SIZE_PX
+
+    def __post_init__(self) -> None:
+        if not (self.head_clearance_m >= 0 and 0 < self.occluder_scale <= 1):
+            raise SightlineError(
+                f"SightlineConfig: head_clearance_m {self.head_clearance_m} must be >= 0 and "
+                f"occluder_scale {self.occluder_scale} in (0, 1]"
+            )
+        if not 0 < self.visible_below_alpha <= 1 or self.size_px < 8:
+            raise SightlineError("SightlineConfig: visible_below_alpha in (0, 1], size_px >= 8")
 
 
 @dataclass(frozen=True)
@@ -97,30 +135,48 @@ def depth_tolerance_m(distance_m: np.ndarray) -> np.ndarray:
     return 0.05 + 0.03 * distance_m
 
 
+def occluders(g: Gaussians, eye_m: np.ndarray, config: SightlineConfig) -> Gaussians:
+    """The Gaussians that may block the view from ``eye_m``: those past the viewer's head, at
+    their core size (``config.occluder_scale``)."""
+    eye = torch.as_tensor(np.asarray(eye_m, np.float32))
+    keep = torch.linalg.vector_norm(g.means_m - eye, dim=1) >= config.head_clearance_m
+    scales = g.log_scales[keep] + math.log(config.occluder_scale)
+    return dataclasses.replace(
+        g, means_m=g.means_m[keep], quats_wxyz=g.quats_wxyz[keep], log_scales=scales,
+        opacity_logits=g.opacity_logits[keep], sh_dc=g.sh_dc[keep], sh_rest=g.sh_rest[keep],
+    )  # fmt: skip
+
+
 def visible_fraction(
-    g: Gaussians, eye_m: np.ndarray, box: SiteBox, raster: RasterConfig, per_face: int = 12
-) -> tuple[float, dict]:
-    """(fraction visible, details: the aimed camera, its depth and RGB, the points' pixels and
-    flags). 0 when no counted face of the box faces the eye."""
+    g: Gaussians, eye_m: np.ndarray, box: SiteBox, raster: RasterConfig, per_face: int = 12,
+    config: SightlineConfig | None = None,
+) -> tuple[float, dict]:  # fmt: skip
+    """(fraction visible, details: the aimed camera, its opacity and RGB, the points' pixels
+    and flags). 0 when no counted face of the box faces the eye."""
     from reconstructor.replay.run import render_view  # one render path for replay and this
 
-    pts = surface_points(box, eye_m, per_face)
+    cfg = config or SightlineConfig()
+    eye = np.asarray(eye_m, float)
+    pts = surface_points(box, eye, per_face)
     if len(pts) == 0:
         return 0.0, {"points": 0}
-    camera = aimed_camera(np.asarray(eye_m, float), pts)
+    camera = aimed_camera(eye, pts, cfg.size_px)
     z = camera.pose.transform(pts)[:, 2]
     # Only what lies clearly in front of the target can block it: render the opacity of that
     # alone (far plane just before the target). A point is blocked where it is more than half
     # opaque; a depth test on the blended depth would call a faint floater in front a wall.
+    # The head clearance is a sphere (occluders()), so the near plane here only guards the
+    # projection.
     z_front = float(z.min())
-    far = max(raster.near_m + 0.01, z_front - float(depth_tolerance_m(np.asarray(z_front))))
-    front = dataclasses.replace(raster, far_m=far)
-    rgb, _, alpha = render_view(g, camera, front)
+    near = min(raster.near_m, 0.05)
+    far = max(near + 0.01, z_front - float(depth_tolerance_m(np.asarray(z_front))))
+    front = dataclasses.replace(raster, near_m=near, far_m=far)
+    rgb, _, alpha = render_view(occluders(g, eye, cfg), camera, front)
     px, _ = camera.project(pts)
     h, w = alpha.shape
     u = np.clip(np.round(px[:, 0]).astype(int), 0, w - 1)
     v = np.clip(np.round(px[:, 1]).astype(int), 0, h - 1)
-    visible = alpha[v, u] < 0.5
+    visible = alpha[v, u] < cfg.visible_below_alpha
     return float(visible.mean()), {
         "points": len(pts), "camera": camera, "rgb": rgb, "alpha": alpha,
         "pixels": np.stack([u, v], 1), "visible": visible,

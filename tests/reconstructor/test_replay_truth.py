@@ -4,58 +4,32 @@ scene (``sim.roles.true_visible_fraction``), for every person x three screens x 
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 
+from bench.bench_sightline import true_surface_gaussians
 from protocol.site import SiteBox
 from reconstructor.raster import RasterConfig
 from reconstructor.replay.path import CameraPath
-from reconstructor.replay.sightline import parse_offset, visible_fraction
-from reconstructor.splats.gaussians import GaussianInitConfig, init_from_points
+from reconstructor.replay.sightline import HEAD_CLEARANCE_M, parse_offset, visible_fraction
 from sim.roles import role_trajectories, site_boxes, true_visible_fraction
 from sim.world import World
 
 T_S = 2.0
 
 
-def _true_surface_gaussians(world: World, t_s: float, shrink: int = 4):
-    """Gaussians at the true surface points each sensor sees (a quarter-size true depth map),
-    coloured as seen: a model whose geometry is exact up to its Gaussians' size."""
-    points, colours = [], []
-    for unit in world.rig:
-        for side in ("left", "right"):
-            cam = unit.sensor(side, "SVGA")
-            k = cam.intrinsics.undistorted()
-            small = replace(
-                k, width_px=k.width_px // shrink, height_px=k.height_px // shrink,
-                fx_px=k.fx_px / shrink, fy_px=k.fy_px / shrink,
-                cx_px=(k.cx_px + 0.5) / shrink - 0.5, cy_px=(k.cy_px + 0.5) / shrink - 0.5,
-            )  # fmt: skip
-            r = world.render(world.virtual_camera(cam.pose, small, name="truth"), t_s)
-            v, u = np.nonzero(np.isfinite(r.depth_m))
-            z = r.depth_m[v, u]
-            xyz = np.stack([(u - small.cx_px) / small.fx_px * z,
-                            (v - small.cy_px) / small.fy_px * z, z], 1)  # fmt: skip
-            points.append((xyz - cam.pose.t_m) @ cam.pose.R)
-            colours.append(r.image_rgb[v, u] / 255.0)
-    return init_from_points(
-        np.concatenate(points), np.concatenate(colours), GaussianInitConfig(opacity=0.9)
-    )
-
-
 @pytest.fixture(scope="module")
 def scene():
     world = World.from_seed(3, phase="intraoperative")
-    return world, _true_surface_gaussians(world, T_S)
+    return world, true_surface_gaussians(world, T_S)
 
 
 def test_visible_fractions_from_a_true_surface_model_agree_with_ray_cast_truth(scene):
-    """Stated tolerance: over 6 viewers x 3 screens x 2 positions (36 cases), "at least half
-    visible" agrees with the truth in at least 80 % and the mean absolute error of the fraction
-    is at most 0.20. (Measured: 86 %, 0.14; the misses are Gaussians seen from 0.2-0.5 m, the
-    viewer's own shoulders and neighbours, which are fatter than the true surface.)"""
+    """A reviewer relies on the sightline answer matching what the viewer could see. Stated
+    tolerance: over 6 viewers x 3 screens x 2 positions (36 cases), "at least half visible"
+    agrees with the truth in at least 91 % (one miss more than measured) and the fraction's mean
+    absolute error is at most 0.09. (Measured: 94 %, 0.056; over 20 timestamps in
+    bench/bench_sightline.py, docs/replay.md. Occluders at full size: 89 %, 0.12.)"""
     world, g = scene
     raster = RasterConfig(near_m=0.2)
     offset = parse_offset("1m left-posterior")
@@ -68,12 +42,33 @@ def test_visible_fractions_from_a_true_surface_model_agree_with_ray_cast_truth(s
             for shift in (np.zeros(3), offset.world_shift_m(pose)):
                 eye = pose.centre_m + shift
                 ours, _ = visible_fraction(g, eye, box, raster)
-                truth = true_visible_fraction(world, T_S, eye, box)
+                truth = true_visible_fraction(world, T_S, eye, box, near_m=HEAD_CLEARANCE_M)
                 errors.append(abs(ours - truth))
                 agree.append((ours >= 0.5) == (truth >= 0.5))
     assert len(errors) == 36
-    assert np.mean(agree) >= 0.80, f"binary agreement {np.mean(agree):.2f}"
-    assert np.mean(errors) <= 0.20, f"mean absolute error {np.mean(errors):.3f}"
+    assert np.mean(agree) >= 0.91, f"binary agreement {np.mean(agree):.2f}"
+    assert np.mean(errors) <= 0.09, f"mean absolute error {np.mean(errors):.3f}"
+
+
+def test_a_screen_right_behind_a_viewer_is_not_hidden_by_their_own_head(scene):
+    """ "Could they see it by turning": a screen 1.2 m straight behind a viewer, with nothing
+    between, is fully visible, not blocked by the back of their own head (0.2-0.25 m behind the
+    eye, which a 0.2 m near plane left in, in the truth and in the model alike)."""
+    world, g = scene
+    raster = RasterConfig(near_m=0.2)
+    open_behind = 0
+    for pose in world.head_poses(T_S).values():
+        back = -pose.R[2]
+        back[2] = 0.0
+        back /= np.linalg.norm(back)
+        box = SiteBox(name="behind", centre_m=tuple(pose.centre_m + 1.2 * back),  # type: ignore[arg-type]
+                      size_m=(0.01, 0.4, 0.3), front_only=True,
+                      yaw_deg=float(np.degrees(np.arctan2(-back[1], -back[0]))))  # fmt: skip
+        if true_visible_fraction(world, T_S, pose.centre_m, box) < 1.0:
+            continue  # someone or something else stands behind this viewer
+        open_behind += 1
+        assert visible_fraction(g, pose.centre_m, box, raster)[0] == 1.0
+    assert open_behind >= 3, f"only {open_behind} viewers have open space behind them"
 
 
 def test_a_screen_seen_from_behind_is_not_visible_and_an_open_view_is(scene):
