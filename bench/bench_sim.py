@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 
-def _best(fn, repeats: int) -> float:
+def _best(fn, repeats: int) -> tuple[float, float]:
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -60,6 +60,7 @@ def main() -> None:
             )
         )
         rows.append((f"one HD1200 view, {phase}: cast every pixel", *full, "reference"))
+    rows += _wand_rows(args.repeats)
     best, med = _best(lambda: world._build_scene(2.0 + 1e-6 * time.perf_counter()), args.repeats)
     rows.append(("scene build at one instant (meshes + BVH)", best, med, ""))
     from sim import kernels
@@ -110,6 +111,65 @@ def main() -> None:
     print("|---|---:|---:|---|")
     for name, best, med, note in rows:
         print(f"| {name} | {best:.3f} | {med:.3f} | {note} |")
+
+
+def _wand_rows(repeats: int) -> list[tuple[str, float, float, str]]:
+    """A wand session's frames (what the calibration test and the demo prerender): the moving
+    operator and wand over the cached room, against casting the region into the whole room's
+    BVH (the path before), and the spheres against their whole-box reference twin."""
+    from sim import World
+    from sim.render import moving_region, render_view
+    from sim.spheres import composite_spheres, composite_spheres_reference
+
+    w = World.from_seed(5, phase="wand")
+    cams = [w.sensor(u, "left", "HD1200") for u in range(4)]
+    times = [2.5 + 0.9 * i for i in range(24)]
+    for c in cams:
+        w._render_view(c, 2.5)  # warm: ray tables, backgrounds, JIT
+
+    def frames(fn) -> None:
+        for t in times:
+            for c in cams:
+                fn(c, t)
+
+    def one_scene(c, t) -> None:  # the previous fast path: region cast into room + movers
+        scene = w.scene_at(t)
+        region = moving_region(c, [o.mesh for o in scene.objects[len(w.static_objects) :]])
+        render_view(scene, c, w._background(c) if region is not None else None, region)
+
+    def spheres(composite):
+        def run(c, t) -> None:
+            bg, m = w._background(c), w._moving_cache(t)
+            img = [bg.radiance.copy(), bg.depth_m.copy(), bg.object_index.copy()]
+            composite(m.spheres, m.lights, c, *img)
+
+        return run
+
+    n = len(times) * len(cams)
+    per = [
+        _best(lambda fn=fn: frames(fn), repeats)
+        for fn in (
+            w._render_view,
+            one_scene,
+            spheres(composite_spheres),
+            spheres(composite_spheres_reference),
+        )
+    ]
+    per = [(b / n, m / n) for b, m in per]
+    return [
+        (
+            "wand session, one HD1200 view: movers over the room",
+            *per[0],
+            f"{per[1][0] / per[0][0]:.1f}x faster",
+        ),
+        ("wand session, one HD1200 view: region cast into the whole room", *per[1], "before"),
+        (
+            "wand spheres, one HD1200 view: where they reach",
+            *per[2],
+            f"{per[3][0] / per[2][0]:.1f}x faster",
+        ),
+        ("wand spheres, one HD1200 view: whole box (twin)", *per[3], "reference"),
+    ]
 
 
 if __name__ == "__main__":

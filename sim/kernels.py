@@ -7,13 +7,34 @@ time allocating temporaries (about 4x slower at HD1200, see BENCHMARKS.md).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from protocol.numba_threads import use_openmp_threads
 
 use_openmp_threads()
 
+import numba  # noqa: E402
 from numba import njit, prange  # noqa: E402
+
+SMALL_N = 200_000  # below this many rays or pixels a kernel runs on the calling thread
+
+
+def on_one_thread_if_small(kernel: Callable[..., np.ndarray], n: int, *args: object) -> np.ndarray:
+    """``kernel(*args)``, on the calling thread alone when ``n`` is small.
+
+    Waking the thread pool costs more than a few ten thousand pixels of work, and on a busy
+    machine (two sim agents on two cores) the pool's idle workers spin on the cores the other
+    process needs. The compiled loop is the same either way, so is every pixel's value."""
+    if n >= SMALL_N:
+        return kernel(*args)
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        return kernel(*args)
+    finally:
+        numba.set_num_threads(threads)
 
 
 @njit(parallel=True, cache=True, fastmath=True)

@@ -5,36 +5,46 @@ undistorted virtual pinholes come out of the same code. open3d's ``RaycastingSce
 the surface; shading is albedo (procedural textures in each object's own frame) times Lambertian
 irradiance from the ceiling panels and the surgical light, plus emissive screens and lamps.
 
-The wand's spheres are intersected analytically rather than as meshes, and their pixels are
-supersampled, because wand calibration measures sub-pixel sphere centres: the simulated edge has to
-be the edge of a true sphere, partially covering its boundary pixels as on a real sensor.
+The wand's spheres are intersected analytically and supersampled (``sim.spheres``). A fixed
+camera renders the static room once and then only the moving objects over it
+(``render_over_background``), which gives the same image at a fraction of the cost.
 """
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 import open3d as o3d
 
-from protocol.camera import Camera, Intrinsics, undistort_to_normalized
+from protocol.camera import Camera
 from sim import kernels
+from sim.lighting import AMBIENT, irradiance
+from sim.rays import ray_directions
 from sim.room import Light, SceneObject
+from sim.spheres import (
+    SPHERE_OBJECT_BASE,
+    SPHERE_SUPERSAMPLE,
+    Spheres,
+    composite_spheres,
+)
 from sim.textures import Texture
 
-AMBIENT = 0.14
-SPHERE_SUPERSAMPLE = 4
-SPHERE_OBJECT_BASE = 10_000  # object index of wand sphere k is SPHERE_OBJECT_BASE + k
+__all__ = [
+    "AMBIENT",
+    "SPHERE_OBJECT_BASE",
+    "SPHERE_SUPERSAMPLE",
+    "FrameScene",
+    "RayImage",
+    "Spheres",
+    "moving_region",
+    "ray_directions",
+    "render_over_background",
+    "render_view",
+    "shade_reference",
+]
 NO_OBJECT = -1
-
-
-@dataclass(frozen=True)
-class Spheres:
-    centres_m: np.ndarray  # (K, 3)
-    radius_m: float
-    albedo: tuple[float, float, float]
 
 
 class FrameScene:
@@ -111,27 +121,6 @@ def _tensor(array: np.ndarray, dtype: type) -> o3d.core.Tensor:
     return o3d.core.Tensor(np.ascontiguousarray(array, dtype))  # type: ignore[call-overload]
 
 
-@functools.lru_cache(maxsize=24)
-def ray_directions(intr: Intrinsics) -> np.ndarray:
-    """(H, W, 3) float32 camera-frame ray directions with z = 1, one per pixel centre.
-
-    For a distorted sensor these come from inverting the distortion iteratively, so projecting a
-    ray back through ``cv2.projectPoints`` lands on its pixel to far below 0.01 px.
-    """
-    u, v = np.meshgrid(
-        np.arange(intr.width_px, dtype=np.float64), np.arange(intr.height_px, dtype=np.float64)
-    )
-    return _directions_for_pixels(intr, np.stack([u, v], axis=-1))
-
-
-def _directions_for_pixels(intr: Intrinsics, pixels: np.ndarray) -> np.ndarray:
-    shape = pixels.shape[:-1]
-    xy = undistort_to_normalized(pixels.reshape(-1, 2), intr)
-    d = np.ones((len(xy), 3), np.float32)
-    d[:, :2] = xy
-    return d.reshape(*shape, 3)
-
-
 def _sample(texture: Texture, uv: np.ndarray) -> np.ndarray:
     """Bilinear, wrapping texture lookup at (N, 2) texel coordinates -> (N, 3)."""
     n = len(uv)
@@ -148,17 +137,6 @@ def _sample(texture: Texture, uv: np.ndarray) -> np.ndarray:
     my = np.mod(my, size, dtype=np.float32)
     out = cv2.remap(texture.albedo, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
     return out.reshape(-1, 3)[:n]
-
-
-def _irradiance(points: np.ndarray, normals: np.ndarray, lights: list[Light]) -> np.ndarray:
-    e = np.full(len(points), AMBIENT, np.float32)
-    for light in lights:
-        to_light = light.position_m.astype(np.float32) - points
-        d2 = np.einsum("ij,ij->i", to_light, to_light)
-        cos = np.einsum("ij,ij->i", to_light, normals) / np.sqrt(d2)
-        np.maximum(cos, 0.0, out=cos)
-        e += light.power * cos / np.maximum(d2, 0.25)
-    return e
 
 
 def shade_reference(
@@ -197,7 +175,7 @@ def shade_reference(
             scale = np.concatenate([np.full(len(g[0]), g[2].emission, np.float32) for g in groups])
             radiance[all_idx] = albedo * scale[:, None]
         else:
-            e = _irradiance(points[all_idx], normals[all_idx], scene.lights)
+            e = irradiance(points[all_idx], normals[all_idx], scene.lights)
             radiance[all_idx] = albedo * e[:, None]
     return radiance
 
@@ -259,8 +237,69 @@ def render_view(
     depth = t.reshape(H, W)  # ray z = 1 in the camera frame, so t is depth; misses are inf
     objects = objects.reshape(H, W)
     if scene.spheres is not None:
-        _composite_spheres(scene, camera, radiance, depth, objects)
+        composite_spheres(scene.spheres, scene.lights, camera, radiance, depth, objects)
     return RayImage(radiance, depth, objects)
+
+
+def render_over_background(
+    moving: FrameScene,
+    camera: Camera,
+    background: RayImage,
+    object_offset: int,
+    region: np.ndarray | None = None,
+) -> RayImage:
+    """``camera``'s view of the static room (``background``, its cached render) with the objects
+    of ``moving`` (a scene of the moving objects alone, numbered from ``object_offset``) in it.
+
+    The same image as ``render_view`` of one scene holding both, at a fraction of the cost: only
+    the ``region`` pixels (flat indices; None: all) are cast, against the small moving scene's
+    own BVH rather than the whole room's, and only pixels where a moving object is nearer than
+    the room are shaded. Ray-triangle hits and shading are per ray and per pixel, so each
+    pixel's numbers are the ones the one-scene render computes for it (tests hold the two equal).
+    """
+    intr = camera.intrinsics
+    H, W = intr.height_px, intr.width_px
+    dirs_cam = ray_directions(intr).reshape(-1, 3)
+    if region is not None:
+        dirs_cam = np.ascontiguousarray(dirs_cam[region])
+    R = camera.pose.R.astype(np.float32)
+    origin = camera.pose.centre_m.astype(np.float32)
+    rays = kernels.on_one_thread_if_small(kernels.make_rays, len(dirs_cam), dirs_cam, R, origin)
+    radiance = background.radiance.reshape(-1, 3).copy()
+    depth = background.depth_m.reshape(-1).copy()
+    objects = background.object_index.reshape(-1).copy()
+    if moving.objects:
+        t, obj, normals = moving.cast_rays(rays)
+        room_t = depth if region is None else depth[region]
+        # strictly nearer: where a moving surface touches the room's, the room's hit stands
+        near = np.flatnonzero((obj >= 0) & (t < room_t))
+        pixels = near if region is None else region[near]
+        radiance[pixels] = kernels.on_one_thread_if_small(
+            kernels.shade_pixels,
+            len(near),
+            np.ascontiguousarray(rays[near]),
+            t[near],
+            obj[near],
+            np.ascontiguousarray(normals[near]),
+            moving.obj_R,
+            moving.obj_t,
+            moving.obj_tex,
+            moving.obj_tint,
+            moving.obj_emission,
+            moving.texture_stack,
+            moving.texel_m,
+            moving.light_pos,
+            moving.light_power,
+            AMBIENT,
+        )
+        depth[pixels] = t[near]
+        objects[pixels] = obj[near] + object_offset
+    image = RayImage(radiance.reshape(H, W, 3), depth.reshape(H, W), objects.reshape(H, W))
+    if moving.spheres is not None:
+        composite_spheres(
+            moving.spheres, moving.lights, camera, image.radiance, image.depth_m, image.object_index
+        )
+    return image
 
 
 def moving_region(camera: Camera, meshes: list, margin_px: int = 3) -> np.ndarray | None:
@@ -289,76 +328,3 @@ def moving_region(camera: Camera, meshes: list, margin_px: int = 3) -> np.ndarra
             return None
         mask[max(v0, 0) : min(v1, H - 1) + 1, max(u0, 0) : min(u1, W - 1) + 1] = True
     return np.flatnonzero(mask)
-
-
-def _composite_spheres(
-    scene: FrameScene, camera: Camera, radiance: np.ndarray, depth: np.ndarray, objects: np.ndarray
-) -> None:
-    spheres = scene.spheres
-    assert spheres is not None
-    intr = camera.intrinsics
-    H, W = depth.shape
-    r = spheres.radius_m
-    origin = camera.pose.centre_m
-    R = camera.pose.R
-    ss = SPHERE_SUPERSAMPLE
-    offsets = (np.arange(ss) + 0.5) / ss - 0.5
-    for k, c in enumerate(spheres.centres_m):
-        c_cam = R @ c + camera.pose.t_m
-        dist = float(np.linalg.norm(c_cam))
-        if c_cam[2] <= r or dist <= r * 1.01:
-            continue
-        # bounding box from projecting points around the silhouette cone, with a margin
-        ring = _silhouette_points(c_cam, r)
-        px, _ = camera.project((ring - camera.pose.t_m) @ R)  # camera->world for project()
-        u0, v0 = np.floor(px.min(axis=0)).astype(int) - 2
-        u1, v1 = np.ceil(px.max(axis=0)).astype(int) + 2
-        u0, v0 = max(u0, 0), max(v0, 0)
-        u1, v1 = min(u1, W - 1), min(v1, H - 1)
-        if u1 < u0 or v1 < v0:
-            continue
-        uu, vv = np.meshgrid(np.arange(u0, u1 + 1), np.arange(v0, v1 + 1))
-        sub_u = uu[..., None, None] + offsets[None, None, None, :]
-        sub_v = vv[..., None, None] + offsets[None, None, :, None]
-        sub = np.stack(np.broadcast_arrays(sub_u, sub_v), axis=-1)  # (h, w, ss, ss, 2)
-        d_cam = _directions_for_pixels(intr, sub).astype(np.float64)  # z = 1
-        d_world = d_cam @ R
-        oc = origin - c
-        a = np.einsum("...i,...i->...", d_world, d_world)
-        b = 2 * np.einsum("...i,i->...", d_world, oc)
-        cc = float(oc @ oc - r * r)
-        disc = b * b - 4 * a * cc
-        hit = disc >= 0
-        s = np.where(hit, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a), np.inf)  # = depth (z=1)
-        bg_depth = depth[v0 : v1 + 1, u0 : u1 + 1][..., None, None]
-        hit &= (s > 0) & (s < bg_depth)
-        if not hit.any():
-            continue
-        p = origin + d_world * np.where(hit, s, 0)[..., None]
-        n = (p - c) / r
-        e = _irradiance(p[hit].astype(np.float32), n[hit].astype(np.float32), scene.lights)
-        sub_rad = np.zeros((*hit.shape, 3), np.float32)
-        sub_rad[hit] = np.asarray(spheres.albedo, np.float32) * e[:, None]
-        cover = hit.mean(axis=(2, 3))
-        sphere_mean = sub_rad.sum(axis=(2, 3)) / np.maximum(hit.sum(axis=(2, 3)), 1)[..., None]
-        patch = radiance[v0 : v1 + 1, u0 : u1 + 1]
-        patch[:] = cover[..., None] * sphere_mean + (1 - cover[..., None]) * patch
-        centre_hit = hit[:, :, ss // 2, ss // 2]
-        centre_s = s[:, :, ss // 2, ss // 2]
-        dpatch = depth[v0 : v1 + 1, u0 : u1 + 1]
-        dpatch[centre_hit] = centre_s[centre_hit]
-        opatch = objects[v0 : v1 + 1, u0 : u1 + 1]
-        opatch[cover >= 0.5] = SPHERE_OBJECT_BASE + k
-
-
-def _silhouette_points(c_cam: np.ndarray, r: float, n: int = 24) -> np.ndarray:
-    """Points (camera frame) on the sphere's silhouette circle, pushed out slightly."""
-    d = np.linalg.norm(c_cam)
-    axis = c_cam / d
-    helper = np.array([1.0, 0, 0]) if abs(axis[0]) < 0.9 else np.array([0, 1.0, 0])
-    x = np.cross(axis, helper)
-    x /= np.linalg.norm(x)
-    y = np.cross(axis, x)
-    ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    rr = r * 1.3
-    return c_cam + rr * (np.cos(ang)[:, None] * x + np.sin(ang)[:, None] * y)

@@ -25,7 +25,14 @@ from sim.contact import contact_script
 from sim.geometry import Mesh, cylinder
 from sim.people import Person, PersonState, Waypoint, person_objects, person_state
 from sim.phases import phase_script
-from sim.render import FrameScene, RayImage, Spheres, moving_region, render_view
+from sim.render import (
+    FrameScene,
+    RayImage,
+    Spheres,
+    moving_region,
+    render_over_background,
+    render_view,
+)
 from sim.rig import ZedUnit, build_rig
 from sim.room import Footprint, RoomSpec, SceneObject, build_room, footprints
 from sim.sensor import SensorSpec, encode_ideal, expose
@@ -98,6 +105,7 @@ class World:
         )
         self.show_wand = self.script.with_wand if cfg.show_wand is None else cfg.show_wand
         self._scene_cache = functools.lru_cache(maxsize=2)(self._build_scene)
+        self._moving_cache = functools.lru_cache(maxsize=2)(self._build_moving_scene)
         self._static_scene = FrameScene(list(self.static_objects), self.lights, self.textures)
         self._backgrounds: dict[tuple, RayImage] = {}
         self.contact = contact_script(cfg.seed) if cfg.contact else None
@@ -278,21 +286,23 @@ class World:
         return img
 
     def _render_view(self, camera: Camera, t: float) -> RayImage:
-        """Ray-cast only where moving things are; the static room comes from a cached render.
+        """Ray-cast only the moving objects, only where they are; the static room comes from a
+        cached render.
 
         Fixed cameras (the rig) see most of their pixels unchanged from frame to frame, so this
-        is several times faster there; a camera seen once (a virtual view) is rendered whole.
+        is many times faster there; a camera seen once (a virtual view) is rendered whole.
         """
-        scene = self.scene_at(t)
-        moving = [o.mesh for o in scene.objects[len(self.static_objects) :]]
-        fixed = camera.name.startswith("SN")
-        region = moving_region(camera, moving) if fixed else None
-        if region is None:
-            return render_view(scene, camera)
-        return render_view(scene, camera, self._background(camera), region)
+        if not camera.name.startswith("SN"):
+            return render_view(self.scene_at(t), camera)
+        moving = self._moving_cache(t)
+        region = moving_region(camera, [o.mesh for o in moving.objects])
+        return render_over_background(
+            moving, camera, self._background(camera), len(self.static_objects), region
+        )
 
-    def _build_scene(self, t: float) -> FrameScene:
-        objects: list[SceneObject] = list(self.static_objects)
+    def _moving_objects(self, t: float) -> tuple[list[SceneObject], Spheres | None]:
+        """Everything that moves at ``t``: the people, the contact script's objects, the wand."""
+        objects: list[SceneObject] = []
         for person in self.script.people:
             objects += person_objects(person, person_state(person, t))
         if self.contact is not None:
@@ -312,7 +322,15 @@ class World:
                 objects += person_objects(op[0], op[1], hand_target_m=handle)
             elif op is not None:
                 objects += person_objects(op[0], op[1])
-        return FrameScene(objects, self.lights, self.textures, spheres)
+        return objects, spheres
+
+    def _build_scene(self, t: float) -> FrameScene:
+        moving, spheres = self._moving_objects(t)
+        return FrameScene([*self.static_objects, *moving], self.lights, self.textures, spheres)
+
+    def _build_moving_scene(self, t: float) -> FrameScene:
+        moving, spheres = self._moving_objects(t)
+        return FrameScene(moving, self.lights, self.textures, spheres)
 
 
 def stable_hash(text: str) -> int:
