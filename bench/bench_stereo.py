@@ -1,36 +1,53 @@
-"""Stereo depth against the sim's true depth: our SGBM+WLS matcher (before and after the right-edge
-fix, and with its checks loosened one at a time) beside OpenCV's textbook SGBM+WLS, on the same
-rectified frames, per phase and per camera.
+"""Stereo depth against the sim's true depth: our SGBM+WLS matcher with each check changed one at
+a time, with the fill stage that follows it, beside OpenCV's textbook SGBM+WLS on the same
+rectified frames, per phase and per camera (issue 22, part 0).
 
-    .venv/bin/python bench/bench_stereo.py [--seed 11] [--t-s 1.0] [--phases empty,setup,...]
+    nice -n 10 .venv/bin/python bench/bench_stereo.py [--seed 11] [--t-s 1.0] \\
+        [--phases empty,setup,intraoperative,turnover] [--jpeg-quality 90] [--per-camera NAME]
 
-For every (phase, camera, matcher): ``density`` is the share of the rectified left image (pixels
-that came from inside the sensor) with a depth; ``>1 % / >3 % / >5 %`` are the shares of those
-depths more than 1, 3 or 5 % off the sim's true depth along the same ray (pixels on a true depth
-edge, where the four truth neighbours differ by more than 1 %, are left out of the error, as in
-tests/reconstructor/test_stereo.py); ``right`` and ``centre`` are the densities of the right-most
-120 columns and of the central 120. Prints Markdown tables: every camera, then the mean per phase.
-EVALUATION.md ("Stereo depth against the sim's truth") records a run.
+The frames are the sim's noisy sensor images through the agents' JPEG encoding (quality 90, as
+recorded; 0 for raw). For every (phase, camera, matcher): ``density`` is the share of the
+rectified left image (pixels that came from inside the sensor) with a depth; ``textured`` and
+``blank`` the same over the sim's textured materials (floor, people, instruments) and over its
+blank walls and ceiling, from the sim's object labels; ``>1 % / >3 % / >5 %`` are the shares of
+the depths more than 1, 3 or 5 % off the sim's true depth along the same ray (pixels on a true
+depth edge, where the four truth neighbours differ by more than 1 %, are left out of the error,
+as in tests/reconstructor/test_stereo.py); ``right`` and ``centre`` are the densities of the
+right-most 120 columns and of the central 120, and ``tex`` the same over textured pixels only
+(the right edge sees more blank wall than the centre in the sim). The rows "+ fill" add the
+pipeline's fill stage (``depth/fill.py`` at stride 1): "image" spreads confident disparity
+along colour edges, "+ shell" also puts what is still a hole on the room's box (the site's
+``room_bounds_m``).
+Prints Markdown tables: the mean over the cameras per phase, then every camera for the matchers
+named by ``--per-camera``. EVALUATION.md ("Stereo depth against the sim's truth") records a run.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import math
 import statistics
 from collections import defaultdict
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
 from protocol.camera import Camera, Pose
+from reconstructor.depth.fill import FillConfig, fill_disparity, fill_points_in_world
 from reconstructor.depth.matcher import StereoMatcher
-from reconstructor.depth.sgbm import SgbmWlsMatcher, _grey, lr_consistent, zncc_at_disparity
-from reconstructor.depth.stereo import compute_depth
+from reconstructor.depth.sgbm import RawDisparities, SgbmWlsMatcher
+from reconstructor.depth.stereo import DepthMap, compute_depth, rectifier
 from reconstructor.depth.stereo_config import StereoConfig
 
 EDGE_COLUMNS = 120
+TEXTURED = ("floor", "scrubs", "skin", "cap", "mask", "shoes", "tray", "steel", "rubber")
+BLANK = ("walls", "ceiling")
+COLUMNS = (
+    "density", "textured", "blank", ">1%", ">3%", ">5%", "right", "centre", "right tex",
+    "centre tex",
+)  # fmt: skip
 
 
 class TextbookSgbmWls(StereoMatcher):
@@ -66,62 +83,103 @@ class TextbookSgbmWls(StereoMatcher):
         return out
 
 
-class LeftPadOnly(SgbmWlsMatcher):
-    """The matcher as it was before issue 22's fix (commit 955510e): padding on the left only,
-    and the right-view matcher's invalid code read as a disparity. Kept to measure the fix."""
+_RAW_CACHE: dict[tuple, RawDisparities] = {}
+# the fields that change SGBM's or WLS's output; the others only change which pixels are kept
+_MATCHING_FIELDS = (
+    "block_size_px", "uniqueness_ratio", "speckle_window_px", "speckle_range_px", "wls_lambda",
+    "wls_sigma_color",
+)  # fmt: skip
 
-    name = "sgbm-left-pad"
 
-    def match(self, left_rgb, right_rgb, *, min_disparity_px, max_disparity_px):
-        cfg = self.config
-        w = cfg.block_size_px
-        min_d = max(0, math.floor(min_disparity_px) - 1)
-        num_d = 16 * math.ceil((math.ceil(max_disparity_px) + 1 - min_d) / 16)
-        lm = cv2.StereoSGBM.create(
-            minDisparity=min_d, numDisparities=num_d, blockSize=w, P1=8 * 3 * w * w,
-            P2=32 * 3 * w * w, disp12MaxDiff=-1, uniquenessRatio=cfg.uniqueness_ratio,
-            speckleWindowSize=cfg.speckle_window_px, speckleRange=cfg.speckle_range_px,
-            mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
-        )  # fmt: skip
-        rm = cv2.ximgproc.createRightMatcher(lm)
-        pad = min_d + num_d
-        lp = cv2.copyMakeBorder(left_rgb, 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0)
-        rp = cv2.copyMakeBorder(right_rgb, 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0)
-        dl, dr = lm.compute(lp, rp), rm.compute(rp, lp)
-        wls = cv2.ximgproc.createDisparityWLSFilter(lm)
-        wls.setLambda(cfg.wls_lambda)
-        wls.setSigmaColor(cfg.wls_sigma_color)
-        out = wls.filter(dl, lp, disparity_map_right=dr)[:, pad:].astype(np.float32) / 16.0
-        raw_l = dl[:, pad:].astype(np.float32) / 16.0
-        raw_r = -dr[:, pad:].astype(np.float32) / 16.0
-        ok = lr_consistent(raw_l, raw_r, cfg.lr_max_diff_px) & (raw_l >= min_d)
-        ok &= np.abs(out - raw_l) <= cfg.wls_max_change_px
-        zncc = zncc_at_disparity(
-            _grey(left_rgb), _grey(right_rgb), np.where(ok, raw_l, 0.0), cfg.zncc_window_px
+class CachedSgbm(SgbmWlsMatcher):
+    """Our matcher, with one SGBM+WLS run shared by every row that changes only the checks."""
+
+    def raw_disparities(self, left_rgb, right_rgb, *, min_disparity_px, max_disparity_px):
+        key = (
+            hashlib.blake2b(left_rgb.tobytes(), digest_size=16).digest(),
+            min_disparity_px,
+            max_disparity_px,
+            tuple(getattr(self.config, f) for f in _MATCHING_FIELDS),
         )
-        ok &= zncc >= cfg.min_zncc
-        out[~ok] = np.nan
-        return out
+        if key not in _RAW_CACHE:
+            if len(_RAW_CACHE) > 16:
+                _RAW_CACHE.clear()
+            _RAW_CACHE[key] = super().raw_disparities(
+                left_rgb,
+                right_rgb,
+                min_disparity_px=min_disparity_px,
+                max_disparity_px=max_disparity_px,
+            )
+        return _RAW_CACHE[key]
 
 
-def matchers() -> dict[str, StereoMatcher]:
-    """Each row: one change from the row it names."""
-    base = StereoConfig()
+@dataclass(frozen=True)
+class Row:
+    config: StereoConfig | None  # None: the textbook matcher
+    fill: str = ""  # "", "image" or "shell"
+
+
+OLD = "before the retune (ZNCC 0.5, WLS 0.5 px)"
+BOTH = "ZNCC 0.3 + WLS agreement 1.0 px (measured, not adopted)"
+NEW = "ours (the defaults)"
+
+
+def rows(base: StereoConfig) -> dict[str, Row]:
+    """Each row: one change from the checks before issue 22's retune (``old``), the defaults
+    (``base``), then the fill stage, then the textbook."""
+    r = replace
+    old = r(base, min_zncc=0.5, wls_max_change_px=0.5)
     return {
-        "ours, before the fix (left pad)": LeftPadOnly(base),
-        "ours (both sides padded)": SgbmWlsMatcher(base),
-        "ours, ZNCC check off": SgbmWlsMatcher(replace(base, min_zncc=-1.0)),
-        "ours, min ZNCC 0.3": SgbmWlsMatcher(replace(base, min_zncc=0.3)),
-        "ours, WLS agreement 1.0 px": SgbmWlsMatcher(replace(base, wls_max_change_px=1.0)),
-        "ours, min ZNCC 0.3 + WLS agreement 1.0 px": SgbmWlsMatcher(
-            replace(base, min_zncc=0.3, wls_max_change_px=1.0)
-        ),
-        "textbook SGBM+WLS": TextbookSgbmWls(),
+        OLD: Row(old),
+        "ZNCC check off": Row(r(old, min_zncc=-1.0)),
+        "min ZNCC 0.3": Row(r(old, min_zncc=0.3)),
+        "WLS agreement 1.0 px": Row(r(old, wls_max_change_px=1.0)),
+        "WLS agreement off": Row(r(old, wls_max_change_px=1e3)),
+        "left-right 2 px": Row(r(old, lr_max_diff_px=2.0)),
+        "uniqueness 5": Row(r(old, uniqueness_ratio=5)),
+        "speckle filter off": Row(r(old, speckle_window_px=0)),
+        BOTH: Row(r(old, min_zncc=0.3, wls_max_change_px=1.0)),
+        NEW: Row(base),
+        "before the retune + fill (image)": Row(old, "image"),
+        "before the retune + fill (image + shell)": Row(old, "shell"),
+        "ours + fill (image + shell)": Row(base, "shell"),
+        "textbook SGBM+WLS": Row(None),
     }
 
 
-def truth_along_rays(depth, sensor, truth_depth):
-    """(relative error of each valid depth, its (v, u) pixel) where the truth is smooth."""
+def with_fill(depth: DepthMap, cfg: StereoConfig, kind: str, left_pose: Pose, room_box) -> DepthMap:
+    """``depth`` with the fill stage's pixels added (at stride 1), as one depth map."""
+    fill_cfg = FillConfig(stride_px=1, shell_stride_px=1)
+    z = depth.depth_m.copy()
+    if kind == "image":
+        disp, mask = fill_disparity(depth, fill_cfg, strided=False)
+        fb = depth.intrinsics.fx_px * depth.baseline_m
+        z[mask] = fb / disp[mask]
+    else:  # the pipeline's own world points, put back into the rectified pixels they came from
+        pts, _ = fill_points_in_world(
+            depth, left_pose, fill_cfg, min_depth_m=cfg.min_depth_m,
+            max_depth_m=cfg.max_depth_m, room_box_m=room_box,
+        )  # fmt: skip
+        rect = (depth.rect_from_left @ (pts.astype(np.float64) @ left_pose.R.T + left_pose.t_m).T).T
+        k = depth.intrinsics
+        u = np.rint(rect[:, 0] / rect[:, 2] * k.fx_px + k.cx_px).astype(int)
+        v = np.rint(rect[:, 1] / rect[:, 2] * k.fy_px + k.cy_px).astype(int)
+        h, w = z.shape
+        ok = (
+            (u >= 0)
+            & (u < w)
+            & (v >= 0)
+            & (v < h)
+            & ~depth.valid[np.clip(v, 0, h - 1), np.clip(u, 0, w - 1)]
+        )
+        z[v[ok], u[ok]] = rect[ok, 2]
+    valid = np.isfinite(z) & (z >= cfg.min_depth_m) & (z <= cfg.max_depth_m)
+    z[~valid] = np.nan
+    return replace(depth, depth_m=z, valid=valid)
+
+
+def relative_errors(depth: DepthMap, sensor, truth_depth: np.ndarray) -> np.ndarray:
+    """|z - z_true| / z_true of each valid depth, along its ray, where the truth is smooth."""
     points, _ = depth.points_in_left_camera()
     cam = Camera(name="left", intrinsics=sensor, pose=Pose(R=np.eye(3)))
     px, z = cam.project(points.astype(np.float64))
@@ -141,71 +199,119 @@ def truth_along_rays(depth, sensor, truth_depth):
     return np.abs(z[smooth] - zt[smooth]) / zt[smooth]
 
 
-def score(depth, sensor, truth_depth, inside) -> dict[str, float]:
-    rel = truth_along_rays(depth, sensor, truth_depth)
+def score(depth: DepthMap, sensor, truth_depth, inside, textured, blank) -> dict[str, float]:
+    rel = relative_errors(depth, sensor, truth_depth)
     w = depth.valid.shape[1]
     centre = slice(w // 2 - EDGE_COLUMNS // 2, w // 2 + EDGE_COLUMNS // 2)
     right = slice(w - EDGE_COLUMNS, w)
 
-    def dens(cols):
-        return float(depth.valid[:, cols][inside[:, cols]].mean())
+    def dens(cols, where=inside):
+        return float(depth.valid[:, cols][where[:, cols]].mean())
 
     return {
         "density": float(depth.valid[inside].mean()),
+        "textured": float(depth.valid[inside & textured].mean()),
+        "blank": float(depth.valid[inside & blank].mean()),
         ">1%": float(np.mean(rel > 0.01)),
         ">3%": float(np.mean(rel > 0.03)),
         ">5%": float(np.mean(rel > 0.05)),
         "right": dens(right),
         "centre": dens(centre),
+        "right tex": dens(right, inside & textured),
+        "centre tex": dens(centre, inside & textured),
     }
 
 
-COLUMNS = ("density", ">1%", ">3%", ">5%", "right", "centre")
+def material_masks(world, unit, t_s: float, rect, object_index: np.ndarray):
+    """(textured, blank) masks in the rectified left image, from the sim's object labels."""
+    names = [o.name.split(":")[-1] for o in world.scene_at(t_s).objects] + ["?"]
+    mx, my = rect.map_left
+    labels = cv2.remap(object_index.astype(np.float32), mx, my, cv2.INTER_NEAREST)
+    if rect.match_size != rect.full_size:
+        labels = cv2.resize(labels, rect.match_size, interpolation=cv2.INTER_NEAREST)
+    kinds = np.array(names)[np.clip(labels.astype(int), -1, len(names) - 1)]
+    return np.isin(kinds, TEXTURED), np.isin(kinds, BLANK)
+
+
+def as_recorded(rgb: np.ndarray, quality: int) -> np.ndarray:
+    """The image after the agents' JPEG encoding (RGB in, RGB out); ``quality`` 0: raw."""
+    if quality <= 0:
+        return rgb
+    ok, buf = cv2.imencode(".jpg", rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, quality])
+    assert ok
+    return np.ascontiguousarray(cv2.imdecode(buf, cv2.IMREAD_COLOR)[:, :, ::-1])
+
+
+def table(results, names, by_camera: bool) -> str:
+    key = ("phase", "camera", "matcher") if by_camera else ("phase", "matcher")
+    lines = ["| " + " | ".join(key + COLUMNS) + " |", "|---" * (len(key) + len(COLUMNS)) + "|"]
+    groups = defaultdict(list)
+    for phase, serial, name, s in results:
+        if name in names:
+            groups[(phase, f"SN{serial}", name) if by_camera else (phase, name)].append(s)
+    for k, ss in groups.items():
+        cells = [f"{100 * statistics.mean(s[c] for s in ss):.1f}" for c in COLUMNS]
+        lines.append("| " + " | ".join(list(k) + cells) + " |")
+    return "\n".join(lines)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seed", type=int, default=11)
     parser.add_argument("--t-s", type=float, default=1.0)
-    parser.add_argument("--phases", default="empty,setup,intraoperative,turnover,wand")
+    parser.add_argument("--phases", default="empty,setup,intraoperative,turnover")
     parser.add_argument("--resolution", default="SVGA")
+    parser.add_argument("--jpeg-quality", type=int, default=90)
+    parser.add_argument(
+        "--per-camera", default=f"{OLD},{NEW},{BOTH},textbook SGBM+WLS",
+        help="comma-separated rows to print per camera",
+    )  # fmt: skip
+    parser.add_argument("--rows", default="", help="comma-separated rows to run (all)")
     args = parser.parse_args()
 
-    from reconstructor.depth.stereo import rectifier
     from sim import World
+    from sim.eval_set import _room_bounds
 
-    rows = []  # (phase, camera, matcher, scores)
+    base = StereoConfig()
+    selected = rows(base)
+    if args.rows:
+        selected = {k: v for k, v in selected.items() if k in args.rows.split(",")}
+    results = []  # (phase, serial, row name, scores)
     for phase in args.phases.split(","):
         world = World.from_seed(args.seed, phase=phase)
+        b = _room_bounds(world)
+        room_box = (np.array(b[:3]), np.array(b[3:]))
         for unit in world.rig:
             left, right = world.render_stereo(unit.index, args.t_s, args.resolution)
+            left_rgb = as_recorded(left.image_rgb, args.jpeg_quality)
+            right_rgb = as_recorded(right.image_rgb, args.jpeg_quality)
             st = unit.factory.stereo(args.resolution)
-            cfg = StereoConfig.for_resolution(st.left.width_px)
+            cfg0 = StereoConfig.for_resolution(st.left.width_px)
             rect = rectifier(
-                st.left, st.right, st.right_from_left, cfg.match_scale, cfg.rectify_alpha
+                st.left, st.right, st.right_from_left, cfg0.match_scale, cfg0.rectify_alpha
             )
-            inside = rect.rectify(left.image_rgb, right.image_rgb)[2]
-            for name, m in matchers().items():
+            inside = rect.rectify(left_rgb, right_rgb)[2]
+            textured, blank = material_masks(world, unit, args.t_s, rect, left.object_index)
+            for name, row in selected.items():
+                if row.config is None:
+                    cfg, m = cfg0, TextbookSgbmWls()
+                else:
+                    cfg = replace(row.config, match_scale=cfg0.match_scale)
+                    m = CachedSgbm(cfg)
                 d = compute_depth(
-                    left.image_rgb, right.image_rgb, st.left, st.right, st.right_from_left, cfg, m
+                    left_rgb, right_rgb, st.left, st.right, st.right_from_left, cfg, m
                 )
-                rows.append((phase, unit.serial, name, score(d, st.left, left.depth_m, inside)))
-                print(f"  {phase} SN{unit.serial} {name}: {rows[-1][3]}", flush=True)
+                if row.fill:
+                    d = with_fill(d, cfg, row.fill, unit.left_pose, room_box)
+                s = score(d, st.left, left.depth_m, inside, textured, blank)
+                results.append((phase, unit.serial, name, s))
+                print(f"  {phase} SN{unit.serial} {name}: "
+                      + " ".join(f"{c} {100 * s[c]:.1f}" for c in COLUMNS), flush=True)  # fmt: skip
 
-    head = "| phase | camera | matcher | " + " | ".join(COLUMNS) + " |"
-    print("\n" + head + "\n" + "|---" * (len(COLUMNS) + 3) + "|")
-    for phase, serial, name, s in rows:
-        cells = " | ".join(f"{100 * s[c]:.1f}" for c in COLUMNS)
-        print(f"| {phase} | SN{serial} | {name} | {cells} |")
     print("\nMean over the cameras (%):\n")
-    print("| phase | matcher | " + " | ".join(COLUMNS) + " |")
-    print("|---" * (len(COLUMNS) + 2) + "|")
-    groups = defaultdict(list)
-    for phase, _, name, s in rows:
-        groups[(phase, name)].append(s)
-    for (phase, name), ss in groups.items():
-        cells = " | ".join(f"{100 * statistics.mean(s[c] for s in ss):.1f}" for c in COLUMNS)
-        print(f"| {phase} | {name} | {cells} |")
+    print(table(results, set(selected), by_camera=False))
+    print("\nPer camera (%):\n")
+    print(table(results, set(args.per_camera.split(",")), by_camera=True))
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ no weights), with the checks that decide which of its disparities to keep."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -42,6 +43,26 @@ class SgbmWlsMatcher(StereoMatcher):
         min_disparity_px: float,
         max_disparity_px: float,
     ) -> np.ndarray:
+        raw = self.raw_disparities(
+            left_rgb,
+            right_rgb,
+            min_disparity_px=min_disparity_px,
+            max_disparity_px=max_disparity_px,
+        )
+        out = raw.filtered.copy()
+        out[~self.keep(left_rgb, right_rgb, raw)] = np.nan
+        return out
+
+    def raw_disparities(
+        self,
+        left_rgb: np.ndarray,
+        right_rgb: np.ndarray,
+        *,
+        min_disparity_px: float,
+        max_disparity_px: float,
+    ) -> RawDisparities:
+        """SGBM's left and right-view disparities and the WLS-filtered map, before any check
+        (apart so that the checks can be tuned on one matching: ``bench/bench_stereo.py``)."""
         cfg = self.config
         w = cfg.block_size_px
         channels = left_rgb.shape[2] if left_rgb.ndim == 3 else 1
@@ -74,19 +95,35 @@ class SgbmWlsMatcher(StereoMatcher):
         wls.setSigmaColor(cfg.wls_sigma_color)
         crop = slice(pad, pad + left_rgb.shape[1])
         filtered = wls.filter(disp_left, lp, disparity_map_right=disp_right)[:, crop]
-        raw_l = sgbm_disparity(disp_left[:, crop], min_d, num_d)
-        raw_r = sgbm_disparity(disp_right[:, crop], min_d, num_d, right_view=True)
-        out = filtered.astype(np.float32) / 16.0
-        ok = lr_consistent(raw_l, raw_r, cfg.lr_max_diff_px)
-        ok &= np.abs(out - raw_l) <= cfg.wls_max_change_px
-        ok &= (
-            zncc_at_disparity(
-                _grey(left_rgb), _grey(right_rgb), np.where(ok, raw_l, 0.0), cfg.zncc_window_px
-            )
-            >= cfg.min_zncc
+        return RawDisparities(
+            left=sgbm_disparity(disp_left[:, crop], min_d, num_d),
+            right=sgbm_disparity(disp_right[:, crop], min_d, num_d, right_view=True),
+            filtered=filtered.astype(np.float32) / 16.0,
         )
-        out[~ok] = np.nan
-        return out
+
+    def keep(self, left_rgb: np.ndarray, right_rgb: np.ndarray, raw: RawDisparities) -> np.ndarray:
+        """(H, W) bool: the pixels whose filtered disparity passes every check of the class
+        docstring (a check whose threshold disables it is skipped)."""
+        cfg = self.config
+        ok = lr_consistent(raw.left, raw.right, cfg.lr_max_diff_px)
+        with np.errstate(invalid="ignore"):
+            ok &= np.abs(raw.filtered - raw.left) <= cfg.wls_max_change_px
+        if cfg.min_zncc > -1.0:
+            zncc = zncc_at_disparity(
+                _grey(left_rgb), _grey(right_rgb), np.where(ok, raw.left, 0.0), cfg.zncc_window_px
+            )
+            ok &= zncc >= cfg.min_zncc
+        return ok
+
+
+@dataclass(frozen=True, eq=False)
+class RawDisparities:
+    """One SGBM matching, (H, W) float32 px each: ``left`` and ``right`` are the raw positive
+    disparities of each view (NaN where SGBM had none), ``filtered`` the WLS map."""
+
+    left: np.ndarray
+    right: np.ndarray
+    filtered: np.ndarray
 
 
 HIGHPASS_SIGMA_PX = 3.0  # removes shading gradients, which correlate at any disparity

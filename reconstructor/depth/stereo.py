@@ -16,10 +16,11 @@ Steps (all on the CPU):
 The search range comes from the depth range: ``d = f · B / depth`` with the rectified focal
 length at match resolution and the calibrated baseline.
 
-Measured on the simulator (SVGA, noisy sensor images, 4 cameras): median depth error 0.8-1.0 %
-at 1-4 m, 3-6 % of valid pixels off by more than 5 %; 72-82 % of textured surfaces and ~3 % of
-blank walls get a depth; about 0.5 s per pair on 2 cores (HD1200 at ``match_scale`` 0.5: the same
-accuracy, 85-88 % textured coverage, about 1.2 s).
+Measured on the simulator (SVGA, noisy sensor images through JPEG 90, 4 cameras, every phase;
+``bench/bench_stereo.py``, EVALUATION.md): 83-85 % of textured surfaces and ~11 % of blank walls
+and ceiling get a depth, 12-13 % of valid depths are more than 3 % off and 5-6 % more than 5 %
+(most of those on the blank surfaces); about 0.5 s per pair on 2 cores (HD1200 at
+``match_scale`` 0.5: about 1.2 s).
 """
 
 from __future__ import annotations

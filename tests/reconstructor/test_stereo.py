@@ -161,8 +161,9 @@ def test_svga_depth_is_accurate_where_it_is_valid(svga):
 
 
 def test_svga_depth_covers_textured_surfaces_and_rejects_blank_walls(svga, world):
-    """>= 50 % of textured pixels (floor, people, instruments) get a depth (measured ~72 %);
-    blank walls almost none (measured ~2 %), instead of a smooth sheet at the wrong depth."""
+    """>= 85 % of textured pixels (floor, people, instruments) get a depth (measured 87 % with
+    issue 22's ZNCC 0.3, 83 % with the old 0.5); blank walls almost none (under 10 %), instead
+    of a smooth sheet at the wrong depth."""
     left, stereo, depth, names = svga
     rect = rectifier(stereo.left, stereo.right, stereo.right_from_left)
     labels = _labels_in_rectified(rect, left.object_index)
@@ -171,7 +172,7 @@ def test_svga_depth_covers_textured_surfaces_and_rejects_blank_walls(svga, world
     textured = np.isin(kinds, TEXTURED)
     walls = kinds == "walls"
     assert textured.sum() > 50_000 and walls.sum() > 50_000
-    assert depth.valid[textured].mean() >= 0.5
+    assert depth.valid[textured].mean() >= 0.85
     assert depth.valid[walls].mean() < 0.10
 
 
