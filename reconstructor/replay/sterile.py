@@ -12,15 +12,29 @@ This needs no empty-room recording; its price: something that stays in the field
 
 **Contacts.** At each timestamp the other occupied voxels are the moving things. They are
 split into 26-connected blobs over the whole region, so that a hand in the field stays joined
-to its arm and body outside it; a blob with at least ``min_gaussians`` Gaussians inside the box
-touches the field if it also reaches out of the box by ``min_outside`` Gaussians: someone
-reaching in is joined to the arm outside, while a blob wholly inside is a floater or a
-surface's jitter (the price: a thing dropped into the field alone is not a contact). A blob's
-role is the majority of its Gaussians' nearest role (horizontal distance to the role's eye),
-so the body decides, not the hand alone; a blob whose Gaussians lie a median of more than
-``max_role_distance_m`` from every role's eye is nobody's arm (a surface's noise) and is
-dropped when roles are given. Blobs of
-``sterile_roles`` (the gowned team, whose work in the field is not a contact) are kept apart.
+to its arm and body outside it. A blob that reaches into the box is judged on three pieces of
+evidence, each against a kind of false event measured on a 60 s sim case (docs/replay.md):
+
+1. *Flicker.* A voxel's fill share at the case's other timestamps (more than
+   ``flicker_window_s`` away, so a touch's own timestamps do not count against it) says how
+   often something is there anyway: a table's ragged underside beside a passer-by, the smear
+   between a walking body and the drape. A hand's voxels are empty but for its touches. A blob
+   whose in-field Gaussians sit in voxels with a median share of ``max_flicker`` or more is
+   noise (the price: a contact repeated at one spot for a fifth of the span looks like flicker,
+   as one held for half of it looks static; review a shorter ``--from``/``--to``).
+2. *Who.* Each Gaussian goes to its nearest role (horizontal distance to the eye: people
+   stand), and each role's part is judged alone (``split_by_role``): a passer-by merged with
+   the arm that reaches in neither takes the contact nor hides it. A part needs at least
+   ``min_gaussians`` Gaussians inside the box and ``min_outside`` outside it (the arm that
+   reaches in; a lone blob wholly inside is a floater: a thing dropped into the field alone is
+   not a contact), and a median distance to its role's eye of at most
+   ``max_role_distance_m`` (farther, it is nobody's arm).
+3. *An arm.* A hand in the field hangs from a shoulder, about 0.2 m below the eyes; the arm's
+   top may merge into a still body's static voxels, so a part must rise to within
+   ``max_shoulder_drop_m`` below its role's eye. A low heap of noise beside the drape does not.
+
+Parts of ``sterile_roles`` (the gowned team, whose work in the field is not a contact) are
+kept apart. Without roles, only the flicker test and the counts apply.
 
 **Events.** A role's consecutive contact timestamps form one event (``max_gap`` missed
 timestamps inside it are bridged); its start is its first contact timestamp, so it is late by
@@ -54,6 +68,10 @@ class SterileConfig:
     max_gap: int = 1  # missed timestamps bridged inside one event
     max_role_distance_m: float = 0.4  # a blob farther from every role is no one's arm
     min_timestamps: int = 1  # 2 drops one-timestamp noise, and touches shorter than 2 intervals
+    max_flicker: float = 0.2  # in-field voxels filled this often (median) are noise; 1 turns off
+    flicker_window_s: float = 3.0  # ... at timestamps this far from now (a touch's own)
+    max_shoulder_drop_m: float | None = 0.4  # the blob rises to this below its role's eye
+    split_by_role: bool = True  # each Gaussian to its nearest role: two people touching apart
     sterile_roles: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
@@ -65,6 +83,12 @@ class SterileConfig:
             raise ValueError("min_opacity in [0, 1), min_gaussians >= 1, max_gap >= 0, please")
         if self.min_timestamps < 1 or not self.max_role_distance_m > 0:
             raise ValueError("min_timestamps >= 1 and max_role_distance_m > 0, please")
+        if not self.flicker_window_s >= 0:
+            raise ValueError(f"flicker_window_s {self.flicker_window_s}: give >= 0")
+        if not 0 < self.max_flicker <= 1:
+            raise ValueError(f"max_flicker {self.max_flicker}: give (0, 1] (1 turns it off)")
+        if self.max_shoulder_drop_m is not None and not self.max_shoulder_drop_m > 0:
+            raise ValueError(f"max_shoulder_drop_m {self.max_shoulder_drop_m}: give > 0 or None")
 
 
 @dataclass(frozen=True)
@@ -146,22 +170,56 @@ class Region:
         return grid
 
 
-def static_scene(region: Region, frames: list[np.ndarray]) -> np.ndarray:
-    """(X, Y, Z) bool: voxels occupied in at least ``static_fraction`` of ``frames`` (each a
-    timestamp's points in the region), grown by one voxel."""
+@dataclass(frozen=True)
+class Background:
+    """What the case's reconstructions hold around a field, voxel by voxel."""
+
+    counts: np.ndarray  # (X, Y, Z) int32: timestamps that fill each voxel
+    static: np.ndarray  # (X, Y, Z) bool: the static scene, grown by one voxel
+    times_s: np.ndarray  # (T,) the timestamps
+    filled: list[np.ndarray]  # per timestamp, the flat indices of the voxels it fills
+
+    def flicker(self, voxels: np.ndarray, t_s: float, window_s: float) -> np.ndarray:
+        """(N,) share of the timestamps more than ``window_s`` from ``t_s`` that fill each of
+        ``voxels`` ((N, 3) indices): how often something is there apart from now (0 when no
+        timestamp is that far)."""
+        flat = np.ravel_multi_index(voxels.T, self.counts.shape)
+        near = np.abs(self.times_s - t_s) <= window_s
+        hits = self.counts.ravel()[flat].astype(np.int64)
+        for k in np.nonzero(near)[0]:
+            hits -= np.isin(flat, self.filled[k])
+        others = int((~near).sum())
+        return hits / others if others else np.zeros(len(flat))
+
+
+def background(region: Region, frames: list[np.ndarray], times_s: list[float]) -> Background:
+    """Each voxel's fill count over ``frames`` (each a timestamp's points in the region) and
+    the static scene: voxels filled at ``static_fraction`` or more, grown by one voxel."""
     counts = np.zeros(region.shape, np.int32)
+    filled = []
     for pts in frames:
-        counts += region.occupancy(pts)
+        grid = region.occupancy(pts)
+        counts += grid
+        filled.append(np.flatnonzero(grid))
     static = counts >= region.config.static_fraction * len(frames)
-    return ndimage.binary_dilation(static, structure=np.ones((3, 3, 3), bool))
+    static = ndimage.binary_dilation(static, structure=np.ones((3, 3, 3), bool))
+    return Background(counts, static, np.asarray(times_s, float), filled)
+
+
+def static_scene(region: Region, frames: list[np.ndarray]) -> np.ndarray:
+    """(X, Y, Z) bool: the static scene of ``background``."""
+    return background(region, frames, list(range(len(frames)))).static
 
 
 def moving_blobs(
-    region: Region, static: np.ndarray, points_m: np.ndarray, eyes_m: dict[str, np.ndarray]
-) -> tuple[int, list[Blob]]:
-    """(moving Gaussians inside the box, the moving blobs that touch the box) at one timestamp.
-    ``eyes_m``: each role's eye then (empty: no roles)."""
+    region: Region, bg: Background | np.ndarray, points_m: np.ndarray,
+    eyes_m: dict[str, np.ndarray], t_s: float = 0.0,
+) -> tuple[int, list[Blob]]:  # fmt: skip
+    """(moving Gaussians inside the box, the moving blobs that touch the box) at ``t_s``.
+    ``bg``: the case's background (or a bare static grid: no flicker test); ``eyes_m``: each
+    role's eye then (empty: no roles)."""
     cfg = region.config
+    static = bg.static if isinstance(bg, Background) else bg
     v = region.voxels(points_m)
     moving = ~static[v[:, 0], v[:, 1], v[:, 2]]
     pts, v = points_m[moving], v[moving]
@@ -170,30 +228,56 @@ def moving_blobs(
     grid[v[:, 0], v[:, 1], v[:, 2]] = True
     labels, n = ndimage.label(grid, structure=np.ones((3, 3, 3), bool))
     point_label = labels[v[:, 0], v[:, 1], v[:, 2]]
+    full = bg if isinstance(bg, Background) and cfg.max_flicker < 1 else None
     blobs = []
     for k in np.unique(point_label[inside]) if n else []:
-        sel = point_label == k
-        n_in = int((sel & inside).sum())
-        if n_in < cfg.min_gaussians or int(sel.sum()) - n_in < cfg.min_outside:
-            continue
-        role, dist = nearest_role(pts[sel], eyes_m)
-        if eyes_m and dist > cfg.max_role_distance_m:
-            continue  # a body is within ~0.3 m of its eye's vertical, a reach adds an arm
-        blobs.append(Blob(pts[sel], inside[sel], role, dist))
+        whole = point_label == k
+        if full is not None:
+            flicker = full.flicker(v[whole & inside], t_s, cfg.flicker_window_s)
+            if np.median(flicker) >= cfg.max_flicker:
+                continue  # in-field voxels the case often fills: a ragged edge, not a hand
+        for role, sel in _parts(pts, whole, inside, eyes_m, cfg.split_by_role):
+            n_in = int((sel & inside).sum())
+            if n_in < cfg.min_gaussians or int(sel.sum()) - n_in < cfg.min_outside:
+                continue
+            dist = _distance(pts[sel], eyes_m.get(role))
+            if eyes_m and dist > cfg.max_role_distance_m:
+                continue  # a body is within ~0.3 m of its eye's vertical, a reach adds an arm
+            drop = cfg.max_shoulder_drop_m
+            if eyes_m and drop is not None and pts[sel, 2].max() < eyes_m[role][2] - drop:
+                continue  # nothing rises to the shoulder: no arm, a heap of noise
+            blobs.append(Blob(pts[sel], inside[sel], role, dist))
     return int(inside.sum()), blobs
 
 
-def nearest_role(points_m: np.ndarray, eyes_m: dict[str, np.ndarray]) -> tuple[str, float]:
-    """The role most of the points are nearest to (horizontally, to the eye: people stand),
-    and the points' median horizontal distance to that role's eye."""
+def _parts(
+    pts: np.ndarray, sel: np.ndarray, inside: np.ndarray, eyes_m: dict[str, np.ndarray],
+    split: bool,
+) -> list[tuple[str, np.ndarray]]:  # fmt: skip
+    """A blob as (role, mask) parts: whole, given to the majority of its Gaussians' nearest
+    roles; or split, each Gaussian to its nearest role (a passer-by who brushes the arm that
+    reaches in does not take the contact), keeping the parts that hold in-field Gaussians."""
     if not eyes_m:
-        return "", float("nan")
+        return [("", sel)]
     names = list(eyes_m)
     eyes = np.stack([eyes_m[n][:2] for n in names])
-    d = np.linalg.norm(points_m[:, None, :2] - eyes[None], axis=2)
-    votes = np.bincount(np.argmin(d, axis=1), minlength=len(names))
-    best = int(np.argmax(votes))
-    return names[best], float(np.median(d[:, best]))
+    idx = np.nonzero(sel)[0]
+    near = np.argmin(np.linalg.norm(pts[idx, None, :2] - eyes[None], axis=2), axis=1)
+    if not split:
+        return [(names[int(np.argmax(np.bincount(near, minlength=len(names))))], sel)]
+    parts = []
+    for r in np.unique(near[inside[idx]]):
+        mask = np.zeros_like(sel)
+        mask[idx[near == r]] = True
+        parts.append((names[int(r)], mask))
+    return parts
+
+
+def _distance(points_m: np.ndarray, eye_m: np.ndarray | None) -> float:
+    """Median horizontal distance of the points to the eye (NaN without one)."""
+    if eye_m is None:
+        return float("nan")
+    return float(np.median(np.linalg.norm(points_m[:, :2] - eye_m[None, :2], axis=1)))
 
 
 def group_events(box: SiteBox, instants: list[Instant], config: SterileConfig) -> list[Event]:

@@ -30,9 +30,9 @@ from reconstructor.replay.sterile import (
     Region,
     SterileConfig,
     SterileError,
+    background,
     group_events,
     moving_blobs,
-    static_scene,
 )
 from reconstructor.replay.video import burn_text, timecode
 
@@ -87,10 +87,10 @@ def sterile(
     instants: dict[str, list[Instant]] = {}
     events: list[Event] = []
     for reg, pts_t in zip(regions, frames, strict=True):
-        static = static_scene(reg, pts_t)
+        bg = background(reg, pts_t, [e.t_s for e in entries])
         rows = []
         for e, pts in zip(entries, pts_t, strict=True):
-            count, blobs = moving_blobs(reg, static, pts, _eyes(paths, e.t_s))
+            count, blobs = moving_blobs(reg, bg, pts, _eyes(paths, e.t_s), e.t_s)
             rows.append(Instant(e.t_s, e.name, count, blobs))
         instants[reg.box.name] = rows
         events += group_events(reg.box, rows, config)
