@@ -22,9 +22,13 @@ evidence, each against a kind of false event measured on a 60 s sim case (docs/r
    whose in-field Gaussians sit in voxels with a median share of ``max_flicker`` or more is
    noise (the price: a contact repeated at one spot for a fifth of the span looks like flicker,
    as one held for half of it looks static; review a shorter ``--from``/``--to``).
-2. *Who.* Each Gaussian goes to its nearest role (horizontal distance to the eye: people
-   stand), and each role's part is judged alone (``split_by_role``): a passer-by merged with
-   the arm that reaches in neither takes the contact nor hides it. A part needs at least
+2. *Who.* Each Gaussian goes to the role whose body it is joined to (``split_by_role``): a
+   role's body is the blob's voxels within ``body_radius_m`` of its eye's vertical (people
+   stand), and every voxel goes to the body it is reached from first through the blob's own
+   voxels, so a hand far out over the field follows its arm back to its owner even where it
+   is nearer another person's eye (without a body in the blob: the nearest eye). Each role's
+   part is judged alone: a passer-by merged with the arm that reaches in neither takes the
+   contact nor hides it. A part needs at least
    ``min_gaussians`` Gaussians inside the box and ``min_outside`` outside it (the arm that
    reaches in; a lone blob wholly inside is a floater: a thing dropped into the field alone is
    not a contact), and a median distance to its role's eye of at most
@@ -47,7 +51,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, sparse
+from scipy.sparse import csgraph
 
 from protocol.site import SiteBox
 from reconstructor.errors import ReconstructError
@@ -71,7 +76,8 @@ class SterileConfig:
     max_flicker: float = 0.2  # in-field voxels filled this often (median) are noise; 1 turns off
     flicker_window_s: float = 3.0  # ... at timestamps this far from now (a touch's own)
     max_shoulder_drop_m: float | None = 0.4  # the blob rises to this below its role's eye
-    split_by_role: bool = True  # each Gaussian to its nearest role: two people touching apart
+    split_by_role: bool = True  # each Gaussian to the body it joins: two people touching apart
+    body_radius_m: float = 0.25  # a body column about its eye: the shoulders are ~0.2 m out
     sterile_roles: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
@@ -87,6 +93,8 @@ class SterileConfig:
             raise ValueError(f"flicker_window_s {self.flicker_window_s}: give >= 0")
         if not 0 < self.max_flicker <= 1:
             raise ValueError(f"max_flicker {self.max_flicker}: give (0, 1] (1 turns it off)")
+        if not 0 < self.body_radius_m <= 1:
+            raise ValueError(f"body_radius_m {self.body_radius_m}: give (0, 1]")
         if self.max_shoulder_drop_m is not None and not self.max_shoulder_drop_m > 0:
             raise ValueError(f"max_shoulder_drop_m {self.max_shoulder_drop_m}: give > 0 or None")
 
@@ -236,7 +244,9 @@ def moving_blobs(
             flicker = full.flicker(v[whole & inside], t_s, cfg.flicker_window_s)
             if np.median(flicker) >= cfg.max_flicker:
                 continue  # in-field voxels the case often fills: a ragged edge, not a hand
-        for role, sel in _parts(pts, whole, inside, eyes_m, cfg.split_by_role):
+        for role, sel in _parts(
+            pts, v, whole, inside, eyes_m, cfg.split_by_role, cfg.voxel_m, cfg.body_radius_m
+        ):
             n_in = int((sel & inside).sum())
             if n_in < cfg.min_gaussians or int(sel.sum()) - n_in < cfg.min_outside:
                 continue
@@ -251,26 +261,78 @@ def moving_blobs(
 
 
 def _parts(
-    pts: np.ndarray, sel: np.ndarray, inside: np.ndarray, eyes_m: dict[str, np.ndarray],
-    split: bool,
+    pts: np.ndarray, vox: np.ndarray, sel: np.ndarray, inside: np.ndarray,
+    eyes_m: dict[str, np.ndarray], split: bool, voxel_m: float, body_m: float,
 ) -> list[tuple[str, np.ndarray]]:  # fmt: skip
     """A blob as (role, mask) parts: whole, given to the majority of its Gaussians' nearest
-    roles; or split, each Gaussian to its nearest role (a passer-by who brushes the arm that
-    reaches in does not take the contact), keeping the parts that hold in-field Gaussians."""
+    roles; or split by whose body each Gaussian hangs from (``_owners``), keeping the parts
+    that hold in-field Gaussians."""
     if not eyes_m:
         return [("", sel)]
     names = list(eyes_m)
     eyes = np.stack([eyes_m[n][:2] for n in names])
     idx = np.nonzero(sel)[0]
-    near = np.argmin(np.linalg.norm(pts[idx, None, :2] - eyes[None], axis=2), axis=1)
     if not split:
+        near = np.argmin(np.linalg.norm(pts[idx, None, :2] - eyes[None], axis=2), axis=1)
         return [(names[int(np.argmax(np.bincount(near, minlength=len(names))))], sel)]
+    owner = _owners(pts[idx], vox[idx], eyes, voxel_m, body_m)
     parts = []
-    for r in np.unique(near[inside[idx]]):
+    for r in np.unique(owner[inside[idx]]):
         mask = np.zeros_like(sel)
-        mask[idx[near == r]] = True
+        mask[idx[owner == r]] = True
         parts.append((names[int(r)], mask))
     return parts
+
+
+_OFFSETS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
+                     if (i, j, k) != (0, 0, 0)])  # fmt: skip
+
+
+def _owners(
+    pts: np.ndarray, vox: np.ndarray, eyes_xy: np.ndarray, voxel_m: float, body_m: float
+) -> np.ndarray:
+    """(N,) the role (index into ``eyes_xy``) whose body each of one blob's Gaussians is
+    joined to. The nearest eye in the floor plane is wrong for a hand far out over the field,
+    which can be nearer another person's eye than its owner's; so each role's body is the
+    blob's voxels within ``body_m`` of its eye's vertical (nearest eye where two overlap), and
+    every voxel goes to the body from which it is reached first through the blob's own voxels
+    (a geodesic Voronoi split): a hand follows its arm back to the shoulder it hangs from.
+    Without any body in the blob (a still body is static scene and the arm reaches no column),
+    each Gaussian is its nearest eye's."""
+    near = np.argmin(np.linalg.norm(pts[:, None, :2] - eyes_xy[None], axis=2), axis=1)
+    keys, point_voxel = np.unique(vox, axis=0, return_inverse=True)
+    point_voxel = point_voxel.ravel()
+    n_vox, n_roles = len(keys), len(eyes_xy)
+    centres = np.zeros((n_vox, 2))
+    np.add.at(centres, point_voxel, pts[:, :2])
+    centres /= np.bincount(point_voxel, minlength=n_vox)[:, None]
+    gap = np.linalg.norm(centres[:, None] - eyes_xy[None], axis=2)
+    body_role = np.argmin(gap, axis=1)
+    seeds = np.nonzero(gap[np.arange(n_vox), body_role] <= body_m)[0]
+    if not len(seeds):
+        return near
+    rows, cols, weights = [n_vox + body_role[seeds]], [seeds], [np.full(len(seeds), 1e-9)]
+    # 26-neighbour edges among the blob's voxels, weighted by their length
+    span = keys.max(axis=0) + 3
+    flat = np.ravel_multi_index((keys + 1).T, span)
+    order = np.argsort(flat)
+    for off in _OFFSETS:
+        nb = np.ravel_multi_index((keys + 1 + off).T, span)
+        at = np.clip(np.searchsorted(flat, nb, sorter=order), 0, n_vox - 1)
+        hit = flat[order[at]] == nb
+        rows.append(np.nonzero(hit)[0])
+        cols.append(order[at[hit]])
+        weights.append(np.full(int(hit.sum()), float(np.linalg.norm(off)) * voxel_m))
+    size = n_vox + n_roles  # one source node per role, joined to its body's voxels
+    graph = sparse.csr_matrix(
+        (np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))), (size, size)
+    )
+    _, _, source = csgraph.dijkstra(
+        graph, indices=np.unique(n_vox + body_role[seeds]), min_only=True,
+        return_predecessors=True,
+    )  # fmt: skip
+    owner = source[point_voxel] - n_vox
+    return np.where(owner >= 0, owner, near)
 
 
 def _distance(points_m: np.ndarray, eye_m: np.ndarray | None) -> float:

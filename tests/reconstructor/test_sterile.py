@@ -338,3 +338,24 @@ def test_a_low_heap_beside_the_field_is_no_arm():
         "porter"
     ]  # the counts and the distance alone would take it
     assert [e.role for e in _contacts(high, eyes)] == ["porter"]
+
+
+def test_a_hand_reaching_past_another_persons_eye_stays_its_owners():
+    """A hand far out over the field that is nearer another person's eye than its owner's is
+    still its owner's contact: it is joined to the owner's body by the arm, while the other
+    person (whose body merges with the owner's through a cart) only stands nearby."""
+    rng = np.random.default_rng(3)
+    eyes = {"owner": np.array([0.0, -0.95, 1.6]), "other": np.array([0.8, -0.45, 1.6])}
+    hand = np.array([0.4, -0.2, 0.97])
+    assert np.linalg.norm(hand[:2] - eyes["other"][:2]) < 0.6 * np.linalg.norm(
+        hand[:2] - eyes["owner"][:2]
+    )  # the hand is far nearer the other's eye
+    cart = np.concatenate([_line((x, y, 0.1), (x, y, 0.9), width_m=0.12, rng=rng)
+                           for x, y in np.linspace((0.2, -0.95), (0.75, -0.5), 5)])  # fmt: skip
+    frames = [_slab() for _ in range(6)]
+    frames[3] = np.concatenate([frames[3], _body(eyes["owner"], rng), _body(eyes["other"], rng),
+                                cart, _arm(eyes["owner"], hand, rng)])  # fmt: skip
+    assert [(e.role, e.start_s) for e in _contacts(frames, eyes)] == [("owner", 1.5)]
+    # not one Gaussian of the hand is left to the other, even where a single one would count
+    loose = SterileConfig(min_gaussians=1, min_outside=1)
+    assert {e.role for e in _contacts(frames, eyes, loose)} == {"owner"}
