@@ -52,6 +52,13 @@ def rig(tmp_path_factory) -> Iterator[SimRig]:
     )
     node_b = files.node_configs["orin-b"].read_text()
     port_b = int(re.search(r'frames_bind = "tcp://127.0.0.1:(\d+)"', node_b).group(1))
+    # orin-b's own buffering (its queue and its socket's high-water mark, 100 frames when the
+    # queue is 8) must be shorter than the 10 s cut (300 frames): with the default 120-frame
+    # queue (480 + 120 frames) a cut is absorbed whole and delivered late, so whether frames are
+    # lost would depend on the kernel's TCP buffers, not on the fault
+    files.node_configs["orin-b"].write_text(
+        node_b.replace('encoding = "jpeg"\n', 'encoding = "jpeg"\nqueue_frames = 8\n', 1)
+    )
     proxy = TcpProxy(port_b)
     rig_text = files.rig_config.read_text()
     files.rig_config.write_text(
