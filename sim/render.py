@@ -187,6 +187,21 @@ class RayImage:
     object_index: np.ndarray  # (H, W) int32; SPHERE_OBJECT_BASE + k for wand sphere k
 
 
+def camera_rays(
+    camera: Camera, region: np.ndarray | None = None, *, one_thread_if_small: bool = False
+) -> np.ndarray:
+    """World rays (origin, direction) of ``camera``'s pixels, or of the ``region`` pixels (flat
+    indices); small batches may run on the calling thread (no pool spinning under load)."""
+    dirs_cam = ray_directions(camera.intrinsics).reshape(-1, 3)
+    if region is not None:
+        dirs_cam = np.ascontiguousarray(dirs_cam[region])
+    R = camera.pose.R.astype(np.float32)
+    origin = camera.pose.centre_m.astype(np.float32)
+    if one_thread_if_small:
+        return kernels.on_one_thread_if_small(kernels.make_rays, len(dirs_cam), dirs_cam, R, origin)
+    return kernels.make_rays(dirs_cam, R, origin)
+
+
 def render_view(
     scene: FrameScene,
     camera: Camera,
@@ -202,12 +217,7 @@ def render_view(
     """
     intr = camera.intrinsics
     H, W = intr.height_px, intr.width_px
-    dirs_cam = ray_directions(intr).reshape(-1, 3)
-    if region is not None:
-        dirs_cam = np.ascontiguousarray(dirs_cam[region])
-    R = camera.pose.R.astype(np.float32)
-    origin = camera.pose.centre_m.astype(np.float32)
-    rays = kernels.make_rays(dirs_cam, R, origin)
+    rays = camera_rays(camera, region)
     t, objects, normals = scene.cast_rays(rays)
     radiance = kernels.shade_pixels(
         rays,
@@ -259,12 +269,7 @@ def render_over_background(
     """
     intr = camera.intrinsics
     H, W = intr.height_px, intr.width_px
-    dirs_cam = ray_directions(intr).reshape(-1, 3)
-    if region is not None:
-        dirs_cam = np.ascontiguousarray(dirs_cam[region])
-    R = camera.pose.R.astype(np.float32)
-    origin = camera.pose.centre_m.astype(np.float32)
-    rays = kernels.on_one_thread_if_small(kernels.make_rays, len(dirs_cam), dirs_cam, R, origin)
+    rays = camera_rays(camera, region, one_thread_if_small=True)
     radiance = background.radiance.reshape(-1, 3).copy()
     depth = background.depth_m.reshape(-1).copy()
     objects = background.object_index.reshape(-1).copy()
