@@ -37,12 +37,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import open3d as o3d
 
 from protocol.rig_calibration import RigCalibration
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import Timestamp, calibration_at, right_from_left
 from reconstructor.data.views import View, view_from_image
+from reconstructor.depth.cache import DepthCache, DepthStage
 from reconstructor.depth.fill import fill_points_in_world
 from reconstructor.depth.fusion import FusedCloud, fuse
 from reconstructor.depth.matchers import load_matcher
@@ -169,13 +169,16 @@ def reconstruct(
     progress: Progress | None = None,
     refine: RefineHook | None = None,
     init: InitHook | None = None,
+    depth_cache: DepthCache | None = None,
 ) -> Reconstruction:
     """Reconstruct one timestamp; write the outputs when ``out_dir`` is given.
 
     The stages, in order: depth (stereo and hole filling), init (fusion and the Gaussians),
     warm-up, auxiliary views (the refiner's, or the caller's ``refine`` hook), refinement, and
     the outputs. ``timings_s`` of the result has one entry per stage. A caller's ``init`` hook
-    replaces the initial Gaussians (the fused cloud is still made and passed to it).
+    replaces the initial Gaussians (the fused cloud is still made and passed to it). With a
+    ``depth_cache``, the depth stage (stereo and fusion) is read from it when it holds this
+    timestamp under these settings, and kept in it when not.
     """
     cfg = config.resolved(ts.frames[0].camera.intrinsics.width_px)
     timings: dict[str, float] = {}
@@ -184,15 +187,24 @@ def reconstruct(
         refiner = build_refiner(cfg.auxiliary)  # before stereo: a bad name fails at once
     with _run_folder(out_dir, cfg, ts, calibration):
         _log_start(ts)
+        stage = depth_cache.get(ts, cfg) if depth_cache is not None else None
         with _timed(timings, "stereo"):
-            clouds, depths = stereo_clouds(ts, cfg)
+            clouds, depths = stereo_clouds(ts, cfg) if stage is None else (None, stage.depths)
         train_views, held_out = make_views(ts, cfg)
         bounds = world_bounds(cfg, calibration)
         with _timed(timings, "fusion_init"):
-            if init is None:
-                fused, gaussians = _init_stage(clouds, train_views, bounds, cfg)
-            else:  # the hook seeds its own Gaussians: a cold init would be thrown away
+            if stage is None:
+                assert clouds is not None
                 fused = fuse(clouds, cfg.fusion)
+                log.info("fused points: %s", fused.stats)
+                if depth_cache is not None:
+                    depth_cache.put(ts, cfg, DepthStage(depths, fused, clouds))
+            else:
+                fused = stage.fused
+                log.info("depth and fused points (%d) from the depth cache", len(fused.points_m))
+            if init is None:
+                gaussians = _init_gaussians(fused, train_views, bounds, cfg)
+            else:  # the hook seeds its own Gaussians: a cold init would be thrown away
                 gaussians = init(ts, fused, depths)
         trainer = Trainer(gaussians, cfg.train, cfg.raster, scene_extent_m(train_views))
         with _timed(timings, "warmup"):
@@ -270,23 +282,19 @@ def _log_start(ts: Timestamp) -> None:
     )
 
 
-def _init_stage(
-    clouds: list[tuple[np.ndarray, np.ndarray]],
+def _init_gaussians(
+    fused: FusedCloud,
     train_views: Sequence[View],
     bounds: Bounds | None,
     cfg: ReconstructConfig,
-) -> tuple[FusedCloud, Gaussians]:
-    """The fused cloud and the initial Gaussians: from its points, or uniform in a box for
+) -> Gaussians:
+    """The initial Gaussians: from the fused cloud's points, or uniform in a box for
     ``init_method = "random"`` (the fused cloud is still made: points.ply and the
     depth-reprojection baseline need it)."""
-    fused = fuse(clouds, cfg.fusion)
-    log.info("fused points: %s", fused.stats)
     if cfg.init_method == "random":
         lo, hi = random_init_box(train_views, bounds)
-        gaussians = init_random(cfg.random_init_count, lo, hi, cfg.init, seed=cfg.train.seed)
-    else:
-        gaussians = init_from_points(fused.points_m, fused.colours, cfg.init)
-    return fused, gaussians
+        return init_random(cfg.random_init_count, lo, hi, cfg.init, seed=cfg.train.seed)
+    return init_from_points(fused.points_m, fused.colours, cfg.init)
 
 
 @dataclass
@@ -387,6 +395,8 @@ def write_outputs(result: Reconstruction) -> None:
     out = result.out_dir
     assert out is not None
     ply.write_ply(out / "splats.ply", result.gaussians)
+    import open3d as o3d  # here, not at import: 4 s, and a machine that only trains needs none
+
     pcd = o3d.geometry.PointCloud()
     pcd.points = o3d.utility.Vector3dVector(result.fused.points_m.astype(np.float64))
     pcd.colors = o3d.utility.Vector3dVector(result.fused.colours.astype(np.float64))

@@ -106,6 +106,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--config", default="", help="reconstruction config (TOML) every method starts from"
     )
     p.add_argument("--write-doc", help="also write this Markdown report (e.g. EVALUATION.md)")
+    p.add_argument(
+        "--depth-cache",
+        default="",
+        help="keep each timestamp's stereo depth and fused cloud in this folder and reuse them "
+        "(a rerun, or a machine without OpenCV contrib or open3d, skips that stage)",
+    )
     return p
 
 
@@ -173,6 +179,9 @@ def main(argv: list[str]) -> int:
     jobs = plan(settings, eval_set)
     source = EvalSource(eval_set)
     check_plan(jobs, source)
+    from reconstructor.depth.cache import DepthCache
+
+    depth_cache = DepthCache(Path(args.depth_cache) if args.depth_cache else None)
     out.mkdir(parents=True, exist_ok=True)
 
     command = "egosurg evaluate " + shlex.join(argv)
@@ -180,7 +189,7 @@ def main(argv: list[str]) -> int:
         json.dumps({"command": command, **settings.as_dict()}, indent=2) + "\n"
     )
     t0 = time.perf_counter()
-    results = run_evaluation(settings, eval_set, out, lpips_model, jobs, source)
+    results = run_evaluation(settings, eval_set, out, lpips_model, jobs, source, depth_cache)
     parts = [
         f"# EgoSurg evaluation\n\nEvaluation set: `{eval_set.root}` ({eval_set.description})\n\n"
         f"Command: `{command}`\n"

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 from protocol.eval_set import EvalSet, EvalSetError
+from reconstructor.depth.cache import DepthCache
 from reconstructor.evaluation.lpips import Lpips
 from reconstructor.evaluation.methods import METHODS, EvalSettings
 from reconstructor.evaluation.plan import Job, plan
@@ -42,9 +43,11 @@ def run_evaluation(
     lpips_model: Lpips | None = None,
     jobs: list[Job] | None = None,
     source: EvalSource | None = None,
+    depth_cache: DepthCache | None = None,
 ) -> EvalResults:
     """Run every planned reconstruction (``plan(settings, eval_set)`` unless given), score it
-    for each protocol, and return the scores."""
+    for each protocol, and return the scores. Each timestamp's depth stage is made once for all
+    its rows (in ``depth_cache``, which may keep it on disk too)."""
     jobs = plan(settings, eval_set) if jobs is None else jobs
     source = EvalSource(eval_set) if source is None else source
     trained = [m for m in settings.methods if METHODS[m].trained]
@@ -60,9 +63,19 @@ def run_evaluation(
         settings.describe(),
     )
     results = EvalResults(settings=settings)
-    runner = JobRunner(settings, source, out_dir, results, lpips_model, total_units=units)
+    runner = JobRunner(
+        settings,
+        source,
+        out_dir,
+        results,
+        lpips_model,
+        total_units=units,
+        depth_cache=depth_cache if depth_cache is not None else DepthCache(),
+    )
     for job in jobs:
         runner.run(job)
     runner.finish_temporal()
+    cache = runner.depth_cache
+    log.info("depth stage: %d computed, %d reused", cache.misses, cache.hits)
     results.wall_s = time.perf_counter() - runner.started
     return results

@@ -28,6 +28,9 @@ from reconstructor.case.warm import WarmStartConfig, warm_config, warm_seed
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import Timestamp, check_calibration, load_timestamp
 from reconstructor.data.views import EYE_NEAR_M, View, novel_view
+from reconstructor.depth.cache import DepthCache, DepthStage
+from reconstructor.depth.fusion import fuse
+from reconstructor.depth.stereo import DepthMap
 from reconstructor.evaluation.baselines import hole_fraction
 from reconstructor.evaluation.lpips import Lpips
 from reconstructor.evaluation.methods import (
@@ -131,6 +134,7 @@ class JobRunner:
         lpips_model: Lpips | None,
         *,
         total_units: int,
+        depth_cache: DepthCache | None = None,
     ) -> None:
         self.settings = settings
         self.source = source
@@ -138,6 +142,8 @@ class JobRunner:
         self.results = results
         self.lpips = lpips_model
         self.total = total_units
+        # each timestamp's stereo depth and fused cloud, made once for all its rows
+        self.depth_cache = depth_cache if depth_cache is not None else DepthCache()
         self.done = 0
         self.started = time.perf_counter()
         # (sequence, camera, method) -> frame index -> uint8 render
@@ -201,7 +207,7 @@ class JobRunner:
                     self.results.recon_seconds.setdefault(key, []).append(time.perf_counter() - t0)
                 self._tick(f"{key} ({what})", job, time.perf_counter() - t0)
                 continue
-            recon = reconstruct(ts, cfg, calibration=calibration)
+            recon = reconstruct(ts, cfg, calibration=calibration, depth_cache=self.depth_cache)
             renders[key] = [
                 render_splats(recon.gaussians, cfg.raster, v, n)
                 for v, n in zip(targets, near, strict=True)
@@ -219,7 +225,7 @@ class JobRunner:
         if "depth-reprojection" in s.methods:
             if depth_maps is None:
                 t0 = time.perf_counter()
-                depth_maps = stereo_clouds(ts, probe)[1]
+                depth_maps = self._depth_maps(ts, probe)
                 self._tick("stereo for depth reprojection", job, time.perf_counter() - t0)
             sources = [
                 (depth_maps[f"SN{left.camera_serial}"], left.camera.pose)
@@ -231,6 +237,15 @@ class JobRunner:
         methods = [m for m in s.methods if m in renders]
         self._score_held_out(job, held_out, methods, renders)
         self._score_ego(job, len(held_out), methods, renders)
+
+    def _depth_maps(self, ts: Timestamp, cfg: ReconstructConfig) -> dict[str, DepthMap]:
+        """The stereo depth maps of ``ts``: from the depth cache, or made (and kept) now."""
+        stage = self.depth_cache.get(ts, cfg)
+        if stage is None:
+            clouds, depths = stereo_clouds(ts, cfg)
+            stage = DepthStage(depths, fuse(clouds, cfg.fusion), clouds)
+            self.depth_cache.put(ts, cfg, stage)
+        return stage.depths
 
     def _warm_frame(
         self,
@@ -253,13 +268,21 @@ class JobRunner:
             def init(ts_, fused, depths):
                 return warm_seed(start, ts_, fused, depths, warm, cfg.init)[0]
 
-            recon = reconstruct(ts, warm_config(cfg, warm), calibration=calibration, init=init)
+            recon = reconstruct(
+                ts,
+                warm_config(cfg, warm),
+                calibration=calibration,
+                init=init,
+                depth_cache=self.depth_cache,
+            )
             gaussians, what = recon.gaussians, "warm"
             del recon
         elif "egosurg" in cold_models:
             gaussians, what = cold_models["egosurg"], "EgoSurg's cold model"
         else:
-            gaussians, what = reconstruct(ts, cfg, calibration=calibration).gaussians, "cold"
+            recon = reconstruct(ts, cfg, calibration=calibration, depth_cache=self.depth_cache)
+            gaussians, what = recon.gaussians, "cold"
+            del recon
         if sequence:
             self.warm_chain[sequence] = (frame, gaussians)
         drawn = [

@@ -1,0 +1,201 @@
+"""The depth stage's results (stereo depth per camera and the fused cloud), kept once per
+timestamp and configuration.
+
+Every row of an evaluation, and every warm-started frame, starts from the same stereo depth and
+fused cloud of a timestamp; ``DepthCache`` computes them once. With a folder it also keeps them
+on disk (``egosurg evaluate --depth-cache DIR``), so that a rerun with other training settings
+skips stereo and fusion, and so that a machine without OpenCV's contrib modules or open3d (the
+lent GPU machines) can train from depth made elsewhere.
+
+A stored entry is keyed by an xxh3-128 digest of everything the stage reads: each sensor's
+image bytes, its calibration, and the resolved stereo, fill and fusion settings, the matcher and
+its weights path, and the room box. A changed image or setting is a different key, never a stale
+hit. Entries are written to a temporary name and renamed, so a killed run leaves no partial one.
+
+On a hit, each ``DepthMap``'s rectified image is made again from the recorded left image (a
+remap, milliseconds), and its ``disparity_px`` holds the disparity of the kept pixels only
+(``fb / depth``; NaN elsewhere): what the matcher returned for rejected pixels is not stored,
+and nothing after the depth stage reads it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import xxhash
+
+from protocol.camera import Intrinsics
+from reconstructor.data.frames import Timestamp, right_from_left
+from reconstructor.depth.stereo import DepthMap, rectifier
+
+if TYPE_CHECKING:
+    from reconstructor.config import ReconstructConfig
+    from reconstructor.depth.fusion import FusedCloud
+
+log = logging.getLogger(__name__)
+
+FORMAT_VERSION = 1  # bump when what the stage computes, or the stored layout, changes
+
+
+class DepthCacheError(OSError):
+    """A cache folder that cannot be used (not a folder, not writable)."""
+
+
+@dataclass
+class DepthStage:
+    """One timestamp's depth stage: ``depths`` per camera ("SN<serial>"), the ``fused`` cloud,
+    and ``clouds`` (the per-camera world points fusion merged; None on a hit from disk, where
+    only the fused result is kept)."""
+
+    depths: dict[str, DepthMap]
+    fused: FusedCloud
+    clouds: list[tuple[np.ndarray, np.ndarray]] | None = None
+
+
+def stage_key(ts: Timestamp, cfg: ReconstructConfig) -> str:
+    """The digest of everything the depth stage of ``ts`` under ``cfg`` (resolved) reads."""
+    h = xxhash.xxh3_128()
+    settings = {
+        "version": FORMAT_VERSION,
+        "stereo": dataclasses.asdict(cfg.stereo) if cfg.stereo is not None else None,
+        "fill": dataclasses.asdict(cfg.fill),
+        "fusion": dataclasses.asdict(cfg.fusion),
+        "matcher": cfg.stereo_matcher,
+        "weights": cfg.stereo_weights,
+        "room_bounds_m": list(cfg.room_bounds_m),
+    }
+    h.update(json.dumps(settings, sort_keys=True, default=str).encode())
+    for left, right in ts.stereo_pairs():
+        for frame in (left, right):
+            cam = frame.camera
+            h.update(f"{frame.camera_serial}:{frame.side}:{frame.image_rgb.shape}".encode())
+            h.update(json.dumps(dataclasses.asdict(cam.intrinsics)).encode())
+            h.update(np.ascontiguousarray(cam.pose.matrix, dtype=np.float64).tobytes())
+            h.update(np.ascontiguousarray(frame.image_rgb).data)
+    return h.hexdigest()
+
+
+class DepthCache:
+    """Depth stages by key: the last ``memory`` in memory and, with ``folder``, all on disk."""
+
+    def __init__(self, folder: Path | None = None, memory: int = 1) -> None:
+        self.folder = Path(folder) if folder is not None else None
+        self.memory = memory
+        self._recent: OrderedDict[str, DepthStage] = OrderedDict()
+        self.hits = self.misses = 0
+        if self.folder is not None:
+            if self.folder.exists() and not self.folder.is_dir():
+                raise DepthCacheError(f"depth cache {self.folder} is a file; give a folder")
+            try:
+                self.folder.mkdir(parents=True, exist_ok=True)
+            except OSError as e:
+                raise DepthCacheError(
+                    f"cannot make the depth cache folder {self.folder}: {e.strerror}"
+                ) from None
+            if not os.access(self.folder, os.W_OK):
+                raise DepthCacheError(f"depth cache folder {self.folder} is not writable")
+
+    def get(self, ts: Timestamp, cfg: ReconstructConfig) -> DepthStage | None:
+        key = stage_key(ts, cfg)
+        stage = self._recent.get(key)
+        if stage is None and self.folder is not None:
+            path = self.folder / f"{key}.npz"
+            if path.is_file():
+                try:
+                    stage = _read(path, ts, cfg)
+                except (OSError, ValueError, KeyError) as e:  # a damaged file: made again
+                    log.warning("depth cache entry %s unreadable (%s); computing it again", path, e)
+        if stage is None:
+            self.misses += 1
+            return None
+        self.hits += 1
+        self._remember(key, stage)
+        return stage
+
+    def put(self, ts: Timestamp, cfg: ReconstructConfig, stage: DepthStage) -> None:
+        key = stage_key(ts, cfg)
+        self._remember(key, stage)
+        if self.folder is not None:
+            _write(self.folder / f"{key}.npz", stage)
+
+    def _remember(self, key: str, stage: DepthStage) -> None:
+        if self.memory <= 0:
+            return
+        self._recent[key] = stage
+        self._recent.move_to_end(key)
+        while len(self._recent) > self.memory:
+            self._recent.popitem(last=False)
+
+
+def _write(path: Path, stage: DepthStage) -> None:
+    arrays: dict[str, np.ndarray] = {
+        "fused_points_m": stage.fused.points_m,
+        "fused_colours": stage.fused.colours,
+    }
+    meta: dict = {"fused_stats": stage.fused.stats, "depths": {}}
+    for name, d in stage.depths.items():
+        arrays[f"{name}/depth_m"] = d.depth_m
+        arrays[f"{name}/valid"] = np.packbits(d.valid)
+        arrays[f"{name}/rect_from_left"] = d.rect_from_left
+        meta["depths"][name] = {
+            "intrinsics": dataclasses.asdict(d.intrinsics),
+            "baseline_m": d.baseline_m,
+            "shape": list(d.depth_m.shape),
+        }
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **arrays)
+        os.replace(tmp, path)
+    except OSError as e:  # a full disk loses the cache entry, never the reconstruction
+        log.warning("could not write depth cache entry %s: %s", path, e)
+        tmp.unlink(missing_ok=True)
+
+
+def _read(path: Path, ts: Timestamp, cfg: ReconstructConfig) -> DepthStage:
+    from reconstructor.depth.fusion import FusedCloud
+
+    assert cfg.stereo is not None, "resolve the config first"
+    with np.load(path, allow_pickle=False) as z:
+        meta = json.loads(z["meta"].tobytes().decode())
+        fused = FusedCloud(z["fused_points_m"], z["fused_colours"], meta["fused_stats"])
+        depths: dict[str, DepthMap] = {}
+        for left, right in ts.stereo_pairs():
+            name = f"SN{left.camera_serial}"
+            m = meta["depths"][name]
+            shape = tuple(m["shape"])
+            depth = z[f"{name}/depth_m"]
+            valid = np.unpackbits(z[f"{name}/valid"], count=shape[0] * shape[1]).astype(bool)
+            intr = Intrinsics(**m["intrinsics"])
+            rect = rectifier(
+                left.camera.intrinsics,
+                right.camera.intrinsics,
+                right_from_left(left.camera, right.camera),
+                cfg.stereo.match_scale,
+                cfg.stereo.rectify_alpha,
+            )
+            rgb = rect.rectify(left.image_rgb, right.image_rgb)[0]
+            if rgb.shape[:2] != shape:
+                raise ValueError(f"{name}: rectified image {rgb.shape[:2]} is not {shape}")
+            valid = valid.reshape(shape)
+            disparity = np.full(shape, np.nan, np.float32)
+            disparity[valid] = (intr.fx_px * m["baseline_m"]) / depth[valid]
+            depths[name] = DepthMap(
+                depth_m=depth,
+                valid=valid,
+                disparity_px=disparity,
+                intrinsics=intr,
+                rect_from_left=z[f"{name}/rect_from_left"],
+                baseline_m=float(m["baseline_m"]),
+                rgb=rgb,
+            )
+    return DepthStage(depths=depths, fused=fused)
