@@ -41,3 +41,7 @@ class RefinerNotFoundError(ReconstructError, LookupError):
 
 class RefinerWeightsError(ReconstructError, FileNotFoundError):
     """A learned view refiner was asked for without a usable local weights directory."""
+
+
+class DepthCacheError(ReconstructError, OSError):
+    """A depth cache folder that cannot be used (a file, not writable)."""

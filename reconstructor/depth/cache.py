@@ -24,6 +24,7 @@ import dataclasses
 import json
 import logging
 import os
+import zipfile
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +36,7 @@ import xxhash
 from protocol.camera import Intrinsics
 from reconstructor.data.frames import Timestamp, right_from_left
 from reconstructor.depth.stereo import DepthMap, rectifier
+from reconstructor.errors import DepthCacheError
 
 if TYPE_CHECKING:
     from reconstructor.config import ReconstructConfig
@@ -43,10 +45,6 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 FORMAT_VERSION = 1  # bump when what the stage computes, or the stored layout, changes
-
-
-class DepthCacheError(OSError):
-    """A cache folder that cannot be used (not a folder, not writable)."""
 
 
 @dataclass
@@ -111,7 +109,7 @@ class DepthCache:
             if path.is_file():
                 try:
                     stage = _read(path, ts, cfg)
-                except (OSError, ValueError, KeyError) as e:  # a damaged file: made again
+                except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
                     log.warning("depth cache entry %s unreadable (%s); computing it again", path, e)
         if stage is None:
             self.misses += 1

@@ -1,0 +1,132 @@
+"""The depth cache (``reconstructor/depth/cache.py``, ``egosurg evaluate --depth-cache``): a
+timestamp's stereo depth and fused cloud made once, kept on disk, and read back on a machine
+that has neither OpenCV's contrib modules nor open3d (the lent GPU machines), giving the same
+inputs to training as computing them there would."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from protocol.rig_calibration import RigCalibration
+from reconstructor.config import ReconstructConfig
+from reconstructor.data.frames import load_timestamp
+from reconstructor.depth.cache import DepthCache, stage_key
+from reconstructor.errors import DepthCacheError
+from reconstructor.pipeline import reconstruct
+from sim.eval_set import EvalSetSpec, write_eval_set
+from tests.helpers import run_egosurg
+
+TINY = """
+train_max_width_px = 96
+[stereo]
+match_scale = 0.25
+[fusion]
+max_points = 20000
+[train]
+warmup_steps = 2
+refine_steps = 0
+[auxiliary]
+enabled = false
+"""
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """One set of the intraoperative sim, its calibration and a tiny config."""
+    root = tmp_path_factory.mktemp("depth_cache")
+    spec = EvalSetSpec(phases=("intraoperative",), sets=1, eval_sets=(0,), view_size_px=(64, 40))
+    write_eval_set(root / "es", spec)
+    folder = root / "es" / "intraoperative"
+    calibration = RigCalibration.read(folder / "calibration.toml")
+    ts = load_timestamp(folder / "session.h5", calibration, "set:0")
+    (root / "tiny.toml").write_text(TINY)
+    cfg = ReconstructConfig.read(root / "tiny.toml")
+    return root, ts, calibration, cfg
+
+
+def _same_depth(a, b) -> None:
+    assert a.keys() == b.keys()
+    for name in a:
+        x, y = a[name], b[name]
+        assert np.array_equal(x.valid, y.valid), name
+        assert np.array_equal(x.depth_m, y.depth_m, equal_nan=True), name
+        assert np.array_equal(x.rgb, y.rgb), name
+        assert x.intrinsics == y.intrinsics and x.baseline_m == y.baseline_m
+        assert np.array_equal(x.rect_from_left, y.rect_from_left)
+        # what is stored of the disparity: the kept pixels' (fb / depth), to float rounding
+        np.testing.assert_allclose(y.disparity_px[y.valid], x.disparity_px[x.valid], rtol=1e-5)
+
+
+def test_a_stored_depth_stage_trains_on_a_machine_without_opencv_contrib_or_open3d(
+    scene, tmp_path, monkeypatch
+):
+    _, ts, calibration, cfg = scene
+    computed = reconstruct(ts, cfg, calibration=calibration)
+    made = DepthCache(tmp_path / "dc")
+    first = reconstruct(ts, cfg, calibration=calibration, depth_cache=made)
+    assert (made.misses, made.hits) == (1, 0)
+    assert len(list((tmp_path / "dc").glob("*.npz"))) == 1
+    assert not list((tmp_path / "dc").glob(".*tmp")), "no temporary file is left behind"
+
+    # another machine: the SGBM+WLS matcher (contrib) and fusion (open3d) cannot run there
+    monkeypatch.delattr(cv2, "ximgproc")
+    monkeypatch.setitem(sys.modules, "open3d", None)
+    elsewhere = DepthCache(tmp_path / "dc")
+    again = reconstruct(ts, cfg, calibration=calibration, depth_cache=elsewhere)
+    assert (elsewhere.misses, elsewhere.hits) == (0, 1)
+    for result in (first, again):
+        _same_depth(computed.depth, result.depth)
+        assert np.array_equal(result.fused.points_m, computed.fused.points_m)
+        assert np.array_equal(result.fused.colours, computed.fused.colours)
+        assert result.fused.stats == computed.fused.stats
+    assert again.gaussians.num == computed.gaussians.num
+
+
+def test_only_what_the_depth_stage_reads_changes_its_key(scene):
+    _, ts, _, cfg = scene
+    resolved = cfg.resolved(ts.frames[0].camera.intrinsics.width_px)
+    key = stage_key(ts, resolved)
+    # the training settings differ between an evaluation's rows: they share one entry
+    longer = dataclasses.replace(cfg.train, warmup_steps=500, refine_steps=1500)
+    assert stage_key(ts, dataclasses.replace(resolved, train=longer)) == key
+    # a different fusion setting, or one changed pixel, is a different entry
+    coarser = dataclasses.replace(resolved.fusion, voxel_m=resolved.fusion.voxel_m * 2)
+    assert stage_key(ts, dataclasses.replace(resolved, fusion=coarser)) != key
+    image = ts.frames[0].image_rgb.copy()
+    image[0, 0, 0] ^= 1
+    frames = (dataclasses.replace(ts.frames[0], image_rgb=image), *ts.frames[1:])
+    assert stage_key(dataclasses.replace(ts, frames=frames), resolved) != key
+
+
+def test_a_damaged_entry_is_made_again_and_a_file_is_not_a_cache_folder(scene, tmp_path, caplog):
+    root, ts, calibration, cfg = scene
+    cache = DepthCache(tmp_path / "dc")
+    reconstruct(ts, cfg, calibration=calibration, depth_cache=cache)
+    (entry,) = (tmp_path / "dc").glob("*.npz")
+    entry.write_bytes(entry.read_bytes()[:1000])  # a copy cut short
+    fresh = DepthCache(tmp_path / "dc")
+    with caplog.at_level(logging.WARNING, logger="reconstructor.depth.cache"):
+        reconstruct(ts, cfg, calibration=calibration, depth_cache=fresh)
+    assert "unreadable" in caplog.text and (fresh.misses, fresh.hits) == (1, 0)
+    assert DepthCache(tmp_path / "dc").get(ts, fresh_cfg(cfg, ts)) is not None  # written again
+
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("x")
+    with pytest.raises(DepthCacheError, match="is a file; give a folder"):
+        DepthCache(a_file)
+    r = run_egosurg(
+        "evaluate", str(root / "es"), "--out", str(tmp_path / "ev"), "--depth-cache", str(a_file)
+    )
+    assert r.returncode != 0
+    assert "is a file; give a folder" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "ev").exists(), "nothing is written before the options are checked"
+
+
+def fresh_cfg(cfg: ReconstructConfig, ts) -> ReconstructConfig:
+    return cfg.resolved(ts.frames[0].camera.intrinsics.width_px)
