@@ -111,6 +111,12 @@ def reconstruct_parser() -> argparse.ArgumentParser:
     case.add_argument("--keyframe-every", type=int, help="a cold timestamp every N (10)")
     case.add_argument("--force", action="store_true", help="redo a case made with other settings")
     parser.add_argument("--out", required=True, help="output folder")
+    parser.add_argument(
+        "--depth-cache",
+        metavar="DIR",
+        help="keep each timestamp's stereo depth and fused cloud here and reuse them (a rerun "
+        "with other training settings, or a machine without OpenCV contrib or open3d)",
+    )
     parser.add_argument("--config", help="a config TOML with settings to change")
     add_device_option(parser, "the config's [raster] backend, the CPU's numba kernels")
     parser.add_argument("--steps", type=int, help="total training steps (default 2000)")
@@ -157,6 +163,10 @@ def main_reconstruct(argv: list[str]) -> int:
             if args.at
             else "give --at TIME for single timestamps or --every INTERVAL for a whole case"
         )
+    from reconstructor.depth.cache import DepthCache
+
+    # a folder that cannot be used fails now, in one line, before any work
+    depth_cache = DepthCache(Path(args.depth_cache)) if args.depth_cache else None
     if args.every:
         from reconstructor.case.cli import reconstruct_case
 
@@ -175,7 +185,14 @@ def main_reconstruct(argv: list[str]) -> int:
             )
         run_dir = out / f"t{ts.t_s:09.3f}"
         t0 = time.perf_counter()
-        result = reconstruct(ts, config, run_dir, calibration=calibration, progress=_progress)
+        result = reconstruct(
+            ts,
+            config,
+            run_dir,
+            calibration=calibration,
+            progress=_progress,
+            depth_cache=depth_cache,
+        )
         print(
             f"{run_dir / 'splats.ply'}: {result.gaussians.num} Gaussians, set {ts.set_index} "
             f"(t = {ts.t_s:.3f} s), {time.perf_counter() - t0:.0f} s"

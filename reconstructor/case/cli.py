@@ -65,6 +65,7 @@ def reconstruct_case(
         ray=args.ray or "",
         gpus_per_task=1 if config.raster.device == "cuda" else 0,
         force=args.force,
+        depth_cache=str(Path(args.depth_cache).resolve()) if args.depth_cache else "",
     )
     index = run_case(req, step_progress=_StepBar() if args.workers <= 1 and not args.ray else None)
     print(summary_line(req.case_dir, index))

@@ -51,6 +51,7 @@ class CaseRequest:
     ray: str = ""  # "" local; "auto" or an address
     gpus_per_task: int = 0  # 1 when the config trains on CUDA: each Ray task declares a GPU
     force: bool = False
+    depth_cache: str = ""  # a folder keeping each timestamp's depth stage ("": none)
 
 
 @contextmanager
@@ -231,6 +232,7 @@ def _job(req: CaseRequest, steps: list[StepJob], threads: int = 0) -> ChainJob:
         steps=tuple(steps),
         threads=threads,
         storage="compact" if req.warm_toml else "ply",  # chains share Gaussians: docs/case.md
+        depth_cache=req.depth_cache,
     )
 
 

@@ -49,6 +49,7 @@ class ChainJob:
     threads: int = 0  # 0: leave torch's and numba's defaults
     # "ply": a full PLY per timestamp; "compact": storage.py (keyframes once, then changes)
     storage: str = "ply"
+    depth_cache: str = ""  # a folder keeping each timestamp's depth stage ("": none)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -156,7 +157,13 @@ def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) ->
         config = ReconstructConfig.from_toml(job.config_toml, "the case's config")
     work = case / ".work" / f"{step.name}.{os.getpid()}"
     shutil.rmtree(work, ignore_errors=True)
-    result = reconstruct(ts, config, work, calibration=calibration, progress=progress, init=init)
+    from reconstructor.depth.cache import DepthCache
+
+    # memory 0: a worker sees each timestamp once; the folder serves reruns and other machines
+    cache = DepthCache(Path(job.depth_cache), memory=0) if job.depth_cache else None
+    result = reconstruct(
+        ts, config, work, calibration=calibration, progress=progress, init=init, depth_cache=cache
+    )
     if job.storage == "compact":
         rel = f"models/{step.name}{storage.SUFFIX}"
         alive = lineage.get("alive")

@@ -130,3 +130,24 @@ def test_a_damaged_entry_is_made_again_and_a_file_is_not_a_cache_folder(scene, t
 
 def fresh_cfg(cfg: ReconstructConfig, ts) -> ReconstructConfig:
     return cfg.resolved(ts.frames[0].camera.intrinsics.width_px)
+
+
+def test_a_case_rerun_with_other_training_settings_reuses_the_stored_depth(scene, tmp_path):
+    root, _, _, _ = scene
+    session = root / "es" / "intraoperative" / "session.h5"
+    common = ["--every", "1s", "--config", str(root / "tiny.toml")]
+    cache = tmp_path / "depth"
+    first = run_egosurg(
+        "reconstruct", str(session), *common, "--out", str(tmp_path / "a"), "--depth-cache",
+        str(cache),
+    )  # fmt: skip
+    assert first.returncode == 0, first.stderr
+    assert len(list(cache.glob("*.npz"))) == 1
+    assert "from the depth cache" not in first.stderr
+    second = run_egosurg(
+        "reconstruct", str(session), *common, "--steps", "3", "--out", str(tmp_path / "b"),
+        "--depth-cache", str(cache),
+    )  # fmt: skip
+    assert second.returncode == 0, second.stderr
+    assert second.stderr.count("from the depth cache") == 1
+    assert len(list(cache.glob("*.npz"))) == 1
