@@ -395,12 +395,7 @@ def write_outputs(result: Reconstruction) -> None:
     out = result.out_dir
     assert out is not None
     ply.write_ply(out / "splats.ply", result.gaussians)
-    import open3d as o3d  # here, not at import: 4 s, and a machine that only trains needs none
-
-    pcd = o3d.geometry.PointCloud()
-    pcd.points = o3d.utility.Vector3dVector(result.fused.points_m.astype(np.float64))
-    pcd.colors = o3d.utility.Vector3dVector(result.fused.colours.astype(np.float64))
-    o3d.io.write_point_cloud(str(out / "points.ply"), pcd)  # type: ignore[arg-type]
+    ply.write_points_ply(out / "points.ply", result.fused.points_m, result.fused.colours)
     ts = result.timestamp
     summary: dict[str, Any] = {
         "session": str(ts.session),

@@ -97,6 +97,30 @@ def write_ply(path: Path | str, gaussians: Gaussians, *, unit_quats: bool = Fals
     return p
 
 
+def write_points_ply(path: Path | str, points_m: np.ndarray, colours: np.ndarray) -> Path:
+    """A coloured point cloud as binary PLY (x, y, z float; red, green, blue uchar), the form
+    open3d, CloudCompare and MeshLab read. ``colours`` are in 0..1."""
+    p = Path(path)
+    n = len(points_m)
+    table = np.empty(n, dtype=[("xyz", "<f4", 3), ("rgb", "u1", 3)])
+    table["xyz"] = points_m
+    table["rgb"] = np.clip(np.rint(np.asarray(colours, np.float32) * 255), 0, 255)
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        f"comment written by egosurg {__version__}",
+        f"element vertex {n}",
+        *(f"property float {a}" for a in "xyz"),
+        *(f"property uchar {c}" for c in ("red", "green", "blue")),
+        "end_header",
+    ]
+    p.parent.mkdir(parents=True, exist_ok=True)
+    with p.open("wb") as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        f.write(table.tobytes())
+    return p
+
+
 @dataclass(frozen=True)
 class _Element:
     name: str

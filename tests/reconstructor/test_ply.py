@@ -202,3 +202,15 @@ def test_empty_model_round_trips(tmp_path):
     assert read_ply(write_ply(tmp_path / "e.ply", g)).num == 0
     assert write_splat(tmp_path / "e.splat", g).stat().st_size == 0
     assert math.isclose(SH_C0, 0.28209479, rel_tol=1e-8)
+
+
+def test_the_fused_point_cloud_file_reads_back_in_open3d(tmp_path):
+    import open3d as o3d
+
+    from reconstructor.splats.ply import write_points_ply
+
+    rng = np.random.default_rng(1)
+    points, colours = rng.normal(size=(500, 3)).astype(np.float32), rng.random((500, 3))
+    cloud = o3d.io.read_point_cloud(str(write_points_ply(tmp_path / "points.ply", points, colours)))
+    assert np.array_equal(np.asarray(cloud.points, np.float32), points)
+    np.testing.assert_allclose(np.asarray(cloud.colors), colours, atol=0.5 / 255 + 1e-6)
