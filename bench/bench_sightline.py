@@ -82,15 +82,17 @@ class Case:
     position: str  # "actual" or the offset's text
     truth: float
     ours: tuple[float, ...]  # one per compared config
+    observed: float = float("nan")  # the tool's observed share at the target (a case only)
 
 
 def compare(
     world: World, model_at, times_s: np.ndarray, configs: list[SightlineConfig],
     offset_text: str = "1m left-posterior", raster: RasterConfig | None = None,
-    progress: bool = False,
+    progress: bool = False, observed_at=None,
 ) -> list[Case]:  # fmt: skip
     """Every person x screen x (actual, offset) at each time: the truth and each config's answer.
-    ``model_at(t_s)`` gives the Gaussians for case time ``t_s`` (= sim time here)."""
+    ``model_at(t_s)`` gives the Gaussians for case time ``t_s`` (= sim time here);
+    ``observed_at(t_s, g, details, raster)``, if given, the observed share the tool reports."""
     raster = raster or RasterConfig(near_m=0.2)
     offset = parse_offset(offset_text)
     boxes = site_boxes(world)
@@ -106,10 +108,16 @@ def compare(
                     eye = pose.centre_m + shift
                     near = configs[0].head_clearance_m
                     truth = true_visible_fraction(world, float(t), eye, box, near_m=near)
-                    ours = tuple(
-                        visible_fraction(g, eye, box, raster, config=c)[0] for c in configs
+                    answers = [visible_fraction(g, eye, box, raster, config=c) for c in configs]
+                    ours = tuple(a[0] for a in answers)
+                    share = (
+                        observed_at(float(t), g, answers[0][1], raster)
+                        if observed_at is not None
+                        else float("nan")
                     )
-                    cases.append(Case(float(t), trajectory.name, box.name, label, truth, ours))
+                    cases.append(
+                        Case(float(t), trajectory.name, box.name, label, truth, ours, share)
+                    )
         if progress:
             print(f"  t = {t:6.2f} s ({k + 1}/{len(times_s)}): {time.perf_counter() - t0:.1f} s",
                   file=sys.stderr, flush=True)  # fmt: skip
@@ -138,6 +146,28 @@ def table(cases: list[Case], configs: list[SightlineConfig], title: str) -> str:
     return "\n".join(lines)
 
 
+def observed_split(cases: list[Case], configs: list[SightlineConfig]) -> str:
+    """Agreement where the tool vouches for its answer (observed share at or above
+    ``ObservedConfig.well_observed_share``) and where it flags it as resting on inferred content."""
+    from reconstructor.replay.observed import ObservedConfig
+
+    well = ObservedConfig().well_observed_share
+    lines = [f"by the tool's flag (observed share >= {well:g} at the target: vouched for)"]
+    for label, sel in (
+        ("vouched for", [c for c in cases if c.observed >= well]),
+        ("flagged", [c for c in cases if not c.observed >= well]),
+    ):
+        if not sel:
+            lines.append(f"{label:16s} {0:4d}")
+            continue
+        cells = []
+        for i in range(len(configs)):
+            a, e, b = scores(sel, i)
+            cells.append(f"{'':18s}{100 * a:5.1f}% {e:5.3f} {b:+.3f}")
+        lines.append(f"{label:16s} {len(sel):4d} | " + " | ".join(cells))
+    return "\n".join(lines)
+
+
 def _times(text: str) -> np.ndarray:
     a, b, step = (float(v) for v in text.split(":"))
     return np.arange(a, b + 1e-9, step)
@@ -163,16 +193,20 @@ def main(argv: list[str] | None = None) -> int:
         world = World.from_seed(args.seed, phase=args.phase)
         model_at = lambda t: true_surface_gaussians(world, t)  # noqa: E731
         title = f"true-surface models, seed {args.seed} {args.phase}"
-    else:
-        world, model_at, raster, times = _case_source(args.case, times)
+    observed_at = None
+    if args.case is not None:
+        world, model_at, raster, times, observed_at = _case_source(args.case, times)
         title = f"reconstructed case {args.case}"
     t0 = time.perf_counter()
-    cases = compare(world, model_at, times, configs, args.offset, raster, progress=True)
+    cases = compare(world, model_at, times, configs, args.offset, raster, progress=True,
+                    observed_at=observed_at)  # fmt: skip
     n_view = len({c.viewer for c in cases})
     print(f"{title}: {n_view} viewers x {len({c.target for c in cases})} screens x 2 positions "
           f"x {len(times)} timestamps ({times[0]:g}-{times[-1]:g} s) = {len(cases)} instants, "
           f"{time.perf_counter() - t0:.0f} s")  # fmt: skip
     print(table(cases, configs, ""))
+    if observed_at is not None:
+        print(observed_split(cases, configs))
     if args.misses:
         for c in cases:
             if any((o >= VISIBLE_ENOUGH) != (c.truth >= VISIBLE_ENOUGH) for o in c.ours):
@@ -185,10 +219,11 @@ def main(argv: list[str] | None = None) -> int:
 def _case_source(folder: Path, times: np.ndarray):
     """The case's world (seed, phase and contact from its session, which must start at the sim
     epoch as eval-set sessions do), a loader of its models by time, the raster its sightline
-    uses, and the case times nearest ``times``."""
+    uses, the case times nearest ``times``, and the observed share the tool reports."""
     from protocol.session import SessionReader
     from reconstructor.data.views import EYE_NEAR_M
     from reconstructor.replay.models import CaseModels
+    from reconstructor.replay.observed_case import CaseObserved
     from reconstructor.replay.run import case_raster
     from sim.timing import SIM_EPOCH_UNIX_NS
 
@@ -202,7 +237,12 @@ def _case_source(folder: Path, times: np.ndarray):
     by_t = {models.entry_at(float(t)).t_s: models.entry_at(float(t)) for t in times}
     chosen = np.array(sorted(by_t))
     raster = case_raster(folder, EYE_NEAR_M)
-    return world, lambda t: models.load(by_t[t]), raster, chosen
+    observed = CaseObserved(folder, case_raster(folder))
+
+    def observed_at(t, g, details, raster_):
+        return observed.target_share(by_t[t], g, details, raster_)
+
+    return world, lambda t: models.load(by_t[t]), raster, chosen, observed_at
 
 
 if __name__ == "__main__":
