@@ -132,17 +132,21 @@ def scores(cases: list[Case], i: int) -> tuple[float, float, float]:
     return float(agree), float(np.mean(np.abs(ours - truth))), float(np.mean(ours - truth))
 
 
+def _row(label: str, sel: list[Case], configs: list[SightlineConfig]) -> str:
+    cells = []
+    for i in range(len(configs)):
+        a, e, b = scores(sel, i)
+        cells.append(f"{'':18s}{100 * a:5.1f}% {e:5.3f} {b:+.3f}")
+    return f"{label:16s} {len(sel):4d} | " + " | ".join(cells)
+
+
 def table(cases: list[Case], configs: list[SightlineConfig], title: str) -> str:
     head = " | ".join(f"occluder_scale {c.occluder_scale:g}: agree  MAE   bias" for c in configs)
     lines = [title, f"{'viewer':16s} {'n':>4s} | {head}"]
     viewers = list(dict.fromkeys(c.viewer for c in cases))
     for name in [*viewers, "all"]:
         sel = cases if name == "all" else [c for c in cases if c.viewer == name]
-        cells = []
-        for i in range(len(configs)):
-            a, e, b = scores(sel, i)
-            cells.append(f"{'':18s}{100 * a:5.1f}% {e:5.3f} {b:+.3f}")
-        lines.append(f"{name:16s} {len(sel):4d} | " + " | ".join(cells))
+        lines.append(_row(name, sel, configs))
     return "\n".join(lines)
 
 
@@ -157,14 +161,7 @@ def observed_split(cases: list[Case], configs: list[SightlineConfig]) -> str:
         ("vouched for", [c for c in cases if c.observed >= well]),
         ("flagged", [c for c in cases if not c.observed >= well]),
     ):
-        if not sel:
-            lines.append(f"{label:16s} {0:4d}")
-            continue
-        cells = []
-        for i in range(len(configs)):
-            a, e, b = scores(sel, i)
-            cells.append(f"{'':18s}{100 * a:5.1f}% {e:5.3f} {b:+.3f}")
-        lines.append(f"{label:16s} {len(sel):4d} | " + " | ".join(cells))
+        lines.append(_row(label, sel, configs) if sel else f"{label:16s} {0:4d}")
     return "\n".join(lines)
 
 

@@ -5,24 +5,17 @@
 # sends the case folder back as .tgz parts (the device tool returns at most 8 files of 16 MiB).
 #   usage (repo root): OUT=out SESSION=... CACHE=... bash bench/gpu_case_run.sh [reconstruct args]
 set -u
-REPO=$PWD
-OUT=${OUT:-$REPO/out/gpu_case}
-mkdir -p "$OUT"
-exec > >(tee -a "$OUT/run.log") 2>&1
-export PYTHONUNBUFFERED=1 TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=${MAX_JOBS:-16}
-export TORCH_EXTENSIONS_DIR=$REPO/.gpu/ext
-stamp() { echo "== $(date +%T) $*"; }
+OUT=${OUT:-$PWD/out/gpu_case}
+source bench/gpu_common.sh
 stamp machine
-python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .gpu/gsplat-*.whl || exit 3
-export PYTHONPATH=$REPO:/tmp/site
-stamp "compile gsplat"
-python3 -c "from gsplat.cuda._backend import _C; assert _C is not None" > "$OUT/gsplat_build.log" 2>&1 || { tail -20 "$OUT/gsplat_build.log"; exit 4; }
+install_gsplat
+compile_kernels
 stamp "reconstruct"
 timeout ${CASE_TIMEOUT:-150} python3 -c "import sys; from protocol.cli import main; sys.exit(main())" \
   reconstruct "$SESSION" --depth-cache "$CACHE" --device cuda --out /tmp/case "$@" 2>&1 \
   | grep -v " step [0-9]*/\|it/s\]\|s/it\]" | grep -i "case\|depth cache\|warm start\|error\|Traceback\|done\|failed" | tail -40
 stamp "reconstruct rc=${PIPESTATUS[0]}"
 python3 -c "import sys; from protocol.cli import main; sys.exit(main())" case info /tmp/case
-tar czf - --exclude case/.work --exclude case/runs -C /tmp case | split -b 15M - "$OUT/case.tgz.part"
+tar czf - --exclude case/.work -C /tmp case | split -b 15M - "$OUT/case.tgz.part"
 ls -la "$OUT"
 stamp done

@@ -80,19 +80,9 @@ def write_ply(path: Path | str, gaussians: Gaussians, *, unit_quats: bool = Fals
     parts = [g["means_m"], normals, g["sh_dc"], rest, opacity, g["log_scales"], g["quats_wxyz"]]
     table = np.concatenate(parts, axis=1).astype("<f4")
     names = ply_property_names(gaussians.sh_degree)
-    header = [
-        "ply",
-        "format binary_little_endian 1.0",
-        f"comment egosurg gaussian splats, format {PLY_FORMAT_VERSION}",
-        f"comment written by egosurg {__version__}",
-        f"element vertex {n}",
-        *(f"property float {name}" for name in names),
-        "end_header",
-    ]
-    p.parent.mkdir(parents=True, exist_ok=True)
-    with p.open("wb") as f:
-        f.write(("\n".join(header) + "\n").encode("ascii"))
-        f.write(np.ascontiguousarray(table).tobytes())
+    properties = [f"property float {name}" for name in names]
+    comment = f"egosurg gaussian splats, format {PLY_FORMAT_VERSION}"
+    _write_binary(p, [comment], n, properties, np.ascontiguousarray(table).tobytes())
     log.info("wrote %d splats (SH degree %d) to %s", n, gaussians.sh_degree, p)
     return p
 
@@ -105,20 +95,29 @@ def write_points_ply(path: Path | str, points_m: np.ndarray, colours: np.ndarray
     table = np.empty(n, dtype=[("xyz", "<f4", 3), ("rgb", "u1", 3)])
     table["xyz"] = points_m
     table["rgb"] = np.clip(np.rint(np.asarray(colours, np.float32) * 255), 0, 255)
+    properties = [f"property float {a}" for a in "xyz"]
+    properties += [f"property uchar {c}" for c in ("red", "green", "blue")]
+    _write_binary(p, [], n, properties, table.tobytes())
+    return p
+
+
+def _write_binary(
+    path: Path, comments: list[str], count: int, properties: list[str], body: bytes
+) -> None:
+    """A binary little-endian PLY of one ``vertex`` element: header, then ``body``."""
     header = [
         "ply",
         "format binary_little_endian 1.0",
+        *(f"comment {c}" for c in comments),
         f"comment written by egosurg {__version__}",
-        f"element vertex {n}",
-        *(f"property float {a}" for a in "xyz"),
-        *(f"property uchar {c}" for c in ("red", "green", "blue")),
+        f"element vertex {count}",
+        *properties,
         "end_header",
     ]
-    p.parent.mkdir(parents=True, exist_ok=True)
-    with p.open("wb") as f:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("wb") as f:
         f.write(("\n".join(header) + "\n").encode("ascii"))
-        f.write(table.tobytes())
-    return p
+        f.write(body)
 
 
 @dataclass(frozen=True)
