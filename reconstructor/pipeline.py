@@ -49,6 +49,7 @@ from reconstructor.depth.matchers import load_matcher
 from reconstructor.depth.stereo import DepthMap, compute_depth
 from reconstructor.refine.auxiliary import AuxiliaryConfig, Bounds, make_auxiliary_views
 from reconstructor.refine.base import Refiner
+from reconstructor.refine.eye_views import make_eye_views
 from reconstructor.refine.refiners import load_refiner
 from reconstructor.splats import ply
 from reconstructor.splats.gaussians import (
@@ -305,6 +306,7 @@ class _Refinement:
     views: Sequence[View]
     weights: list[float] | None
     summary: dict[str, Any]
+    eye_views: Sequence[View] = ()  # trained as a group of their own (auxiliary.eye.share)
 
 
 def _auxiliary_stage(
@@ -355,8 +357,19 @@ def _auxiliary_stage(
         "render_s": round(parts["render"], 3),
         "refine_s": round(parts["refine"], 3),
     }
+    eye_cfg = cfg.auxiliary.eye
+    eye_views: list[View] = []
+    if eye_cfg.num_views > 0:
+        t0 = time.perf_counter()
+        eye_views = make_eye_views(
+            trainer.g, train_views, eye_cfg, cfg.raster, refiner, bounds_m=bounds
+        )
+        seconds = time.perf_counter() - t0
+        timings["auxiliary_views"] += seconds
+        summary["seconds"] = round(timings["auxiliary_views"], 3)
+        summary["eye_views"] = {"views": len(eye_views), "seconds": round(seconds, 3)}
     weights = [1.0] * len(train_views) + [cfg.auxiliary.aux_weight] * len(aux_views)
-    return _Refinement([*train_views, *aux_views], weights, summary)
+    return _Refinement([*train_views, *aux_views], weights, summary, eye_views)
 
 
 def _refinement_stage(
@@ -370,24 +383,30 @@ def _refinement_stage(
     the input views with that probability, else from all views alike with their weights."""
     share = cfg.auxiliary.input_share
     views = refinement.views
+    eyes = list(refinement.eye_views)
     if refinement.weights is not None and share > 0:
         inputs, extra = views[: len(train_views)], views[len(train_views) :]
+        rest = 1.0 - (cfg.auxiliary.eye.share if eyes else 0.0)
         trainer.run_mixed(
             [
-                ViewGroup(inputs, share),
-                ViewGroup(extra, 1.0 - share, cfg.auxiliary.aux_weight),
+                ViewGroup(inputs, share * rest),
+                ViewGroup(extra, (1.0 - share) * rest, cfg.auxiliary.aux_weight),
+                ViewGroup(eyes, 1.0 - rest, cfg.auxiliary.aux_weight),
             ],
             cfg.train.refine_steps,
             stage="refinement",
             progress=progress,
         )
     else:
+        weights = refinement.weights
+        if eyes:
+            weights = [*(weights or [1.0] * len(views)), *[cfg.auxiliary.aux_weight] * len(eyes)]
         trainer.run(
-            views,
+            [*views, *eyes],
             cfg.train.refine_steps,
             stage="refinement",
             progress=progress,
-            weights=refinement.weights,
+            weights=weights,
         )
 
 

@@ -10,6 +10,9 @@ Methods (``--methods`` keys), each a switch of ``ReconstructConfig`` (see config
 - ``no-refinement``: "EgoSurg w/o refinement" (the paper's "w/o diffusion"): depth init,
   ``auxiliary.enabled = false``;
 - ``egosurg``: the full method: depth init and auxiliary views refined by ``--refiner``;
+- ``egosurg-eye`` (not one of the paper's rows; issue 22): EgoSurg with 24 auxiliary cameras
+  more, at standing and seated eye height inside the room (``refine/eye_views.py``), each
+  refined against the recorded views that see what it looks at;
 - ``egosurg-warm`` (not one of the paper's rows; temporal protocol only): a case's warm start
   (``reconstructor/case/warm.py``, issue 20). A sequence's first frame is EgoSurg's cold model;
   each later frame starts from the previous frame's warm model, drops what the new stereo depth
@@ -79,6 +82,11 @@ METHODS: dict[str, Method] = {
         ),
         Method("egosurg", "EgoSurg", {"init_method": "depth", "auxiliary": {"enabled": True}}),
         Method(
+            "egosurg-eye",
+            "EgoSurg + eye-height views",
+            {"init_method": "depth", "auxiliary": {"enabled": True, "eye": {"num_views": 24}}},
+        ),
+        Method(
             "egosurg-warm",
             "EgoSurg (warm start)",
             {"init_method": "depth", "auxiliary": {"enabled": True}},
@@ -146,7 +154,12 @@ class EvalSettings:
 
     @property
     def uses_refiner(self) -> bool:
-        return "egosurg" in self.methods or self.has_warm
+        """Whether a chosen method makes auxiliary views (and so runs the refiner)."""
+        return any(
+            (METHODS[m].overrides or {}).get("auxiliary", {}).get("enabled", False)
+            for m in self.methods
+            if m in METHODS
+        )
 
     @property
     def has_warm(self) -> bool:

@@ -43,6 +43,7 @@ from reconstructor.data.views import View
 from reconstructor.errors import ReconstructConfigError, ReconstructError
 from reconstructor.raster import RasterConfig
 from reconstructor.refine.base import Refined, Refiner, RefineRequest
+from reconstructor.refine.eye_views import EyeViewConfig
 from reconstructor.refine.guided import GuidedConfig
 from reconstructor.splats.gaussians import Gaussians
 from reconstructor.splats.train import render
@@ -78,6 +79,8 @@ class AuxiliaryConfig:
     seed: int = 0
     save_pictures: bool = True  # auxiliary_views.jpg in the run folder
     guided: GuidedConfig = field(default_factory=GuidedConfig)
+    # cameras where people's eyes will be, besides the shell (eye_views.py; issue 22)
+    eye: EyeViewConfig = field(default_factory=EyeViewConfig)
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> ReconstructConfigError:
@@ -255,7 +258,7 @@ def make_auxiliary_views(
                 )
             )
             refine_s += time.perf_counter() - t1
-            image, mask = _checked(refined, view, refiner)
+            image, mask = checked_refined(refined, view, refiner)
             out.append(dataclasses.replace(aux, image=image, mask=mask))
             if k == 0 and i % sheet_every == 0 and len(sheet) < SHEET_ROWS:
                 sheet.append((reference, rendered, refined))
@@ -286,7 +289,9 @@ def make_auxiliary_views(
     return out
 
 
-def _checked(refined: Refined, view: View, refiner: Refiner) -> tuple[torch.Tensor, torch.Tensor]:
+def checked_refined(
+    refined: Refined, view: View, refiner: Refiner
+) -> tuple[torch.Tensor, torch.Tensor]:
     """The refined image and mask as training tensors; non-finite pixels leave the mask."""
     h, w = view.height_px, view.width_px
     image = np.asarray(refined.image, dtype=np.float32)

@@ -30,13 +30,13 @@ from reconstructor.refine.auxiliary import (
     sample_auxiliary_poses,
 )
 from reconstructor.refine.base import Refined, Refiner, RefineRequest
+from reconstructor.refine.eye_views import EyeViewConfig
 from reconstructor.refine.refiners import load_refiner
-from reconstructor.splats.gaussians import init_from_points, init_random, random_init_box
+from reconstructor.splats.gaussians import init_random, random_init_box
 from reconstructor.splats.train import TrainConfig, Trainer, ViewGroup, render, scene_extent_m
 from tests.helpers import run_egosurg
+from tests.reconstructor.small_scene import ROOM, T_S, TruthRefiner, true_depth_scene
 
-T_S = 1.0
-ROOM = (np.array([-3.5, -3.0, 0.0]), np.array([3.5, 3.0, 3.0]))  # the sim's 7 x 6 x 3 m room
 SIZE = (80, 50)  # pixels: small enough for training runs of a few seconds
 
 
@@ -136,41 +136,7 @@ def test_bad_sampling_arguments_are_refused():
 # ---- a small sim scene -------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def scene(world):
-    """The four rig cameras' poses at 80x50 pixels, their ideal images, and Gaussians seeded
-    from the true depth of every second pixel (what a perfect stereo init would give)."""
-    intr = Intrinsics.from_fov(*SIZE, 100.0)
-    cams = [
-        Camera(name=f"cam{i}", intrinsics=intr, pose=unit.left_pose)
-        for i, unit in enumerate(world.rig)
-    ]
-    renders = [world.render(c, T_S) for c in cams]
-    views = [view_from_image(c, r.image_rgb) for c, r in zip(cams, renders, strict=True)]
-    pts, cols = [], []
-    Kinv = np.linalg.inv(intr.K)
-    for c, r in zip(cams, renders, strict=True):
-        v, u = np.mgrid[0 : SIZE[1] : 2, 0 : SIZE[0] : 2]
-        z = r.depth_m[v, u]
-        hit = np.isfinite(z)
-        rays = Kinv @ np.stack([u[hit], v[hit], np.ones(hit.sum())])
-        pts.append(((rays * z[hit]).T - c.pose.t_m) @ c.pose.R)
-        cols.append(r.image_rgb[v[hit], u[hit]] / 255.0)
-    gaussians = init_from_points(np.concatenate(pts), np.concatenate(cols))
-    return views, gaussians
-
-
-class TruthRefiner(Refiner):
-    """Returns what the sim sees from the auxiliary camera: a perfect refiner."""
-
-    name = "truth"
-
-    def __init__(self, world) -> None:
-        self.world = world
-        self.requests: list[RefineRequest] = []
-
-    def refine(self, request: RefineRequest) -> Refined:
-        self.requests.append(request)
-        img = self.world.render(request.camera, T_S).image_rgb
-        return Refined(image=img.astype(np.float32) / 255, mask=np.ones(img.shape[:2], bool))
+    return true_depth_scene(world, SIZE)
 
 
 def test_auxiliary_views_have_the_input_size_names_and_the_refiners_masks(scene, world, tmp_path):
@@ -476,6 +442,29 @@ def test_pipeline_random_init_with_auxiliary_views(small_timestamp, tmp_path):
     means = result.gaussians.means_m.numpy()
     assert (means >= ROOM[0] - 0.05).all() and (means <= ROOM[1] + 0.05).all()
     assert result.fused.num > 1000  # stereo still ran, for points.ply and the baseline
+
+
+@pytest.mark.slow  # the whole reconstruction chain
+def test_pipeline_trains_eye_views_as_a_group_with_their_share(small_timestamp, tmp_path):
+    """With ``[auxiliary.eye] num_views`` the refinement stage also trains on cameras at eye
+    height (issue 22), their share of the steps as configured; the summary counts them."""
+    eye = EyeViewConfig(num_views=3, share=0.25)
+    cfg = _small_config(
+        auxiliary=AuxiliaryConfig(num_views=2, input_share=0.8, eye=eye),
+        train=TrainConfig(warmup_steps=2, refine_steps=40, log_every_steps=1000),
+    )
+    result = reconstruct(small_timestamp, cfg, tmp_path)
+    aux = json.loads((tmp_path / "summary.json").read_text())["auxiliary"]
+    # a drawn eye view that no recorded view supervises at all is left out
+    assert aux["views"] == 2 * 8 and 1 <= aux["eye_views"]["views"] <= 3
+    steps = [s.view for s in result.trainer.log.steps[2:]]
+    assert len(steps) == 40
+    on_eye = sum(v.startswith("eye:") for v in steps)
+    on_shell = sum(v.startswith("aux:") for v in steps)
+    assert on_eye == 10  # a quarter of the refinement steps
+    assert on_shell == round(40 * 0.75 * 0.2)  # the shell keeps its part of the rest
+    trained = {v for v in steps if v.startswith("eye:")}
+    assert len(trained) == aux["eye_views"]["views"] and trained <= {"eye:0", "eye:1", "eye:2"}
 
 
 @pytest.mark.slow  # the whole reconstruction chain
