@@ -104,8 +104,14 @@ def reconstruct_parser() -> argparse.ArgumentParser:
     case.add_argument("--to", dest="to_s", type=float, help="last time, s (default: end)")
     case.add_argument("--workers", type=int, default=1, help="processes, one timestamp each")
     case.add_argument("--ray", metavar="auto|ADDRESS", help="run the timestamps as Ray tasks")
-    case.add_argument(
-        "--warm-start", action="store_true", help="start each timestamp from the one before it"
+    start = case.add_mutually_exclusive_group()
+    start.add_argument(
+        "--warm-start",
+        action="store_true",
+        help="start each timestamp from the one before it (the default; EVALUATION.md, Table 3B)",
+    )
+    start.add_argument(
+        "--cold", action="store_true", help="train every timestamp from scratch instead"
     )
     case.add_argument("--warm-steps", type=int, help="training steps of a warm timestamp (250)")
     case.add_argument("--keyframe-every", type=int, help="a cold timestamp every N (10)")
@@ -162,6 +168,11 @@ def main_reconstruct(argv: list[str]) -> int:
             "give --at TIME (single timestamps) or --every INTERVAL (a whole case), not both"
             if args.at
             else "give --at TIME for single timestamps or --every INTERVAL for a whole case"
+        )
+    if args.cold and (args.warm_steps or args.keyframe_every):
+        raise ReconstructArgumentError(
+            "--warm-steps and --keyframe-every set up warm start, which --cold turns off: "
+            "drop one or the other"
         )
     from reconstructor.depth.cache import DepthCache
 

@@ -5,7 +5,7 @@ Examples::
     egosurg reconstruct CASE.h5 --calibration calibration.toml --every 1s --out case/
     egosurg reconstruct CASE.h5 --from 60 --to 120 --every 0.5s --out case/ --workers 2
     egosurg reconstruct CASE.h5 --every 1s --out case/ --ray auto
-    egosurg reconstruct CASE.h5 --every 1s --out case/ --warm-start
+    egosurg reconstruct CASE.h5 --every 1s --out case/ --cold     # no warm start
     egosurg case info case/
     egosurg case export case/ --out ply/ [--at t00060.000] [--format splat]
 
@@ -43,7 +43,7 @@ def reconstruct_case(
     if args.workers < 1:
         raise CaseFolderError(f"--workers {args.workers}: give 1 or more processes")
     warm_toml, warm_fields = "", {}
-    if args.warm_start:
+    if not args.cold:  # warm start is the default (it won on time and quality: EVALUATION.md)
         warm = WarmStartConfig(
             steps=args.warm_steps or WarmStartConfig.steps,
             keyframe_every=args.keyframe_every or WarmStartConfig.keyframe_every,

@@ -64,9 +64,10 @@ def _args(session: Path, config: Path, out: Path, *extra: str) -> list[str]:
 def test_a_case_holds_one_checked_model_per_timestamp_and_a_rerun_skips_them(session, tmp_path):
     h5, config = session
     out = tmp_path / "case"
-    done = run_egosurg(*_args(h5, config, out, "--every", "0.1s"), timeout=300)
+    done = run_egosurg(*_args(h5, config, out, "--every", "0.1s", "--cold"), timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     rows = _index(out)["timestamps"]
+    assert not _index(out)["warm_start"]
     # 2.0 .. 2.3 s every 0.1 s, each at its nearest set
     assert [r["set_index"] for r in rows] in ([0, 1, 3, 4], [0, 2, 3, 4], [0, 1, 3, 5])
     assert all(r["status"] == "done" for r in rows)
@@ -83,7 +84,7 @@ def test_a_case_holds_one_checked_model_per_timestamp_and_a_rerun_skips_them(ses
     blob = bytearray(victim.read_bytes())
     blob[-5] ^= 0xFF
     victim.write_bytes(bytes(blob))
-    again = run_egosurg(*_args(h5, config, out, "--every", "0.1s"), timeout=300)
+    again = run_egosurg(*_args(h5, config, out, "--every", "0.1s", "--cold"), timeout=300)
     assert again.returncode == 0, again.stderr[-3000:]
     after = {r["name"]: (out / r["model"]).stat().st_mtime_ns for r in _index(out)["timestamps"]}
     changed = [n for n in stamps if after[n] != stamps[n]]
@@ -103,7 +104,7 @@ def test_a_case_holds_one_checked_model_per_timestamp_and_a_rerun_skips_them(ses
     # other settings in the same folder are refused, and nothing finished is touched
     other = tmp_path / "other.toml"
     other.write_text(TINY.format(steps=4))
-    refused = run_egosurg(*_args(h5, other, out, "--every", "0.1s"))
+    refused = run_egosurg(*_args(h5, other, out, "--every", "0.1s", "--cold"))
     assert refused.returncode == 2 and "Traceback" not in refused.stderr
     assert "other settings" in refused.stderr and "--force" in refused.stderr
     assert {
@@ -163,6 +164,8 @@ def test_a_run_killed_halfway_resumes_and_the_index_never_names_a_partial_file(s
         (("--every", "often"), "write a duration"),
         (("--every", "1s", "--ray", "127.0.0.1:1"), "does not answer"),
         (("--every", "1s", "--at", "2.0"), "not both"),
+        (("--every", "1s", "--cold", "--warm-steps", "5"), "--cold turns off"),
+        (("--every", "1s", "--cold", "--warm-start"), "not allowed with argument"),
     ],
 )
 def test_bad_case_options_get_one_clear_line(session, tmp_path, extra, message):
@@ -199,8 +202,12 @@ def test_warm_start_chains_each_timestamp_to_the_one_before_and_keyframes_start_
     assert [r["warm_from"] for r in rows] == ["", rows[0]["name"], rows[1]["name"], ""]
     assert (out / "config_warm.toml").exists()
     # a cold run of the same times is other settings: refused in this folder
-    cold = run_egosurg(*_args(h5, config, out, "--every", "0.1s"))
+    cold = run_egosurg(*_args(h5, config, out, "--every", "0.1s", "--cold"))
     assert cold.returncode == 2 and "other settings" in cold.stderr
+    # warm start is the default: the same command without --warm-start is the same case
+    again = run_egosurg(*_args(h5, config, out, "--every", "0.1s", "--warm-steps", "2",
+                               "--keyframe-every", "3"))  # fmt: skip
+    assert again.returncode == 0 and "4 done" in again.stdout, again.stderr[-2000:]
 
 
 def _splats(means_m, log_scales, quats_wxyz, opacity):

@@ -1,5 +1,7 @@
 """A case on a local Ray instance (``ray.init(num_cpus=2)``) makes the same models as the local
-process pool: a user can move a case to a cluster without changing its results."""
+process pool: a user can move a case to a cluster without changing its results. The case is
+warm-started, the default: each chain (a keyframe and the timestamps warm-started from it)
+is one unit of work, on a worker process or as a Ray task."""
 
 from __future__ import annotations
 
@@ -9,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from reconstructor.splats import ply
+from reconstructor.case.index import CaseIndex
+from reconstructor.case.storage import load_model
 from tests.helpers import run_egosurg
 from tests.reconstructor.test_case import TINY, session  # noqa: F401  (the fixture)
 
@@ -27,7 +30,8 @@ def test_ray_tasks_make_the_same_models_as_the_local_pool(session, tmp_path):  #
     from reconstructor.cli import main_reconstruct
 
     h5, config = session
-    common = ["--config", str(config), "--every", "0.1s", "--to", "2.2", "--workers", "2"]
+    common = ["--config", str(config), "--every", "0.1s", "--to", "2.2", "--workers", "2",
+              "--warm-steps", "3", "--keyframe-every", "2"]  # fmt: skip
     pool = tmp_path / "pool"
     done = run_egosurg("reconstruct", str(h5), "--out", str(pool), *common, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -40,8 +44,10 @@ def test_ray_tasks_make_the_same_models_as_the_local_pool(session, tmp_path):  #
         ray.shutdown()
     a, b = _models(pool), _models(on_ray)
     assert a.keys() == b.keys() and len(a) == 3
+    assert [a[n]["warm_from"] != "" for n in a] == [False, True, False]  # two chains
+    ia, ib = CaseIndex.read(pool).by_name(), CaseIndex.read(on_ray).by_name()
     for name in a:
-        ga, gb = ply.read_ply(pool / a[name]["model"]), ply.read_ply(on_ray / b[name]["model"])
+        ga, gb = load_model(pool, ia[name]), load_model(on_ray, ib[name])
         for key, value in ga.parameters_dict().items():
             np.testing.assert_allclose(
                 value.numpy(), gb.parameters_dict()[key].numpy(), atol=1e-5, err_msg=name
