@@ -63,7 +63,7 @@ def main() -> None:
     calibration = RigCalibration.read(args.case / "calibration.toml")
     rows = []
     since_key = 0
-    print(f"| timestamp | from | Gaussians | s | MB stored | held-out PSNR (dB) |")
+    print("| timestamp | from | Gaussians | s | MB stored | held-out PSNR (dB) |")
     print("|---|---|---:|---:|---:|---:|")
     for e in index.timestamps:
         if e.status != "done":

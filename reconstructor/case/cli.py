@@ -123,7 +123,8 @@ def info(folder: Path) -> str:
         secs = [e.seconds for e in done]
         compact = sum(is_compact(e) for e in done)
         lines.append(
-            f"storage: {compact} compact (stored as changes, docs/case.md), "
+            f"storage: {compact} compact (keyframes quantised, warm ones as changes; "
+            "docs/case.md), "
             f"{len(done) - compact} full PLY"
         )
         lines.append(

@@ -231,7 +231,6 @@ def _job(req: CaseRequest, steps: list[StepJob], threads: int = 0) -> ChainJob:
         warm=dict(req.warm),
         steps=tuple(steps),
         threads=threads,
-        storage="compact" if req.warm_toml else "ply",  # chains share Gaussians: docs/case.md
         depth_cache=req.depth_cache,
     )
 

@@ -216,7 +216,11 @@ def _rotations(q: np.ndarray) -> np.ndarray:
 
 def warm_config(config: ReconstructConfig, warm: WarmStartConfig) -> ReconstructConfig:
     """A warm timestamp's settings: ``warm.steps`` on the input views, no auxiliary views
-    (the case's warm timestamps and the evaluation's warm row use this one definition)."""
-    train = dataclasses.replace(config.train, warmup_steps=warm.steps, refine_steps=0)
+    (the case's warm timestamps and the evaluation's warm row use this one definition).
+    A warm timestamp never trains more steps than a cold one of the same config would: it
+    starts from a trained model, so a short cold schedule (a quick look, a test) stays short."""
+    cold_steps = config.train.warmup_steps + config.train.refine_steps
+    steps = min(warm.steps, cold_steps)
+    train = dataclasses.replace(config.train, warmup_steps=steps, refine_steps=0)
     aux = dataclasses.replace(config.auxiliary, enabled=False)
     return dataclasses.replace(config, train=train, auxiliary=aux)

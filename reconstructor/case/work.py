@@ -2,10 +2,11 @@
 or a Ray task): read each set from the session on shared storage, reconstruct it, publish its
 model atomically, and say what was made. Only the runner writes the index.
 
-A model is published as ``models/<name>.ply`` (or, in a warm-started case, ``<name>.npz``:
-``storage.py``, the chain's keyframe in full and each later timestamp as its changes): written
+A model is published as ``models/<name>.npz`` (``storage.py``: a cold timestamp as a quantised
+keyframe, a warm one as its changes since the timestamp before): written
 to ``.<name>.<ext>.<pid>.partial`` beside it, fsynced, then renamed, so a reader (and the
-index) sees the whole file or none. Its quaternions are normalised on the way out: viewers
+index) sees the whole file or none (``index.atomic_write_bytes``). Its quaternions are
+normalised on the way out: viewers
 assume unit length, and training leaves them between about 0.74 and 1.06. The run folder (log,
 summary, config) goes to ``runs/<name>/``.
 
@@ -22,8 +23,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-
-from reconstructor.case.index import fsync_dir
 
 log = logging.getLogger(__name__)
 
@@ -47,8 +46,6 @@ class ChainJob:
     warm: dict[str, Any] = field(default_factory=dict)  # WarmStartConfig fields
     steps: tuple[StepJob, ...] = ()
     threads: int = 0  # 0: leave torch's and numba's defaults
-    # "ply": a full PLY per timestamp; "compact": storage.py (keyframes once, then changes)
-    storage: str = "ply"
     depth_cache: str = ""  # a folder keeping each timestamp's depth stage ("": none)
 
 
@@ -139,7 +136,7 @@ def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) ->
         config = ReconstructConfig.from_toml(job.warm_toml, "the case's warm config")
         # the runner records each timestamp in the index before its follower starts
         entry = CaseIndex.read(case).by_name()[warm_from]
-        if job.storage == "compact" and storage.is_compact(entry):
+        if storage.is_compact(entry):
             parent = storage.load_stored(case, entry.model, entry.xxh3_64, entry.bytes, warm_from)
             previous = parent.gaussians()
             lineage["ref"] = {"model": entry.model, "xxh3_64": entry.xxh3_64, "bytes": entry.bytes}
@@ -164,17 +161,13 @@ def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) ->
     result = reconstruct(
         ts, config, work, calibration=calibration, progress=progress, init=init, depth_cache=cache
     )
-    if job.storage == "compact":
-        rel = f"models/{step.name}{storage.SUFFIX}"
-        alive = lineage.get("alive")
-        if parent is None or alive is None or int(alive.sum()) != counts.get("kept"):
-            parent, alive = None, None  # a keyframe, or a chain that cannot be followed
-        storage.write_model(case / rel, result.gaussians, parent=parent,
-                            parent_ref=lineage.get("ref"), alive=alive)  # fmt: skip
-        model = case / rel
-    else:
-        rel = f"models/{step.name}.ply"
-        model = publish_model(result.gaussians, case / rel)
+    rel = f"models/{step.name}{storage.SUFFIX}"
+    alive = lineage.get("alive")
+    if parent is None or alive is None or int(alive.sum()) != counts.get("kept"):
+        parent, alive = None, None  # a keyframe, or a chain that cannot be followed
+    storage.write_model(case / rel, result.gaussians, parent=parent,
+                        parent_ref=lineage.get("ref"), alive=alive)  # fmt: skip
+    model = case / rel
     digest, size = _checksum(model)
     _keep_run_folder(work, case / "runs" / step.name)
     return {
@@ -184,20 +177,6 @@ def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) ->
         "gaussians": result.gaussians.num,
         "counts": counts,
     }
-
-
-def publish_model(gaussians: Any, path: Path) -> Path:
-    """Write the model with unit quaternions to ``path`` atomically."""
-    from reconstructor.splats import ply
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
-    ply.write_ply(tmp, gaussians, unit_quats=True)
-    with tmp.open("rb") as f:
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    fsync_dir(path.parent)
-    return path
 
 
 def _checksum(path: Path) -> tuple[str, int]:

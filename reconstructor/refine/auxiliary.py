@@ -40,9 +40,10 @@ import torch
 
 from protocol.camera import Camera, Pose
 from reconstructor.data.views import View
-from reconstructor.errors import ReconstructConfigError, ReconstructError
+from reconstructor.errors import ReconstructConfigError
 from reconstructor.raster import RasterConfig
 from reconstructor.refine.base import Refined, Refiner, RefineRequest
+from reconstructor.refine.checked import checked_refined
 from reconstructor.refine.eye_views import EyeViewConfig
 from reconstructor.refine.guided import GuidedConfig
 from reconstructor.splats.gaussians import Gaussians
@@ -55,10 +56,6 @@ MIN_DEPTH_PIXELS = 0.01  # the fraction of confident pixels needed for a median 
 BOUNDS_MARGIN_M = 0.05  # auxiliary cameras keep this far from the room's walls, floor, ceiling
 SHEET_ROWS = 4
 SHEET_TILE_WIDTH_PX = 320
-
-
-class RefinerOutputError(ReconstructError, ValueError):
-    """A refiner returned an image or mask of the wrong shape."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -287,24 +284,6 @@ def make_auxiliary_views(
     if sheet_path is not None and sheet:
         write_contact_sheet(sheet_path, sheet)
     return out
-
-
-def checked_refined(
-    refined: Refined, view: View, refiner: Refiner
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """The refined image and mask as training tensors; non-finite pixels leave the mask."""
-    h, w = view.height_px, view.width_px
-    image = np.asarray(refined.image, dtype=np.float32)
-    mask = np.asarray(refined.mask)
-    if image.shape != (h, w, 3) or mask.shape != (h, w):
-        raise RefinerOutputError(
-            f"refiner {refiner.describe()!r} returned an image {image.shape} and mask "
-            f"{mask.shape} for a {w}x{h} view; it must return ({h}, {w}, 3) and ({h}, {w})"
-        )
-    finite = np.asarray(np.isfinite(image).all(axis=2), dtype=bool)
-    image = np.clip(np.where(finite[..., None], image, 0.0), 0.0, 1.0).astype(np.float32)
-    keep = (mask.astype(bool) & finite).astype(np.float32)
-    return torch.from_numpy(image), torch.from_numpy(keep)
 
 
 def write_contact_sheet(path: Path, rows: Sequence[tuple[np.ndarray, np.ndarray, Refined]]) -> None:

@@ -36,6 +36,7 @@ from reconstructor.data.views import View
 from reconstructor.errors import ReconstructConfigError
 from reconstructor.raster import RasterConfig
 from reconstructor.refine.base import Refiner, RefineRequest
+from reconstructor.refine.checked import checked_refined
 from reconstructor.splats.gaussians import Gaussians
 from reconstructor.splats.train import render
 
@@ -197,7 +198,6 @@ def make_eye_views(
     bounds_m: tuple[np.ndarray, np.ndarray] | None,
 ) -> list[View]:
     """The eye views (module docstring), refined against the recorded views."""
-    from reconstructor.refine.auxiliary import checked_refined
 
     if cfg.num_views == 0 or not train_views:
         return []

@@ -25,11 +25,11 @@ from reconstructor.pipeline import reconstruct
 from reconstructor.raster import RasterConfig
 from reconstructor.refine.auxiliary import (
     AuxiliaryConfig,
-    RefinerOutputError,
     make_auxiliary_views,
     sample_auxiliary_poses,
 )
 from reconstructor.refine.base import Refined, Refiner, RefineRequest
+from reconstructor.refine.checked import RefinerOutputError
 from reconstructor.refine.eye_views import EyeViewConfig
 from reconstructor.refine.refiners import load_refiner
 from reconstructor.splats.gaussians import init_random, random_init_box
