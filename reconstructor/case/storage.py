@@ -18,8 +18,14 @@ and small changes cost almost nothing.
 
 File (``models/<name>.npz``, a NumPy ``.npz`` read with ``allow_pickle=False``): ``meta`` (UTF-8
 JSON: ``format`` ``egosurg-splat-store``, ``format_version``, ``n``, ``sh_degree``, ``steps``
-per column, ``parent`` ``{model, xxh3_64, bytes, n}`` or null), ``alive``, ``diff``, ``new``.
+per column, ``parent`` ``{model, xxh3_64, bytes, n}`` or null, and ``points`` ``{n, step_m}``
+when the file holds them), ``alive``, ``diff``, ``new``, and optionally ``points``.
 The child names its parent's checksum, so a parent that was redone or damaged is found.
+
+``points`` are the timestamp's fused stereo points (what its depth maps saw, before any
+training), on a ``POINTS_STEP_M`` grid, sorted, packed like ``new``: the observed geometry,
+which a warm model carries forward and training moves, so the sterile-field tool reads these
+(``load_points``). A reader that does not know them ignores them (same format version).
 
 ``load_model(case, entry)`` reads any done entry (a compact file, or the full PLY of older
 cases) after checking its checksum and its parents'; replay and ``egosurg case export`` use it.
@@ -50,6 +56,7 @@ log = logging.getLogger(__name__)
 STORE_FORMAT = "egosurg-splat-store"
 STORE_FORMAT_VERSION = 1
 SUFFIX = ".npz"
+POINTS_STEP_M = 2.0**-8  # 3.9 mm: the sterile tool's voxels are 5 cm
 _CACHE_SIZE = 4  # decoded models kept: a chain is read forward, each from the one before
 
 
@@ -146,10 +153,12 @@ def write_model(
     parent_ref: dict[str, Any] | None = None,
     alive: np.ndarray | None = None,
     steps: QuantSteps | None = None,
+    points_m: np.ndarray | None = None,
 ) -> Stored:
     """Store ``g`` at ``path`` (atomically), as changes to ``parent`` when given (with
     ``parent_ref`` = the parent's ``{model, xxh3_64, bytes}`` and ``alive`` = which of the
-    parent's rows ``g`` kept, in order, as its first rows). Returns what a reader decodes."""
+    parent's rows ``g`` kept, in order, as its first rows), with the timestamp's fused points
+    ``points_m`` (M, 3) when given. Returns what a reader decodes."""
     if parent is not None:
         if alive is None or parent_ref is None or len(alive) != parent.num:
             raise ValueError("a delta needs the parent's reference and one alive flag per row")
@@ -166,11 +175,15 @@ def write_model(
         "parent": None if parent is None else {**(parent_ref or {}), "n": parent.num},
     }
     arrays = {
-        "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8),
         "alive": np.packbits(alive) if alive is not None else np.zeros(0, np.uint8),
         "diff": _pack(stored.q[:kept] - parent.q[alive]) if parent is not None else _pack(None),
         "new": _pack(stored.q[kept:]),
     }
+    if points_m is not None:
+        grid = _points_grid(points_m)
+        meta["points"] = {"n": len(grid), "step_m": POINTS_STEP_M}
+        arrays["points"] = _pack(grid)
+    arrays = {"meta": np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays}
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as zf:
         for key, value in arrays.items():
@@ -180,6 +193,40 @@ def write_model(
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(path, buf.getvalue())
     return stored
+
+
+def _points_grid(points_m: np.ndarray) -> np.ndarray:
+    """(M, 3) int64 grid values of finite points, sorted (neighbours pack into small numbers)."""
+    pts = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+    grid = np.rint(pts[np.isfinite(pts).all(axis=1)] / POINTS_STEP_M).astype(np.int64)
+    if len(grid):
+        grid = grid[np.lexsort(grid.T[::-1])]
+        grid[1:, 0] = np.diff(grid[:, 0])  # x is sorted: store its steps
+    return grid
+
+
+def load_points(case: Path | str, entry: Entry) -> np.ndarray | None:
+    """(M, 3) float64: the fused stereo points stored with a done entry, after checking its
+    checksum; None for a model stored without them (a PLY, or a case made before they were
+    stored)."""
+    folder = Path(case)
+    if entry.status != "done" or not is_compact(entry):
+        return None
+    path = _checked(folder, entry.model, entry.xxh3_64, entry.bytes, entry.name)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(z["meta"].tobytes())
+            info = meta.get("points")
+            if info is None:
+                return None
+            grid = _unpack(z["points"], int(info["n"]), 3)
+    except (OSError, ValueError, KeyError, TypeError, zlib.error, zipfile.BadZipFile) as exc:
+        raise CaseStorageError(
+            f"{path}: its stored points cannot be read ({exc}); rerun the case's reconstruct "
+            "command, which redoes damaged timestamps"
+        ) from None
+    grid[:, 0] = np.cumsum(grid[:, 0])
+    return grid * float(info["step_m"])
 
 
 def _pack(table: np.ndarray | None) -> np.ndarray:

@@ -165,8 +165,9 @@ def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) ->
     alive = lineage.get("alive")
     if parent is None or alive is None or int(alive.sum()) != counts.get("kept"):
         parent, alive = None, None  # a keyframe, or a chain that cannot be followed
-    storage.write_model(case / rel, result.gaussians, parent=parent,
-                        parent_ref=lineage.get("ref"), alive=alive)  # fmt: skip
+    # with the fused points: what the stereo saw, for the sterile-field tool (storage.py)
+    storage.write_model(case / rel, result.gaussians, parent=parent, parent_ref=lineage.get("ref"),
+                        alive=alive, points_m=result.fused.points_m)  # fmt: skip
     model = case / rel
     digest, size = _checksum(model)
     _keep_run_folder(work, case / "runs" / step.name)

@@ -239,6 +239,10 @@ def main_sterile(argv: list[str]) -> int:
         print(f"{k}: {kind} {ev.role or '?'} in {ev.field} {ev.start_s:.3f}-{ev.end_s:.3f} s")
     print(f"{len(result.contacts)} contact events ({len(result.events) - len(result.contacts)} "
           f"of sterile roles); wrote {out / 'events.csv'}, {out / 'timeline.png'}")  # fmt: skip
+    if result.evidence == "gaussians":
+        print("judged on the models' Gaussian centres: this case was stored without its fused "
+              "points (made before 2026-11-27, or PLY models); rerun its reconstruct command in "
+              "a new folder for the points the tool is measured on (docs/replay.md)")  # fmt: skip
     return 0
 
 

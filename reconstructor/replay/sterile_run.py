@@ -2,7 +2,16 @@
 and for each event a render from the best unoccluded viewpoint (``reconstructor/replay/sterile.py``
 has the method).
 
-Writes ``events.csv``, ``instants.csv`` (each timestamp: moving Gaussians in each field and the
+**Evidence.** The points judged are each timestamp's fused stereo points, stored with its model
+(``case/storage.py``): what the cameras saw then. A trained model is a rendering of them, and
+not the same evidence: training moves and prunes Gaussians, and a warm-started timestamp carries
+its predecessor's and seeds an arm that reaches in sparsely (where earlier Gaussians' shapes
+cover it). On the 7-timestamp contact case of ``test_sterile.py``, the touch was found from
+3-step cold models (whose centres are the fused points) and missed from 250-step cold ones and
+from warm chains. A case stored without points (PLY models, or made before 2026-11-27) is
+judged on its Gaussians' centres (opacity at least ``min_opacity``), as before.
+
+Writes ``events.csv``, ``instants.csv`` (each timestamp: moving points in each field and the
 blobs touching it), ``timeline.png`` and ``event_<k>.png`` per contact."""
 
 from __future__ import annotations
@@ -18,6 +27,7 @@ import numpy as np
 from protocol.camera import Camera, Intrinsics, Pose
 from protocol.rig_calibration import RigCalibration
 from protocol.site import SiteBox
+from reconstructor.case.storage import load_points
 from reconstructor.data.views import EYE_NEAR_M
 from reconstructor.replay.models import CaseModels, ModelSource
 from reconstructor.replay.path import CameraPath
@@ -45,6 +55,7 @@ class SterileResult:
     instants: dict[str, list[Instant]]  # per field
     events: list[Event]
     renders: dict[int, tuple[Path, str, float]]  # event number -> (png, viewpoint, unoccluded)
+    evidence: str = "points"  # "points": the stored fused points; "gaussians": model centres
 
     @property
     def contacts(self) -> list[Event]:
@@ -75,11 +86,19 @@ def sterile(
     models.require_span(entries[0].t_s, entries[-1].t_s, allow_gaps)
     regions = [Region(b, config) for b in boxes]
     frames: list[list[np.ndarray]] = [[] for _ in boxes]
-    with ModelSource(models, entries) as source:
+    stored = [load_points(folder, e) for e in entries]
+    evidence = "points" if all(p is not None for p in stored) else "gaussians"
+    if evidence == "gaussians" and any(p is not None for p in stored):
+        log.warning("%s: some timestamps were stored without their points; judging every "
+                    "timestamp on its Gaussians' centres", folder)  # fmt: skip
+    with ModelSource(models, entries if evidence == "gaussians" else []) as source:
         for k, e in enumerate(entries):
-            g = source.get(e)
-            keep = g.opacities().detach().numpy() >= config.min_opacity
-            pts = g.means_m.detach().numpy()[keep].astype(np.float64)
+            if evidence == "points":
+                pts = stored[k]
+            else:
+                g = source.get(e)
+                keep = g.opacities().detach().numpy() >= config.min_opacity
+                pts = g.means_m.detach().numpy()[keep].astype(np.float64)
             for r, reg in enumerate(regions):
                 frames[r].append(reg.select(pts))
             if progress is not None:
@@ -97,7 +116,7 @@ def sterile(
     events.sort(key=lambda ev: (ev.start_s, ev.field, ev.role))
     out.mkdir(parents=True, exist_ok=True)
     renders = _event_renders(out, folder, models, events, boxes, device)
-    result = SterileResult(instants, events, renders)
+    result = SterileResult(instants, events, renders, evidence)
     _write_events(out / "events.csv", result)
     _write_instants(out / "instants.csv", instants)
     _plot(out / "timeline.png", result, config)

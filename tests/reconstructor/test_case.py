@@ -16,6 +16,8 @@ import numpy as np
 import pytest
 import xxhash
 
+from reconstructor.case import storage
+from reconstructor.case.index import CaseIndex
 from reconstructor.splats import ply
 from sim.eval_set import EvalSetSpec, write_eval_set
 from tests.helpers import REPO, run_egosurg
@@ -74,6 +76,9 @@ def test_a_case_holds_one_checked_model_per_timestamp_and_a_rerun_skips_them(ses
     for r in rows:
         path = out / r["model"]
         assert _xxh(path) == r["xxh3_64"] and path.stat().st_size == r["bytes"]
+    for e in CaseIndex.read(out).timestamps:  # what the stereo saw, for the sterile tool
+        points = storage.load_points(out, e)
+        assert points is not None and len(points) > 1000 and np.isfinite(points).all()
     stamps = {r["name"]: (out / r["model"]).stat().st_mtime_ns for r in rows}
 
     # a damaged model is found by its checksum and redone; the others are skipped

@@ -188,3 +188,43 @@ def test_every_stored_value_is_within_one_grid_step_along_a_chain(tmp_path: Path
         assert (back.quats_wxyz - unit.quats_wxyz).abs().max() <= steps.quat * 1.001
         assert (back.sh_dc - g.sh_dc).abs().max() <= steps.sh_dc * 1.001
         assert (back.log_scales - g.log_scales).abs().max() <= steps.log_scale * 1.001
+
+
+def test_a_timestamp_keeps_the_points_its_stereo_saw_within_half_a_grid_step(tmp_path: Path):
+    """The sterile tool judges what the cameras saw (the fused points), not the trained model:
+    they are stored in the model's file, under its checksum, and read back to within half a
+    grid step; a model stored without them (older cases, PLYs) says so with None."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(5)
+    points = rng.uniform([-3.0, -2.5, 0.0], [3.0, 2.5, 2.8], size=(5000, 3))
+    points[100:110] = points[99]  # stereo repeats points: all are kept
+    g = random_gaussians(300, 1, seed=6)
+    with_points = tmp_path / "models" / "a.npz"
+    without = tmp_path / "models" / "b.npz"
+    storage.write_model(with_points, g, points_m=points)
+    storage.write_model(without, g)
+
+    def entry(path: Path) -> Entry:
+        digest, size = checksum_file(path)
+        return Entry(name=path.stem, t_s=0.0, set_index=0, model=f"models/{path.name}",
+                     xxh3_64=digest, bytes=size, status="done", gaussians=g.num)  # fmt: skip
+
+    back = storage.load_points(tmp_path, entry(with_points))
+    assert back is not None and back.shape == points.shape
+    dist, _ = cKDTree(back).query(points)
+    assert dist.max() <= storage.POINTS_STEP_M * np.sqrt(3) / 2 + 1e-12
+    assert len(np.unique(np.rint(back / storage.POINTS_STEP_M), axis=0)) == 5000 - 10
+    # the points change nothing about the model
+    a = storage.load_model(tmp_path, entry(with_points))
+    b = storage.load_model(tmp_path, entry(without))
+    for name, tensor in a.parameters_dict().items():
+        assert torch.equal(b.parameters_dict()[name], tensor), name
+    assert storage.load_points(tmp_path, entry(without)) is None
+    # a file damaged after its checksum was taken is named, not read
+    good = entry(with_points)
+    blob = bytearray(with_points.read_bytes())
+    blob[len(blob) // 2] ^= 0xFF
+    with_points.write_bytes(bytes(blob))
+    with pytest.raises(storage.CaseStorageError, match=r"a\.npz.*fails its checksum"):
+        storage.load_points(tmp_path, good)
