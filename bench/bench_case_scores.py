@@ -13,35 +13,20 @@ from __future__ import annotations
 
 import argparse
 import csv
+import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from protocol.rig_calibration import RigCalibration
 from reconstructor.case.index import CaseIndex
 from reconstructor.case.storage import load_model
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import load_timestamp
-from reconstructor.evaluation.metrics import psnr
 from reconstructor.pipeline import make_views
-from reconstructor.splats.train import render
 
-
-def held_out_psnr(gaussians, views, raster) -> float:
-    with torch.no_grad():
-        return float(
-            np.mean(
-                [
-                    psnr(
-                        render(gaussians, v, raster, torch.zeros(3)).image.clamp(0, 1),
-                        v.image,
-                        v.mask,
-                    )
-                    for v in views
-                ]
-            )
-        )
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_case_storage import near_field_psnr  # one scoring for both benches
 
 
 def _mean(values: list[float]) -> str:
@@ -71,7 +56,7 @@ def main() -> None:
         since_key = 0 if not e.warm_from else since_key + 1
         ts = load_timestamp(index.session, calibration, f"set:{e.set_index}")
         _, held = make_views(ts, config)
-        score = held_out_psnr(load_model(args.case, e), held, config.raster)
+        score = near_field_psnr(load_model(args.case, e), held, config.raster)
         rows.append(
             {"name": e.name, "t_s": e.t_s, "warm_from": e.warm_from, "chain_position": since_key,
              "gaussians": e.gaussians, "seconds": e.seconds, "mb": e.bytes / 1e6, "psnr_db": score}
