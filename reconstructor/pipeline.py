@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from protocol.camera import Pose
 from protocol.rig_calibration import RigCalibration
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import Timestamp, calibration_at, right_from_left
@@ -46,6 +47,7 @@ from reconstructor.depth.cache import DepthCache, DepthStage
 from reconstructor.depth.fill import fill_points_in_world
 from reconstructor.depth.fusion import FusedCloud, fuse
 from reconstructor.depth.matchers import load_matcher
+from reconstructor.depth.reproject import depth_targets
 from reconstructor.depth.stereo import DepthMap, compute_depth
 from reconstructor.refine.auxiliary import AuxiliaryConfig, Bounds, make_auxiliary_views
 from reconstructor.refine.base import Refiner
@@ -208,6 +210,9 @@ def reconstruct(
             else:  # the hook seeds its own Gaussians: a cold init would be thrown away
                 gaussians = init(ts, fused, depths)
         trainer = Trainer(gaussians, cfg.train, cfg.raster, scene_extent_m(train_views))
+        if cfg.train.depth_weight > 0:
+            with _timed(timings, "depth_targets"):
+                trainer.set_depth_targets(depth_targets(train_views, _depth_sources(ts, depths)))
         with _timed(timings, "warmup"):
             trainer.run(train_views, cfg.train.warmup_steps, stage="warm-up", progress=progress)
         refinement = _auxiliary_stage(
@@ -232,6 +237,16 @@ def reconstruct(
         if out_dir is not None:
             write_outputs(result)
         return result
+
+
+def _depth_sources(ts: Timestamp, depths: dict[str, DepthMap]) -> dict[str, tuple[DepthMap, Pose]]:
+    """Each sensor's own stereo pair's depth map and that pair's left pose, by camera name."""
+    out: dict[str, tuple[DepthMap, Pose]] = {}
+    for left, right in ts.stereo_pairs():
+        depth = depths.get(f"SN{left.camera_serial}")
+        if depth is not None:
+            out[left.camera.name] = out[right.camera.name] = (depth, left.camera.pose)
+    return out
 
 
 @contextlib.contextmanager

@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -39,6 +39,7 @@ from reconstructor.data.views import View
 from reconstructor.errors import ReconstructConfigError
 from reconstructor.raster import RasterConfig, RenderOutput, rasterize
 from reconstructor.splats.denormals import denormals_flushed_on_all_threads, flush_denormals
+from reconstructor.splats.depth_term import depth_loss, rendered_depth
 from reconstructor.splats.gaussians import Gaussians
 from reconstructor.splats.image_loss import image_loss
 
@@ -67,6 +68,9 @@ class TrainConfig:
     # views show as streaks from far-off viewpoints (EVALUATION.md, egocentric views)
     anisotropy_max_ratio: float = 4.0
     anisotropy_reg_weight: float = 10.0
+    # not in the paper: weight of the depth term on input views with a stereo depth target
+    # (splats/depth_term.py; issue 22). 0: off
+    depth_weight: float = 0.0
     seed: int = 0
     log_every_steps: int = 100
 
@@ -76,6 +80,10 @@ class TrainConfig:
                 raise ReconstructConfigError(
                     f"train.{name} must be >= 0, got {getattr(self, name)}"
                 )
+        if not (self.depth_weight >= 0 and math.isfinite(self.depth_weight)):
+            raise ReconstructConfigError(
+                f"train.depth_weight must be a finite number >= 0, got {self.depth_weight}"
+            )
         if self.warmup_steps + self.refine_steps == 0:
             raise ReconstructConfigError("train: warmup_steps + refine_steps must be at least 1")
         if not 0.0 <= self.ssim_weight <= 1.0:
@@ -208,6 +216,7 @@ class Trainer:
             require_gpu()
             gaussians.move_to(self.device)
         self._device_views: dict[int, _DeviceView] = {}
+        self._depth_targets: dict[str, torch.Tensor] = {}
         self.step_index = 0
         self.log = TrainLog()
         self._rng = np.random.default_rng(config.seed)
@@ -238,6 +247,14 @@ class Trainer:
                 "reconstructor was imported; import reconstructor before running torch operations"
             )
 
+    def set_depth_targets(self, targets: Mapping[str, np.ndarray]) -> None:
+        """Stereo depth targets (H, W) by view name (``depth.reproject.depth_targets``); the
+        depth term uses them when ``depth_weight`` > 0. Views not named here have none."""
+        self._depth_targets = {
+            name: torch.as_tensor(t, dtype=torch.float32).to(self.device)
+            for name, t in targets.items()
+        }
+
     def _position_lr(self) -> float:
         total = max(self.config.total_steps, 1)
         u = min(self.step_index / total, 1.0)
@@ -266,6 +283,11 @@ class Trainer:
             loss = loss + cfg.anisotropy_reg_weight * anisotropy_penalty(
                 self.g.log_scales, cfg.anisotropy_max_ratio
             )
+        target = self._depth_targets.get(view.name) if cfg.depth_weight > 0 else None
+        if target is not None and self.g.num > 0:
+            d, a = rendered_depth(self.g, dv.viewmat, dv.K, view.width_px, view.height_px,
+                                  self.raster)  # fmt: skip
+            loss = loss + weight * cfg.depth_weight * depth_loss(d, a, target)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()

@@ -15,9 +15,9 @@ from reconstructor.depth.fill import (
     fill_points_in_world,
     ray_box_exit,
 )
+from reconstructor.depth.reproject import reproject_points
 from reconstructor.depth.stereo import compute_depth
 from reconstructor.depth.stereo_config import StereoConfig
-from reconstructor.evaluation.baselines import reproject_points
 
 
 def _camera(dist=(-0.04, 0.018, 0.0, 0.0, -0.004)) -> Camera:
