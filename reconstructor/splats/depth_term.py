@@ -44,11 +44,19 @@ def rendered_depth(
     return out.image[..., 0], out.alpha
 
 
-def depth_loss(d: torch.Tensor, alpha: torch.Tensor, target_m: torch.Tensor) -> torch.Tensor:
+def depth_loss(
+    d: torch.Tensor, alpha: torch.Tensor, target_m: torch.Tensor, min_alpha: float = 0.0
+) -> torch.Tensor:
     """``mean |D - alpha t| / t`` over the finite, positive pixels of ``target_m``; 0 (with a
-    gradient of zeros) where it has none."""
+    gradient of zeros) where it has none. With ``min_alpha`` > 0, geometry alone: ``mean |D /
+    alpha - t| / t`` over the pixels the render covers at least that much (no pull on
+    coverage)."""
     valid = torch.isfinite(target_m) & (target_m > 0)
+    if min_alpha > 0:
+        valid &= alpha.detach() >= min_alpha
     if not bool(valid.any()):
         return d.sum() * 0.0
     t = target_m[valid]
+    if min_alpha > 0:
+        return ((d[valid] / alpha[valid] - t).abs() / t).mean()
     return ((d[valid] - alpha[valid] * t).abs() / t).mean()

@@ -71,6 +71,9 @@ class TrainConfig:
     # not in the paper: weight of the depth term on input views with a stereo depth target
     # (splats/depth_term.py; issue 22). 0: off
     depth_weight: float = 0.0
+    # 0: |D - alpha t| / t everywhere stereo answered (also asks for coverage there); > 0: the
+    # depth error |D / alpha - t| / t only where the render covers at least this
+    depth_min_alpha: float = 0.0
     seed: int = 0
     log_every_steps: int = 100
 
@@ -80,6 +83,10 @@ class TrainConfig:
                 raise ReconstructConfigError(
                     f"train.{name} must be >= 0, got {getattr(self, name)}"
                 )
+        if not 0.0 <= self.depth_min_alpha < 1.0:
+            raise ReconstructConfigError(
+                f"train.depth_min_alpha must be in [0, 1), got {self.depth_min_alpha}"
+            )
         if not (self.depth_weight >= 0 and math.isfinite(self.depth_weight)):
             raise ReconstructConfigError(
                 f"train.depth_weight must be a finite number >= 0, got {self.depth_weight}"
@@ -287,7 +294,7 @@ class Trainer:
         if target is not None and self.g.num > 0:
             d, a = rendered_depth(self.g, dv.viewmat, dv.K, view.width_px, view.height_px,
                                   self.raster)  # fmt: skip
-            loss = loss + weight * cfg.depth_weight * depth_loss(d, a, target)
+            loss = loss + weight * cfg.depth_weight * depth_loss(d, a, target, cfg.depth_min_alpha)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()

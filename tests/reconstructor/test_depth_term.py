@@ -66,8 +66,9 @@ def test_the_rendered_depth_of_an_opaque_wall_is_its_distance_and_the_rasterizer
     assert torch.allclose(d[covered], (out.depth_m * out.alpha)[covered], rtol=1e-4)
 
 
+@pytest.mark.parametrize("min_alpha", [0.0, 0.5])
 @pytest.mark.parametrize(("wall_m", "target_m"), [(2.5, 2.0), (2.0, 2.5)])
-def test_the_term_pulls_the_wall_along_the_ray_toward_the_stereo_depth(wall_m, target_m):
+def test_the_term_pulls_the_wall_along_the_ray_toward_the_stereo_depth(wall_m, target_m, min_alpha):
     view = _view()
     g = plane(wall_m)
     g.means_m.requires_grad_(True)
@@ -75,7 +76,7 @@ def test_the_term_pulls_the_wall_along_the_ray_toward_the_stereo_depth(wall_m, t
     target[:5] = float("nan")  # no stereo answer there: no pull
     d, alpha = rendered_depth(g, view.viewmat, view.K, view.width_px, view.height_px,
                               RasterConfig())  # fmt: skip
-    depth_loss(d, alpha, target).backward()
+    depth_loss(d, alpha, target, min_alpha).backward()
     dz = g.means_m.grad[:, 2]
     # a gradient step (-grad) moves the wall toward the target depth
     assert float((-dz).sum()) * np.sign(target_m - wall_m) > 0
@@ -102,10 +103,13 @@ def test_a_depth_map_drawn_into_its_own_view_gives_back_its_depths():
     np.testing.assert_allclose(t[:, 8:], depth[:, 8:], rtol=1e-5)
 
 
-def test_depth_weight_must_be_a_finite_non_negative_number():
+def test_the_depth_settings_are_checked():
     for bad in (-0.1, float("nan"), float("inf")):
         with pytest.raises(ReconstructConfigError, match="depth_weight"):
             TrainConfig(depth_weight=bad)
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ReconstructConfigError, match="depth_min_alpha"):
+            TrainConfig(depth_min_alpha=bad)
 
 
 SIZE = (48, 30)
