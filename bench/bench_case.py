@@ -89,7 +89,7 @@ def main() -> None:
     else:
         root = Path(tempfile.mkdtemp(prefix="bench_case_"))
         spec = EvalSetSpec(seed=args.seed, phases=("intraoperative",), sets=args.sets,
-                           eval_sets=(0,), view_size_px=(64, 40))  # fmt: skip
+                           eval_sets=(0,), instants=1, view_size_px=(64, 40))  # fmt: skip
         eval_set = write_eval_set(root, spec)
     scene = next(s for s in eval_set.scenes if s.phase == "intraoperative")
     session = eval_set.path(scene.session)

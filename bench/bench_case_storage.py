@@ -62,6 +62,7 @@ def main() -> None:
         phases=("intraoperative",),
         sets=args.sets,
         eval_sets=(0,),
+        instants=1,
         view_size_px=(64, 40),
     )
     write_eval_set(root, spec)

@@ -225,6 +225,9 @@ def cmd_eval_set(args: argparse.Namespace) -> int:
             view_size_px=_size(args.view_size),
             view_hfov_deg=args.view_hfov,
             contact=args.contact,
+            instants=args.instants,
+            instant_every_s=args.instant_every,
+            near_field_instants=args.near_field_instants,
         )
     except ValueError as exc:
         print(f"egosurg sim eval-set: {exc}", file=sys.stderr)
@@ -233,7 +236,8 @@ def cmd_eval_set(args: argparse.Namespace) -> int:
     views = sum(len(s.views) for s in eval_set.scenes)
     print(
         f"wrote {Path(args.out) / 'eval_set.toml'}: {len(eval_set.scenes)} scenes, "
-        f"{spec.sets} sets each, {views} egocentric reference views"
+        f"{spec.sets} sets and {spec.instants} instant(s) per phase, {views} egocentric "
+        "reference views"
     )
     return 0
 
@@ -305,6 +309,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--jpeg-quality", type=int, default=90, help="as the agents encode (90)")
     p.add_argument("--view-size", default="960x600", help="egocentric view size WxH")
     p.add_argument("--view-hfov", type=float, default=90.0, help="egocentric hfov, degrees")
+    p.add_argument(
+        "--instants",
+        type=int,
+        default=5,
+        help="instants per phase with every person's view: set 0 and later ones (default 5)",
+    )
+    p.add_argument(
+        "--instant-every", type=float, default=8.0, help="seconds between instants (default 8)"
+    )
+    p.add_argument(
+        "--near-field-instants",
+        type=int,
+        default=3,
+        help="the first instants that are near-field instants too (default 3)",
+    )
     p.add_argument("--contact", action="store_true", help="script a drape contact (sim/contact.py)")
     p.set_defaults(func=cmd_eval_set)
 

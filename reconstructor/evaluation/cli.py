@@ -21,7 +21,9 @@ Examples::
 decides what is evaluated: near-field and phases use each scene's eval sets, egocentric its
 reference views, temporal its consecutive sets; ``--scenes`` and ``--phases`` choose scenes.
 Outputs in OUT: ``<protocol>/table.md|table.csv|scores.csv|png/``, ``summary.md``,
-``settings.json`` and each method's resolved config in ``configs/``.
+``settings.json``, each method's resolved config in ``configs/`` and each finished
+timestamp's record in ``jobs/``: a run that stopped (killed, machine given back) continues
+with the same command and ``--resume``, running only what it had not finished.
 """
 
 from __future__ import annotations
@@ -112,6 +114,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="keep each timestamp's stereo depth and fused cloud in this folder and reuse them "
         "(a rerun, or a machine without OpenCV contrib or open3d, skips that stage)",
     )
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue a stopped run in the same --out: load each job it finished (OUT/jobs/) "
+        "and run the rest, with the same options",
+    )
     return p
 
 
@@ -182,6 +190,10 @@ def main(argv: list[str]) -> int:
     from reconstructor.depth.cache import DepthCache
 
     depth_cache = DepthCache(Path(args.depth_cache) if args.depth_cache else None)
+    from reconstructor.evaluation.records import JobRecords
+
+    records = JobRecords(out, settings)
+    records.check_start(args.resume)  # an earlier run's work is never overwritten
     out.mkdir(parents=True, exist_ok=True)
 
     command = "egosurg evaluate " + shlex.join(argv)
@@ -189,7 +201,9 @@ def main(argv: list[str]) -> int:
         json.dumps({"command": command, **settings.as_dict()}, indent=2) + "\n"
     )
     t0 = time.perf_counter()
-    results = run_evaluation(settings, eval_set, out, lpips_model, jobs, source, depth_cache)
+    results = run_evaluation(
+        settings, eval_set, out, lpips_model, jobs, source, depth_cache, records
+    )
     parts = [
         f"# EgoSurg evaluation\n\nEvaluation set: `{eval_set.root}` ({eval_set.description})\n\n"
         f"Command: `{command}`\n"

@@ -218,7 +218,12 @@ def write_evaluation_doc(results: EvalResults, eval_set: EvalSet, path: Path, co
         f"Settings: {s.describe()}.",
         "",
         f"Mean time per reconstruction on this machine: {timing}; "
-        f"whole run {results.wall_s:.0f} s.",
+        f"whole run {results.wall_s:.0f} s"
+        + (
+            f" ({results.resumed_jobs} timestamp(s) in an earlier sitting, resumed)."
+            if results.resumed_jobs
+            else "."
+        ),
         "",
         "The paper's numbers are from real operating rooms (GPU, 2000 steps at full size); "
         "ours are from this evaluation set (docs/evaluation.md): they are beside ours for "

@@ -15,6 +15,7 @@ from reconstructor.depth.cache import DepthCache
 from reconstructor.evaluation.lpips import Lpips
 from reconstructor.evaluation.methods import METHODS, EvalSettings
 from reconstructor.evaluation.plan import Job, plan
+from reconstructor.evaluation.records import JobRecords
 from reconstructor.evaluation.runner import EvalSource, JobRunner
 from reconstructor.evaluation.tables import EvalResults
 
@@ -44,19 +45,25 @@ def run_evaluation(
     jobs: list[Job] | None = None,
     source: EvalSource | None = None,
     depth_cache: DepthCache | None = None,
+    records: JobRecords | None = None,
 ) -> EvalResults:
     """Run every planned reconstruction (``plan(settings, eval_set)`` unless given), score it
     for each protocol, and return the scores. Each timestamp's depth stage is made once for all
-    its rows (in ``depth_cache``, which may keep it on disk too)."""
+    its rows (in ``depth_cache``, which may keep it on disk too). With ``records``, each
+    finished job is written there and a job already recorded is loaded, not run again."""
     jobs = plan(settings, eval_set) if jobs is None else jobs
     source = EvalSource(eval_set) if source is None else source
     trained = [m for m in settings.methods if METHODS[m].trained]
     depth_only = "depth-reprojection" in settings.methods and not any(
         METHODS[m].depth_init for m in trained
     )
-    units = len(jobs) * (len(trained) + (1 if depth_only else 0))
+    to_run = [j for j in jobs if records is None or records.load(j) is None]
+    units = len(to_run) * (len(trained) + (1 if depth_only else 0))
+    if len(to_run) < len(jobs):
+        log.info("resuming: %d of %d timestamp(s) recorded already", len(jobs) - len(to_run),
+                 len(jobs))  # fmt: skip
     log.info(
-        "evaluation plan: %d timestamp(s), %d reconstruction(s) (%s); %s",
+        "evaluation plan: %d timestamp(s), %d reconstruction(s) to run (%s); %s",
         len(jobs),
         units,
         ", ".join(settings.protocols),
@@ -71,11 +78,13 @@ def run_evaluation(
         lpips_model,
         total_units=units,
         depth_cache=depth_cache if depth_cache is not None else DepthCache(),
+        records=records,
     )
     for job in jobs:
         runner.run(job)
     runner.finish_temporal()
     cache = runner.depth_cache
     log.info("depth stage: %d computed, %d reused", cache.misses, cache.hits)
-    results.wall_s = time.perf_counter() - runner.started
+    results.wall_s = time.perf_counter() - runner.started + runner.resumed_s
+    results.resumed_jobs = runner.resumed
     return results

@@ -42,6 +42,7 @@ from reconstructor.evaluation.methods import (
 )
 from reconstructor.evaluation.metrics import psnr, ssim_value
 from reconstructor.evaluation.plan import Job
+from reconstructor.evaluation.records import JobRecord, JobRecords
 from reconstructor.evaluation.tables import (
     FIDELITY,
     RECORDED,
@@ -135,6 +136,7 @@ class JobRunner:
         *,
         total_units: int,
         depth_cache: DepthCache | None = None,
+        records: JobRecords | None = None,
     ) -> None:
         self.settings = settings
         self.source = source
@@ -144,6 +146,9 @@ class JobRunner:
         self.total = total_units
         # each timestamp's stereo depth and fused cloud, made once for all its rows
         self.depth_cache = depth_cache if depth_cache is not None else DepthCache()
+        self.records = records  # each finished job on disk (a stopped run resumes from them)
+        self.resumed = 0  # jobs loaded from their records
+        self.resumed_s = 0.0  # the time those jobs took when they ran
         self.done = 0
         self.started = time.perf_counter()
         # (sequence, camera, method) -> frame index -> uint8 render
@@ -177,6 +182,55 @@ class JobRunner:
             path.write_text(text)
 
     def run(self, job: Job) -> None:
+        """Run ``job`` (or load it, if an earlier sitting of this run recorded it)."""
+        record = self.records.load(job) if self.records is not None else None
+        if record is not None:
+            self._apply(record)
+            self.resumed += 1
+            self.resumed_s += record.seconds
+            log.info("%s (%s views): resumed from its record", job.scene.label, job.train_views)
+            return
+        t0 = time.perf_counter()
+        scores_before = len(self.results.image_scores)
+        seconds_before = {k: len(v) for k, v in self.results.recon_seconds.items()}
+        refiner_before = self.results.refiner
+        self._run(job)
+        if self.records is not None:
+            record = JobRecord(
+                image_scores=self.results.image_scores[scores_before:],
+                recon_seconds={
+                    k: v[seconds_before.get(k, 0) :]
+                    for k, v in self.results.recon_seconds.items()
+                    if len(v) > seconds_before.get(k, 0)
+                },
+                refiner=self.results.refiner if self.results.refiner != refiner_before else "",
+                seconds=time.perf_counter() - t0,
+            )
+            for sequence, k in job.temporal:
+                record.sequence_phase[sequence] = self.sequence_phase[sequence]
+                for (seq, view, method), by_frame in self.frames.items():
+                    if seq == sequence and k in by_frame:
+                        record.frames[(seq, view, method, k)] = by_frame[k]
+                chain = self.warm_chain.get(sequence)
+                if chain is not None and chain[0] == k:
+                    record.warm = (sequence, k, chain[1])
+            self.records.save(job, record)
+
+    def _apply(self, record: JobRecord) -> None:
+        """Put a recorded job's results where running it would have put them."""
+        self.results.image_scores.extend(record.image_scores)
+        for k, v in record.recon_seconds.items():
+            self.results.recon_seconds.setdefault(k, []).extend(v)
+        if record.refiner:
+            self.results.refiner = record.refiner
+        for (seq, view, method, k), frame in record.frames.items():
+            self.frames.setdefault((seq, view, method), {})[k] = frame
+        self.sequence_phase.update(record.sequence_phase)
+        if record.warm is not None:
+            sequence, k, model = record.warm
+            self.warm_chain[sequence] = (k, model)
+
+    def _run(self, job: Job) -> None:
         s, scene = self.settings, job.scene
         ts = self.source.timestamp(scene.name, scene.set_index)
         calibration = self.source.calibration(scene.name)

@@ -71,7 +71,8 @@ class EvalResults:
     temporal_scores: list[TemporalScore] = field(default_factory=list)
     recon_seconds: dict[str, list[float]] = field(default_factory=dict)  # method -> per run
     refiner: str = ""  # the refiner's own description, from a run that used it
-    wall_s: float = 0.0
+    wall_s: float = 0.0  # every job's time, those of earlier sittings (resumed) included
+    resumed_jobs: int = 0  # timestamps loaded from an earlier sitting's records
 
 
 @dataclass(frozen=True)

@@ -43,7 +43,9 @@ def session(tmp_path_factory) -> tuple[Path, Path]:
     """Six consecutive sets (15 fps, 2.0 s to 2.33 s) of the intraoperative sim, and a tiny
     config."""
     root = tmp_path_factory.mktemp("case")
-    spec = EvalSetSpec(phases=("intraoperative",), sets=6, eval_sets=(0,), view_size_px=(64, 40))
+    spec = EvalSetSpec(
+        phases=("intraoperative",), sets=6, eval_sets=(0,), instants=1, view_size_px=(64, 40)
+    )
     write_eval_set(root / "es", spec)
     config = root / "tiny.toml"
     config.write_text(TINY.format(steps=3))

@@ -40,7 +40,9 @@ enabled = false
 def scene(tmp_path_factory):
     """One set of the intraoperative sim, its calibration and a tiny config."""
     root = tmp_path_factory.mktemp("depth_cache")
-    spec = EvalSetSpec(phases=("intraoperative",), sets=1, eval_sets=(0,), view_size_px=(64, 40))
+    spec = EvalSetSpec(
+        phases=("intraoperative",), sets=1, eval_sets=(0,), instants=1, view_size_px=(64, 40)
+    )
     write_eval_set(root / "es", spec)
     folder = root / "es" / "intraoperative"
     calibration = RigCalibration.read(folder / "calibration.toml")

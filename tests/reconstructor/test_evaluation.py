@@ -9,6 +9,7 @@ import dataclasses
 import importlib.util
 import json
 import math
+import shutil
 from pathlib import Path
 
 import cv2
@@ -38,7 +39,7 @@ def eval_set(tmp_path_factory) -> EvalSet:
     out = tmp_path_factory.mktemp("evalset")
     done = run_egosurg(
         "sim", "eval-set", "--out", str(out), "--phases", PHASE, "--sets", "3",
-        "--eval-sets", "0", "--resolution", "SVGA", "--view-size", "160x100",
+        "--eval-sets", "0", "--resolution", "SVGA", "--view-size", "160x100", "--instants", "1",
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
     return EvalSet.read(out)
@@ -370,6 +371,79 @@ def test_the_warm_start_row_continues_each_frame_from_the_one_before(eval_set, t
     table = (out / "temporal" / "table.md").read_text()
     assert "| EgoSurg, warm start (3 steps per later frame) |" in table
     assert "against the recorded right images" in table
+
+
+def _quick_config(path: Path) -> Path:
+    """Stereo at a quarter size, no hole fill, two auxiliary views per camera: for tests of a
+    mechanism, not of quality (a fifth of the default settings' time)."""
+    path.write_text(
+        "[stereo]\nmatch_scale = 0.25\n[fill]\nenabled = false\n"
+        "[fusion]\nmax_points = 20000\n[auxiliary]\nnum_views = 2\n"
+    )
+    return path
+
+
+def test_a_stopped_run_resumes_where_it_stopped_with_the_same_numbers(eval_set, tmp_path, caplog):
+    """An overnight evaluation that is stopped (killed, machine given back) keeps every
+    timestamp it finished: ``--resume`` loads them, runs the rest, and the tables are the ones
+    an uninterrupted run makes, the warm chain and the temporal scores across the stop
+    included. A record made with other settings is refused by name, and without ``--resume``
+    an earlier run's records are never overwritten."""
+    config = _quick_config(tmp_path / "quick.toml")
+    common = [
+        "--protocol", "near-field", "temporal", "egocentric", "--steps", "8", "--train-width",
+        "96", "--methods", "depth-reprojection", "egosurg", "egosurg-warm", "--warm-steps", "3",
+        "--refiner", "none", "--config", str(config),
+    ]  # fmt: skip
+    whole, stopped = tmp_path / "whole", tmp_path / "stopped"
+    assert egosurg(["evaluate", str(eval_set.root), "--out", str(whole), *common]) == 0
+    records = sorted(p.name for p in (whole / "jobs").glob("*.json"))
+    # sets 0 (left and all views), 1 and 2 (left): four timestamps
+    assert len(records) == 4, records
+    # a stop during set 2: sets 0 and 1 recorded, set 2's arrays written, its record half-way
+    shutil.copytree(whole, stopped)
+    last = stopped / "jobs" / "intraoperative_set2_left.json"
+    last.rename(last.with_name(last.name + ".tmp"))
+    for name in ("summary.md", "temporal/scores.csv"):
+        (stopped / name).unlink()
+
+    def run(out: Path, *extra: str) -> int:
+        return egosurg(["evaluate", str(eval_set.root), "--out", str(out), *common, *extra])
+
+    caplog.set_level("INFO")
+    assert run(stopped, "--resume") == 0
+    assert caplog.text.count("resumed from its record") == 3
+    assert "[1/2] egosurg at intraoperative@set2" in caplog.text  # only set 2 ran again
+    # set 2's warm frame started from set 1's recorded warm model
+    assert caplog.text.count("warm start: kept") == 1
+    for table in ("near-field/scores.csv", "egocentric/scores.csv", "temporal/scores.csv",
+                  "temporal/fidelity_scores.csv"):  # fmt: skip
+        assert (stopped / table).read_text() == (whole / table).read_text(), table
+
+
+@pytest.mark.parametrize(
+    ("extra", "words"),
+    [
+        ([], ["holds 1 finished job", "--resume", "another --out"]),
+        (["--resume", "--steps", "9"], ["other settings", "steps 8 (now 9)"]),
+    ],
+)
+def test_a_resume_that_would_mix_runs_is_one_line(extra, words, eval_set, tmp_path, capsys):
+    out = tmp_path / "o"
+    config = _quick_config(tmp_path / "quick.toml")
+    common = ["--steps", "8", "--train-width", "96", "--methods", "no-refinement",
+              "--config", str(config)]  # fmt: skip
+    assert egosurg(["evaluate", str(eval_set.root), "--out", str(out), *common]) == 0
+    before = (out / "near-field" / "scores.csv").read_text()
+    capsys.readouterr()
+    args = ["evaluate", str(eval_set.root), "--out", str(out), *common, *extra]
+    if "--steps" in extra:
+        args.remove("8")
+        args.remove("--steps")
+    assert egosurg(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and all(w in err for w in words), err
+    assert (out / "near-field" / "scores.csv").read_text() == before  # nothing lost
 
 
 @pytest.mark.parametrize(

@@ -56,7 +56,9 @@ def case(tmp_path_factory) -> dict[str, Path]:
     """Four sets (2.0-2.2 s) of the intraoperative sim, a case of three timestamps, the sim's
     true roles and site boxes."""
     root = tmp_path_factory.mktemp("replay")
-    spec = EvalSetSpec(phases=("intraoperative",), sets=4, eval_sets=(0,), view_size_px=(64, 40))
+    spec = EvalSetSpec(
+        phases=("intraoperative",), sets=4, eval_sets=(0,), instants=1, view_size_px=(64, 40)
+    )
     write_eval_set(root / "es", spec)
     (root / "tiny.toml").write_text(TINY)
     h5 = root / "es" / "intraoperative" / "session.h5"

@@ -229,7 +229,7 @@ def test_on_a_real_reconstruction_the_scripted_contact_is_found(tmp_path, capsys
     es = tmp_path / "es"
     done = run_egosurg("sim", "eval-set", "--out", str(es), "--phases", "intraoperative",
                        "--fps", "2", "--t-start", "5", "--sets", "7", "--view-size", "64x40",
-                       "--contact")  # fmt: skip
+                       "--contact", "--instants", "1")  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
     h5 = es / "intraoperative" / "session.h5"
     (tmp_path / "tiny.toml").write_text(TINY)

@@ -1,0 +1,183 @@
+"""What each finished job of an evaluation leaves on disk, so that a stopped run resumes.
+
+A full-scale evaluation is hours of work on a CPU (issue 22: 81 reconstructions overnight);
+a power cut, a killed terminal or a machine that must be given back would otherwise lose all
+of it. After each job (one timestamp, every method) the runner writes, in ``OUT/jobs/``:
+
+- ``<job>.json``: its image scores, the seconds of each reconstruction, the refiner's
+  description and the settings that made it (the record: written last, atomically, so a job
+  whose record exists is complete);
+- ``<job>.frames.npz``: the renders a temporal sequence keeps for its stability scores
+  (uint8, one array per sequence x camera x method of this frame), when the job is a frame;
+- ``<job>.warm.npz``: the warm-start row's model of this frame (the next frame starts from it).
+
+``egosurg evaluate ... --resume`` then loads every recorded job instead of running it, and
+runs the rest; the tables and the report are made from all of them. A record made with other
+settings (another step count, methods, evaluation set...) is refused by name rather than
+mixed in.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from protocol import __version__
+from reconstructor.evaluation.methods import EvalSettings, EvaluationArgumentError
+from reconstructor.evaluation.plan import Job
+from reconstructor.evaluation.tables import ImageScore
+from reconstructor.splats.gaussians import Gaussians
+
+RECORD_FORMAT = 1
+JOBS_DIR = "jobs"
+# settings that do not change a job's numbers: where the set was read from, how it was named
+_NOT_COMPARED = ("eval_set", "eval_set_description")
+
+FrameKey = tuple[str, str, str, int]  # (sequence, camera, method, frame)
+
+
+@dataclass
+class JobRecord:
+    """Everything one finished job added to the run's results."""
+
+    image_scores: list[ImageScore] = field(default_factory=list)
+    recon_seconds: dict[str, list[float]] = field(default_factory=dict)
+    refiner: str = ""
+    seconds: float = 0.0  # the job's wall time
+    frames: dict[FrameKey, np.ndarray] = field(default_factory=dict)
+    sequence_phase: dict[str, str] = field(default_factory=dict)
+    warm: tuple[str, int, Gaussians] | None = None  # (sequence, frame, model)
+
+
+def job_name(job: Job) -> str:
+    """A file stem for a job, e.g. ``intraoperative-later_set2_all`` (scene names are free
+    text in the set's manifest)."""
+    raw = f"{job.scene.name}_set{job.scene.set_index}_{job.train_views}"
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in raw)
+
+
+def _comparable(settings: EvalSettings) -> dict[str, Any]:
+    d = settings.as_dict()
+    return {k: v for k, v in d.items() if k not in _NOT_COMPARED}
+
+
+def _jsonable(value: Any) -> Any:
+    return json.loads(json.dumps(value))  # tuples -> lists, as a record reads back
+
+
+class JobRecords:
+    """The ``OUT/jobs/`` folder of one run."""
+
+    def __init__(self, out_dir: Path, settings: EvalSettings) -> None:
+        self.folder = Path(out_dir) / JOBS_DIR
+        self.settings = settings
+
+    def finished(self) -> list[Path]:
+        return sorted(self.folder.glob("*.json")) if self.folder.is_dir() else []
+
+    def check_start(self, resume: bool) -> int:
+        """Before any work: the number of recorded jobs a resumed run will load. Without
+        ``resume`` an earlier run's records are never overwritten; with it, a record made with
+        other settings is refused, naming them."""
+        done = self.finished()
+        if not done:
+            return 0
+        if not resume:
+            raise EvaluationArgumentError(
+                f"--out {self.folder.parent} holds {len(done)} finished job(s) of an earlier "
+                "run: add --resume to continue it, or give another --out"
+            )
+        mine = _jsonable(_comparable(self.settings))
+        for path in done:
+            theirs = self._read(path)["settings"]
+            differ = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
+            if differ:
+                shown = ", ".join(f"{k} {theirs.get(k)!r} (now {mine.get(k)!r})" for k in differ)
+                raise EvaluationArgumentError(
+                    f"--resume: {path} was made with other settings: {shown}; run with the "
+                    "same options, or give another --out"
+                )
+        return len(done)
+
+    def _read(self, path: Path) -> dict[str, Any]:
+        try:
+            data = json.loads(path.read_text())
+            if data.get("format") != RECORD_FORMAT:
+                raise ValueError(f"format {data.get('format')!r}, expected {RECORD_FORMAT}")
+            return data
+        except (OSError, ValueError) as exc:
+            raise EvaluationArgumentError(
+                f"--resume: {path} cannot be read ({exc}); delete it to run that job again"
+            ) from exc
+
+    def load(self, job: Job) -> JobRecord | None:
+        """The job's record, or None if it has not finished."""
+        path = self.folder / f"{job_name(job)}.json"
+        if not path.exists():
+            return None
+        data = self._read(path)
+        record = JobRecord(
+            image_scores=[ImageScore(**s) for s in data["image_scores"]],
+            recon_seconds={k: list(v) for k, v in data["recon_seconds"].items()},
+            refiner=data["refiner"],
+            seconds=float(data["seconds"]),
+            sequence_phase=dict(data["sequence_phase"]),
+        )
+        try:
+            if data["frames"]:
+                with np.load(self.folder / f"{job_name(job)}.frames.npz") as npz:
+                    for i, (seq, cam, method, k) in enumerate(data["frames"]):
+                        record.frames[(seq, cam, method, int(k))] = npz[f"f{i}"]
+            if data["warm"] is not None:
+                seq, k = data["warm"]
+                with np.load(self.folder / f"{job_name(job)}.warm.npz") as npz:
+                    model = Gaussians(**{n: torch.from_numpy(npz[n]) for n in npz.files})
+                record.warm = (seq, int(k), model)
+        except (OSError, KeyError, ValueError) as exc:
+            raise EvaluationArgumentError(
+                f"--resume: the files of {path} cannot be read ({exc}); delete {path} to run "
+                "that job again"
+            ) from exc
+        return record
+
+    def save(self, job: Job, record: JobRecord) -> None:
+        """Write the job's arrays, then its record (atomically: a record names a whole job)."""
+        self.folder.mkdir(parents=True, exist_ok=True)
+        stem = self.folder / job_name(job)
+        keys = list(record.frames)  # in the order the run made them (the tables keep it)
+        if keys:
+            arrays = {f"f{i}": record.frames[k] for i, k in enumerate(keys)}
+            _atomic_npz(Path(f"{stem}.frames.npz"), arrays)
+        if record.warm is not None:
+            model = record.warm[2]
+            arrays = {n: t.detach().cpu().numpy() for n, t in model.parameters_dict().items()}
+            _atomic_npz(Path(f"{stem}.warm.npz"), arrays)
+        data = {
+            "format": RECORD_FORMAT,
+            "egosurg": __version__,
+            "job": job_name(job),
+            "settings": _comparable(self.settings),
+            "image_scores": [asdict(s) for s in record.image_scores],
+            "recon_seconds": record.recon_seconds,
+            "refiner": record.refiner,
+            "seconds": record.seconds,
+            "sequence_phase": record.sequence_phase,
+            "frames": [list(k) for k in keys],
+            "warm": None if record.warm is None else [record.warm[0], record.warm[1]],
+        }
+        tmp = Path(f"{stem}.json.tmp")
+        tmp.write_text(json.dumps(data, indent=1) + "\n")
+        os.replace(tmp, f"{stem}.json")
+
+
+def _atomic_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)
+    os.replace(tmp, path)
