@@ -57,6 +57,7 @@ STORE_FORMAT = "egosurg-splat-store"
 STORE_FORMAT_VERSION = 1
 SUFFIX = ".npz"
 POINTS_STEP_M = 2.0**-8  # 3.9 mm: the sterile tool's voxels are 5 cm
+_MAX_INFLATE_RATIO = 1032  # deflate's most: a stream of N bytes inflates to at most ~1032 N
 _CACHE_SIZE = 4  # decoded models kept: a chain is read forward, each from the one before
 
 
@@ -214,12 +215,12 @@ def load_points(case: Path | str, entry: Entry) -> np.ndarray | None:
         return None
     path = _checked(folder, entry.model, entry.xxh3_64, entry.bytes, entry.name)
     try:
-        with np.load(path, allow_pickle=False) as z:
-            meta = json.loads(z["meta"].tobytes())
-            info = meta.get("points")
-            if info is None:
-                return None
-            grid = _unpack(z["points"], int(info["n"]), 3)
+        z = _read_arrays(path, ("meta", "points"))
+        meta = json.loads(z["meta"].tobytes())
+        info = meta.get("points")
+        if info is None:
+            return None
+        grid = _unpack(z["points"], int(info["n"]), 3)
     except (OSError, ValueError, KeyError, TypeError, zlib.error, zipfile.BadZipFile) as exc:
         raise CaseStorageError(
             f"{path}: its stored points cannot be read ({exc}); rerun the case's reconstruct "
@@ -240,28 +241,90 @@ def _pack(table: np.ndarray | None) -> np.ndarray:
 
 
 def _unpack(blob: np.ndarray, rows: int, cols: int) -> np.ndarray:
+    """The inverse of ``_pack``. The size is the file's claim (``meta``), so it is checked
+    before anything is allocated: deflate expands at most ~1032 times, and the stream must
+    inflate to exactly ``rows * cols * 4`` bytes (a damaged or crafted file cannot make the
+    reader allocate or inflate more than that)."""
+    if rows < 0 or cols < 0:
+        raise ValueError(f"a table of {rows} x {cols} values")
     if rows * cols == 0:
         return np.zeros((rows, cols), np.int64)
-    raw = np.frombuffer(zlib.decompress(blob.tobytes()), np.uint8)
+    size = rows * cols * 4
+    if size > _MAX_INFLATE_RATIO * blob.size + 64:
+        raise ValueError(f"{blob.size} compressed bytes cannot hold the {size} the file claims")
+    inflater = zlib.decompressobj()
+    data = inflater.decompress(blob.tobytes(), size)
+    if len(data) != size or not inflater.eof or inflater.unconsumed_tail:
+        raise ValueError(f"the packed table inflates to other than the {size} bytes it claims")
+    raw = np.frombuffer(data, np.uint8)
     z = np.ascontiguousarray(raw.reshape(4, -1).T).view(np.uint32).reshape(cols, rows).T
     z = z.astype(np.int64)
     return (z >> 1) ^ -(z & 1)
 
 
+def _read_arrays(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The named uint8 arrays of a model file (``points`` may be absent). Every entry must be
+    stored uncompressed in the zip, as ``write_model`` writes it, and hold the bytes its
+    header claims, checked before reading: a file cannot make the reader allocate more than
+    its own size."""
+    out: dict[str, np.ndarray] = {}
+    with zipfile.ZipFile(path) as zf:
+        for key in keys:
+            try:
+                info = zf.getinfo(f"{key}.npy")
+            except KeyError:
+                if key == "points":
+                    continue
+                raise
+            if info.compress_type != zipfile.ZIP_STORED:
+                raise ValueError(f"{key}.npy is compressed in the zip; models store it plain")
+            with zf.open(info) as f:
+                version = np.lib.format.read_magic(f)
+                if version == (1, 0):
+                    shape, _fortran, dtype = np.lib.format.read_array_header_1_0(f)
+                else:
+                    shape, _fortran, dtype = np.lib.format.read_array_header_2_0(f)
+                if dtype != np.uint8 or len(shape) != 1:
+                    raise ValueError(f"{key}.npy holds {dtype} {shape}, not bytes")
+                if shape[0] > info.file_size:
+                    raise ValueError(f"{key}.npy claims {shape[0]} bytes in {info.file_size}")
+                data = f.read(shape[0])
+                if len(data) != shape[0]:
+                    raise ValueError(f"{key}.npy is cut short")
+            out[key] = np.frombuffer(data, np.uint8)
+    return out
+
+
 def _read_file(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in ("meta", "alive", "diff", "new")}
+        arrays = _read_arrays(path, ("meta", "alive", "diff", "new"))
         meta = json.loads(arrays["meta"].tobytes())
     except (OSError, ValueError, KeyError, zlib.error, zipfile.BadZipFile) as exc:
         raise CaseStorageError(
             f"{path} cannot be read as a stored model ({exc}); rerun the case's reconstruct "
             "command, which redoes damaged timestamps"
         ) from None
+    if not isinstance(meta, dict):
+        raise CaseStorageError(f"{path}: its meta is not a JSON object; rerun the case's "
+                               "reconstruct command, which redoes damaged timestamps")  # fmt: skip
     if meta.get("format") != STORE_FORMAT or meta.get("format_version") != STORE_FORMAT_VERSION:
         raise CaseStorageError(
             f"{path} is stored as {meta.get('format')} {meta.get('format_version')}; this egosurg "
             f"reads {STORE_FORMAT} {STORE_FORMAT_VERSION}: use the egosurg version that wrote it"
+        )
+    parent = meta.get("parent")
+    missing = [k for k in ("n", "steps", "sh_degree", "parent") if k not in meta]
+    if parent is not None and not (
+        isinstance(parent, dict)
+        and isinstance(parent.get("model"), str)
+        and isinstance(parent.get("xxh3_64"), str)
+        and isinstance(parent.get("bytes"), int)
+    ):
+        missing.append("parent's model, xxh3_64 and bytes")
+    if missing:
+        raise CaseStorageError(
+            f"{path}: its meta lacks {', '.join(missing)}; rerun the case's reconstruct "
+            "command, which redoes damaged timestamps"
         )
     return meta, arrays
 
@@ -311,9 +374,9 @@ def load_stored(folder: Path, model: str, xxh3: str, size: int, name: str = "") 
         if len(chain) > 100_000:
             raise CaseStorageError(f"{folder / model}: its parents form a loop; redo the case")
     for key, meta, arrays in reversed(chain):
-        n, cols = int(meta["n"]), len(meta["steps"])
-        steps = np.asarray(meta["steps"], dtype=np.float64)
         try:
+            n, cols = int(meta["n"]), len(meta["steps"])
+            steps = np.asarray(meta["steps"], dtype=np.float64)
             if meta["parent"] is None:
                 q = _unpack(arrays["new"], n, cols)
             else:
@@ -322,7 +385,7 @@ def load_stored(folder: Path, model: str, xxh3: str, size: int, name: str = "") 
                 kept = int(alive.sum())
                 diff = _unpack(arrays["diff"], kept, cols)
                 q = np.concatenate([base.q[alive] + diff, _unpack(arrays["new"], n - kept, cols)])
-        except (ValueError, zlib.error) as exc:
+        except (ValueError, KeyError, TypeError, zlib.error) as exc:
             raise CaseStorageError(
                 f"{key[0]} does not decode ({exc}); rerun the case's reconstruct command"
             ) from None

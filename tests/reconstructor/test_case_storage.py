@@ -228,3 +228,76 @@ def test_a_timestamp_keeps_the_points_its_stereo_saw_within_half_a_grid_step(tmp
     with_points.write_bytes(bytes(blob))
     with pytest.raises(storage.CaseStorageError, match=r"a\.npz.*fails its checksum"):
         storage.load_points(tmp_path, good)
+
+
+def _rewrite(path: Path, arrays: dict[str, bytes], compress: int = 0) -> None:
+    """A model file with these raw .npy members (a crafted or damaged file, as a hostile
+    case folder would hold it)."""
+    import zipfile
+
+    with zipfile.ZipFile(path, "w", compress or zipfile.ZIP_STORED) as zf:
+        for key, raw in arrays.items():
+            zf.writestr(f"{key}.npy", raw)
+
+
+def _npy(array: np.ndarray, claimed_len: int | None = None) -> bytes:
+    import io
+
+    buf = io.BytesIO()
+    np.lib.format.write_array(buf, array, allow_pickle=False)
+    raw = buf.getvalue()
+    if claimed_len is not None:  # the header claims more bytes than follow
+        raw = raw.replace(f"({len(array)},)".encode(), f"({claimed_len},)".encode().ljust(
+            len(f"({len(array)},)")), 1)  # fmt: skip
+    return raw
+
+
+@pytest.mark.parametrize(
+    "craft",
+    ["huge_n", "inflate_bomb", "npy_claims_more", "deflated_member", "meta_list", "no_parent"],
+)
+def test_a_crafted_model_file_is_refused_in_one_line_without_inflating_it(tmp_path, craft):
+    """A case folder is input like any other: a model file whose checksum matches (whoever
+    altered it rewrote the index too) but whose contents claim more than they hold cannot make
+    the reader allocate or inflate beyond the file's own bounds; it gets CaseStorageError
+    naming the file, never a MemoryError, a hang or a traceback."""
+    import json
+    import zlib
+
+    g = random_gaussians(50, 0, seed=3)
+    path = tmp_path / "models" / "m.npz"
+    storage.write_model(path, g)
+    import zipfile
+
+    with zipfile.ZipFile(path) as zf:
+        members = {n[:-4]: np.lib.format.read_array(zf.open(n)) for n in zf.namelist()}
+    meta = json.loads(members["meta"].tobytes())
+    raw = {k: _npy(v) for k, v in members.items()}
+    compress = 0
+    if craft == "huge_n":  # 10^12 rows claimed by a few hundred bytes
+        meta["n"] = 10**12
+    elif craft == "inflate_bomb":  # 64 MB of zeros in ~64 kB, for a table of 50 rows
+        bomb = zlib.compress(bytes(64 << 20), 9)
+        raw["new"] = _npy(np.frombuffer(bomb, np.uint8))
+    elif craft == "npy_claims_more":
+        raw["new"] = _npy(members["new"], claimed_len=10**11)
+    elif craft == "deflated_member":
+        compress = zipfile.ZIP_DEFLATED
+    elif craft == "meta_list":
+        meta = [1, 2, 3]
+    elif craft == "no_parent":
+        del meta["parent"]
+    raw["meta"] = _npy(np.frombuffer(json.dumps(meta).encode(), np.uint8))
+    _rewrite(path, raw, compress)
+    digest, size = checksum_file(path)
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        with pytest.raises(storage.CaseStorageError, match=r"m\.npz") as err:
+            storage.load_stored(tmp_path, "models/m.npz", digest, size)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert len(str(err.value).splitlines()) == 1
+    assert peak < 8 << 20, peak  # the bomb would be 64 MB inflated
