@@ -203,7 +203,8 @@ def main_sterile(argv: list[str]) -> int:
     p.add_argument("--out", required=True, help="folder: events.csv, timeline.png, event_*.png")
     p.add_argument("--from", dest="t_from", type=float, help="first case time, s")
     p.add_argument("--to", dest="t_to", type=float, help="last case time, s")
-    p.add_argument("--min-gaussians", type=int, default=8, help="in the field for a contact (8)")
+    p.add_argument("--min-points", "--min-gaussians", dest="min_points", type=int, default=8,
+                   help="moving points of one person in the field for a contact (8)")  # fmt: skip
     p.add_argument("--min-timestamps", type=int, default=1, help="an event's shortest run (1)")
     p.add_argument("--static-fraction", type=float, default=0.5,
                    help="occupied this often: static scene (0.5)")  # fmt: skip
@@ -221,7 +222,7 @@ def main_sterile(argv: list[str]) -> int:
     sterile_roles = tuple(r.strip() for r in args.sterile_roles.split(",") if r.strip())
     try:
         config = SterileConfig(
-            min_gaussians=args.min_gaussians, static_fraction=args.static_fraction,
+            min_points=args.min_points, static_fraction=args.static_fraction,
             min_timestamps=args.min_timestamps,
             sterile_roles=sterile_roles,
         )  # fmt: skip

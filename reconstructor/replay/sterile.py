@@ -2,11 +2,13 @@
 field box (the drape, the back table), grouped into events, each with the nearest role.
 
 **Static scene.** Each timestamp of a case is reconstructed on its own, so the same drape is
-made of different Gaussians each time; what stays is where they are. The region around the
-field (the box grown by ``reach_m``) is cut into ``voxel_m`` voxels; a voxel holding a Gaussian
-(opacity at least ``min_opacity``) at ``static_fraction`` or more of the case's timestamps is
-the static scene (a per-voxel median over time, the classic background model of fixed
-cameras), grown by one voxel so that a surface's jitter between reconstructions is not motion.
+made of different points each time; what stays is where they are (the points are each
+timestamp's fused stereo points, stored with its model; for a case stored without them, the
+centres of its Gaussians with opacity at least ``min_opacity``). The region around the
+field (the box grown by ``reach_m``) is cut into ``voxel_m`` voxels; a voxel holding a point
+at ``static_fraction`` or more of the case's timestamps is the static scene (a per-voxel
+median over time, the classic background model of fixed cameras), grown by one voxel so that a
+surface's jitter between reconstructions is not motion.
 This needs no empty-room recording; its price: something that stays in the field for more than
 ``static_fraction`` of the case becomes background (use a shorter ``--from``/``--to`` span).
 
@@ -19,17 +21,17 @@ evidence, each against a kind of false event measured on a 60 s sim case (docs/r
    ``flicker_window_s`` away, so a touch's own timestamps do not count against it) says how
    often something is there anyway: a table's ragged underside beside a passer-by, the smear
    between a walking body and the drape. A hand's voxels are empty but for its touches. A blob
-   whose in-field Gaussians sit in voxels with a median share of ``max_flicker`` or more is
+   whose in-field points sit in voxels with a median share of ``max_flicker`` or more is
    noise (the price: a contact repeated at one spot for a fifth of the span looks like flicker,
    as one held for half of it looks static; review a shorter ``--from``/``--to``).
-2. *Who.* Each Gaussian goes to the role whose body it is joined to (``split_by_role``): a
+2. *Who.* Each point goes to the role whose body it is joined to (``split_by_role``): a
    role's body is the blob's voxels within ``body_radius_m`` of its eye's vertical (people
    stand), and every voxel goes to the body it is reached from first through the blob's own
    voxels, so a hand far out over the field follows its arm back to its owner even where it
    is nearer another person's eye (without a body in the blob: the nearest eye). Each role's
    part is judged alone: a passer-by merged with the arm that reaches in neither takes the
    contact nor hides it. A part needs at least
-   ``min_gaussians`` Gaussians inside the box and ``min_outside`` outside it (the arm that
+   ``min_points`` points inside the box and ``min_outside`` outside it (the arm that
    reaches in; a lone blob wholly inside is a floater: a thing dropped into the field alone is
    not a contact), and a median distance to its role's eye of at most
    ``max_role_distance_m`` (farther, it is nobody's arm).
@@ -68,7 +70,7 @@ class SterileConfig:
     reach_m: float = 0.8  # blobs are traced this far around the box: an arm and a shoulder
     static_fraction: float = 0.5  # occupied at least this often: the static scene
     min_opacity: float = 0.05  # fainter: pruned floaters (a fresh Gaussian starts at 0.1)
-    min_gaussians: int = 8  # Gaussians of one blob inside the box for a contact
+    min_points: int = 8  # points of one blob inside the box for a contact
     min_outside: int = 3  # and outside it: the arm that reaches in (a lone blob is a floater)
     max_gap: int = 1  # missed timestamps bridged inside one event
     max_role_distance_m: float = 0.4  # a blob farther from every role is no one's arm
@@ -76,7 +78,7 @@ class SterileConfig:
     max_flicker: float = 0.2  # in-field voxels filled this often (median) are noise; 1 turns off
     flicker_window_s: float = 3.0  # ... at timestamps this far from now (a touch's own)
     max_shoulder_drop_m: float | None = 0.4  # the blob rises to this below its role's eye
-    split_by_role: bool = True  # each Gaussian to the body it joins: two people touching apart
+    split_by_role: bool = True  # each point to the body it joins: two people touching apart
     body_radius_m: float = 0.25  # a body column about its eye: the shoulders are ~0.2 m out
     sterile_roles: tuple[str, ...] = ()
 
@@ -85,8 +87,8 @@ class SterileConfig:
             raise ValueError(f"voxel_m {self.voxel_m} (0.01-0.5) or reach_m {self.reach_m} (0-3)")
         if not 0 < self.static_fraction <= 1:
             raise ValueError(f"static_fraction {self.static_fraction}: give (0, 1]")
-        if not (0 <= self.min_opacity < 1 and self.min_gaussians >= 1 and self.max_gap >= 0):
-            raise ValueError("min_opacity in [0, 1), min_gaussians >= 1, max_gap >= 0, please")
+        if not (0 <= self.min_opacity < 1 and self.min_points >= 1 and self.max_gap >= 0):
+            raise ValueError("min_opacity in [0, 1), min_points >= 1, max_gap >= 0, please")
         if self.min_timestamps < 1 or not self.max_role_distance_m > 0:
             raise ValueError("min_timestamps >= 1 and max_role_distance_m > 0, please")
         if not self.flicker_window_s >= 0:
@@ -103,10 +105,10 @@ class SterileConfig:
 class Blob:
     """A moving thing that touches the field at one timestamp."""
 
-    points_m: np.ndarray  # (N, 3) its Gaussians' centres, all of the blob
+    points_m: np.ndarray  # (N, 3) its points, all of the blob
     in_field: np.ndarray  # (N,) bool: inside the box
     role: str  # "" without roles
-    role_distance_m: float  # median horizontal distance of its Gaussians to the role's eye
+    role_distance_m: float  # median horizontal distance of its points to the role's eye
 
     @property
     def count(self) -> int:
@@ -121,7 +123,7 @@ class Blob:
 class Instant:
     t_s: float
     model: str
-    moving_in_field: int  # moving Gaussians inside the box, all blobs
+    moving_in_field: int  # moving points inside the box, all blobs
     blobs: list[Blob] = field(default_factory=list)
 
 
@@ -223,7 +225,7 @@ def moving_blobs(
     region: Region, bg: Background | np.ndarray, points_m: np.ndarray,
     eyes_m: dict[str, np.ndarray], t_s: float = 0.0,
 ) -> tuple[int, list[Blob]]:  # fmt: skip
-    """(moving Gaussians inside the box, the moving blobs that touch the box) at ``t_s``.
+    """(moving points inside the box, the moving blobs that touch the box) at ``t_s``.
     ``bg``: the case's background (or a bare static grid: no flicker test); ``eyes_m``: each
     role's eye then (empty: no roles)."""
     cfg = region.config
@@ -248,7 +250,7 @@ def moving_blobs(
             pts, v, whole, inside, eyes_m, cfg.split_by_role, cfg.voxel_m, cfg.body_radius_m
         ):
             n_in = int((sel & inside).sum())
-            if n_in < cfg.min_gaussians or int(sel.sum()) - n_in < cfg.min_outside:
+            if n_in < cfg.min_points or int(sel.sum()) - n_in < cfg.min_outside:
                 continue
             dist = _distance(pts[sel], eyes_m.get(role))
             if eyes_m and dist > cfg.max_role_distance_m:
@@ -264,9 +266,9 @@ def _parts(
     pts: np.ndarray, vox: np.ndarray, sel: np.ndarray, inside: np.ndarray,
     eyes_m: dict[str, np.ndarray], split: bool, voxel_m: float, body_m: float,
 ) -> list[tuple[str, np.ndarray]]:  # fmt: skip
-    """A blob as (role, mask) parts: whole, given to the majority of its Gaussians' nearest
-    roles; or split by whose body each Gaussian hangs from (``_owners``), keeping the parts
-    that hold in-field Gaussians."""
+    """A blob as (role, mask) parts: whole, given to the majority of its points' nearest
+    roles; or split by whose body each point hangs from (``_owners``), keeping the parts
+    that hold in-field points."""
     if not eyes_m:
         return [("", sel)]
     names = list(eyes_m)
@@ -291,14 +293,14 @@ _OFFSETS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in 
 def _owners(
     pts: np.ndarray, vox: np.ndarray, eyes_xy: np.ndarray, voxel_m: float, body_m: float
 ) -> np.ndarray:
-    """(N,) the role (index into ``eyes_xy``) whose body each of one blob's Gaussians is
+    """(N,) the role (index into ``eyes_xy``) whose body each of one blob's points is
     joined to. The nearest eye in the floor plane is wrong for a hand far out over the field,
     which can be nearer another person's eye than its owner's; so each role's body is the
     blob's voxels within ``body_m`` of its eye's vertical (nearest eye where two overlap), and
     every voxel goes to the body from which it is reached first through the blob's own voxels
     (a geodesic Voronoi split): a hand follows its arm back to the shoulder it hangs from.
     Without any body in the blob (a still body is static scene and the arm reaches no column),
-    each Gaussian is its nearest eye's."""
+    each point is its nearest eye's."""
     near = np.argmin(np.linalg.norm(pts[:, None, :2] - eyes_xy[None], axis=2), axis=1)
     keys, point_voxel = np.unique(vox, axis=0, return_inverse=True)
     point_voxel = point_voxel.ravel()

@@ -197,7 +197,7 @@ def _write_events(path: Path, result: SterileResult) -> None:
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["event", "field", "kind", "role", "role_distance_m", "start_s", "end_s",
-                    "timestamps", "peak_t_s", "peak_gaussians", "contact_x_m", "contact_y_m",
+                    "timestamps", "peak_t_s", "peak_points", "contact_x_m", "contact_y_m",
                     "contact_z_m", "viewpoint", "unoccluded_fraction", "render"])  # fmt: skip
         for k, ev in enumerate(result.events, 1):
             blob, inst = ev.blobs[ev.peak], ev.instants[ev.peak]
@@ -214,7 +214,7 @@ def _write_events(path: Path, result: SterileResult) -> None:
 def _write_instants(path: Path, instants: dict[str, list[Instant]]) -> None:
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["t_s", "model", "field", "moving_gaussians_in_field", "blobs", "roles"])
+        w.writerow(["t_s", "model", "field", "moving_points_in_field", "blobs", "roles"])
         for name, rows in instants.items():
             for i in rows:
                 roles = ";".join(f"{b.role or '?'}:{b.count}" for b in i.blobs)
@@ -236,8 +236,8 @@ def _plot(path: Path, result: SterileResult, config: SterileConfig) -> None:
         t = np.array([i.t_s for i in rows])
         dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.5
         ax.plot(t, [i.moving_in_field for i in rows], "-", color="0.3", lw=1,
-                label="moving Gaussians in the field")  # fmt: skip
-        ax.axhline(config.min_gaussians, color="grey", ls=":", lw=1)
+                label="moving points in the field")  # fmt: skip
+        ax.axhline(config.min_points, color="grey", ls=":", lw=1)
         for ev in (e for e in result.events if e.field == name):
             span = (ev.start_s - dt / 2, ev.end_s + dt / 2)
             if ev.sterile_role:  # allowed: a thin grey strip along the bottom
@@ -248,7 +248,7 @@ def _plot(path: Path, result: SterileResult, config: SterileConfig) -> None:
         for role in roles:
             ax.plot([], [], "s", color=f"C{roles.index(role) % 10}", alpha=0.5,
                     label=role or "contact")  # fmt: skip
-        ax.set(xlabel="case time (s)", ylabel="Gaussians")
+        ax.set(xlabel="case time (s)", ylabel="moving points")
         ax.set_title(f"{name}: contacts shaded by role (grey strip: sterile roles)", fontsize=10)
         ax.legend(fontsize=7, loc="upper right")
     fig.tight_layout()

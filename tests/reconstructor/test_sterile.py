@@ -38,7 +38,7 @@ from tests.helpers import run_egosurg
 TIMES_S = [5.0, 5.5, 6.0, 6.5, 7.0, 7.5, 8.0]
 STERILE = "surgeon,assistant,nurse_scrub"  # the gowned team: their work in the field is allowed
 # the true-surface model samples a quarter-size depth map: a hand is 5-7 Gaussians, not 10-30
-SPARSE = ("--min-gaussians", "4")
+SPARSE = ("--min-points", "4")
 
 
 def _true_surface_gaussians(world: World, t_s: float, shrink: int = 4):
@@ -359,5 +359,5 @@ def test_a_hand_reaching_past_another_persons_eye_stays_its_owners():
                                 cart, _arm(eyes["owner"], hand, rng)])  # fmt: skip
     assert [(e.role, e.start_s) for e in _contacts(frames, eyes)] == [("owner", 1.5)]
     # not one Gaussian of the hand is left to the other, even where a single one would count
-    loose = SterileConfig(min_gaussians=1, min_outside=1)
+    loose = SterileConfig(min_points=1, min_outside=1)
     assert {e.role for e in _contacts(frames, eyes, loose)} == {"owner"}
