@@ -10,6 +10,10 @@ Two kinds of model:
   Gaussians' size. This is the method's own error.
 - **a reconstructed case** (``--case``): the case's models at the same timestamps (the nearest
   one each), the session's world for the truth. Method plus reconstruction error.
+- **a case's stored points** (``--case ... --occluders points``): each timestamp's fused stereo
+  points (stored with its model, ``storage.load_points``) made into Gaussians as the true
+  surfaces are (opacity 0.9, each as wide as its neighbours' spacing): what the cameras saw,
+  without training's translucent spread. Method plus stereo error.
 
 Examples::
 
@@ -179,6 +183,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--case", type=Path, help="a reconstructed sim case folder (its models)")
     ap.add_argument("--occluder-scale", type=float, nargs="+", default=None,
                     help="compare these SightlineConfig.occluder_scale values")  # fmt: skip
+    ap.add_argument("--occluders", choices=("model", "points"), default="model",
+                    help="with --case: its models, or its stored stereo points")  # fmt: skip
+    ap.add_argument("--points-opacity", type=float, default=0.9,
+                    help="--occluders points: each point's opacity (0.9)")  # fmt: skip
     ap.add_argument("--misses", action="store_true", help="list the disagreements")
     args = ap.parse_args(argv)
     base = SightlineConfig()
@@ -192,8 +200,10 @@ def main(argv: list[str] | None = None) -> int:
         title = f"true-surface models, seed {args.seed} {args.phase}"
     observed_at = None
     if args.case is not None:
-        world, model_at, raster, times, observed_at = _case_source(args.case, times)
-        title = f"reconstructed case {args.case}"
+        world, model_at, raster, times, observed_at = _case_source(
+            args.case, times, args.occluders, args.points_opacity
+        )
+        title = f"reconstructed case {args.case} ({args.occluders})"
     t0 = time.perf_counter()
     cases = compare(world, model_at, times, configs, args.offset, raster, progress=True,
                     observed_at=observed_at)  # fmt: skip
@@ -213,7 +223,9 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _case_source(folder: Path, times: np.ndarray):
+def _case_source(
+    folder: Path, times: np.ndarray, occluders: str = "model", points_opacity: float = 0.9
+):
     """The case's world (seed, phase and contact from its session, which must start at the sim
     epoch as eval-set sessions do), a loader of its models by time, the raster its sightline
     uses, the case times nearest ``times``, and the observed share the tool reports."""
@@ -239,6 +251,17 @@ def _case_source(folder: Path, times: np.ndarray):
     def observed_at(t, g, details, raster_):
         return observed.target_share(by_t[t], g, details, raster_)
 
+    if occluders == "points":
+        from reconstructor.case.storage import load_points
+
+        def points_at(t):
+            pts = load_points(folder, by_t[t])
+            if pts is None:
+                raise SystemExit(f"{folder}: {by_t[t].name} stores no points (an older case)")
+            grey = np.full_like(pts, 0.5)
+            return init_from_points(pts, grey, GaussianInitConfig(opacity=points_opacity))
+
+        return world, points_at, raster, chosen, observed_at
     return world, lambda t: models.load(by_t[t]), raster, chosen, observed_at
 
 
