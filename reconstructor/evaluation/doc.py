@@ -30,6 +30,7 @@ from reconstructor.evaluation.tables import (
     EvalResults,
     Row,
     count_label,
+    egocentric_breakdowns,
     fmt,
     holes_note,
     markdown_table,
@@ -256,7 +257,10 @@ def write_evaluation_doc(results: EvalResults, eval_set: EvalSet, path: Path, co
         (
             "egocentric",
             "Table 4: egocentric views against the reference views",
-            lambda: _method_table(results, "egocentric", PAPER_EGOCENTRIC, IMAGE_METRICS),
+            lambda: [
+                *_method_table(results, "egocentric", PAPER_EGOCENTRIC, IMAGE_METRICS),
+                *(["", more] if (more := egocentric_breakdowns(results)) else []),
+            ],
         ),
     ]
     assert {p for p, _, _ in sections} == set(PROTOCOLS)

@@ -188,6 +188,45 @@ def holes_note(results: EvalResults, protocol: str) -> str:
     return " ".join(parts)
 
 
+def role_of(score: ImageScore) -> str:
+    """The person an egocentric view belongs to (views are named ``<role>@<set>``)."""
+    return score.view.split("@")[0]
+
+
+def breakdown_table(results: EvalResults, protocol: str, by: str) -> str:
+    """PSNR of each method, mean ± SD over the views of each ``phase`` or ``role``: where the
+    protocol's mean comes from (the paper reports only the mean over all)."""
+    scores = [s for s in results.image_scores if s.protocol == protocol]
+    key = (lambda s: s.phase) if by == "phase" else role_of
+    groups = list(dict.fromkeys(key(s) for s in scores))
+    methods = [m for m in results.settings.methods if any(s.method == m for s in scores)]
+    head = [{"phase": "Phase", "role": "Person (role)"}[by]]
+    head += [*(f"{method_label(results, m)} PSNR" for m in methods), "views"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for g in groups:
+        cells, n = [g], 0
+        for m in methods:
+            chosen = [s for s in scores if s.method == m and key(s) == g]
+            per_scene = _per_scene(chosen, "psnr_db") or []
+            cells.append(fmt(stat(per_scene), "psnr_db"))
+            n = max(n, len(per_scene))
+        lines.append("| " + " | ".join([*cells, str(n)]) + " |")
+    return "\n".join(lines)
+
+
+def egocentric_breakdowns(results: EvalResults) -> str:
+    """Per phase (when the views span several) and per role, as Markdown; "" for one of each."""
+    scores = [s for s in results.image_scores if s.protocol == "egocentric"]
+    parts = []
+    if len({s.phase for s in scores}) > 1:
+        parts.append("Per phase (PSNR in dB, mean ± SD over its views):\n\n"
+                     + breakdown_table(results, "egocentric", "phase"))  # fmt: skip
+    if len({role_of(s) for s in scores}) > 1:
+        parts.append("Per person (PSNR in dB, mean ± SD over their views):\n\n"
+                     + breakdown_table(results, "egocentric", "role"))  # fmt: skip
+    return "\n\n".join(parts)
+
+
 FIDELITY_TITLE = (
     "The same frames against the recorded right images (PSNR, SSIM per timestamp, mean ± SD "
     "over the sequence's timestamps):"
@@ -232,6 +271,8 @@ def write_protocol(results: EvalResults, protocol: str, out_dir: Path, title: st
         f"## {title}\n\nSettings: {results.settings.describe()}.\n\n"
         f"{markdown_table(results, protocol, by_phase=by_phase)}\n"
     )
+    if protocol == "egocentric" and (more := egocentric_breakdowns(results)):
+        md += f"\n{more}\n"
     fidelity = [s for s in results.image_scores if s.protocol == FIDELITY]
     if protocol == "temporal" and fidelity:
         _write_csv(out_dir / "fidelity_scores.csv", fidelity)

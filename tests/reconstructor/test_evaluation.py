@@ -477,6 +477,12 @@ def test_egocentric_scores_renders_against_the_set_s_reference_views(eval_set, t
     # the reference view at its own size (160 x 100) beside the render at the same camera
     assert cv2.imread(str(pngs[0])).shape == (100, 2 * 160, 3)
     assert "| Depth reprojection |" in capsys.readouterr().out
+    # where the mean comes from: one row per person, their PSNR over their own views
+    table = (out / "egocentric" / "table.md").read_text()
+    by_role = table.split("Per person")[1]
+    for v in views:
+        psnr = next(float(r["psnr_db"]) for r in rows if r["view"] == v.name)
+        assert f"| {v.role} | {psnr:.1f} | 1 |" in by_role, (v.role, psnr, by_role)
 
 
 def test_a_missing_or_bad_evaluation_set_is_one_line(eval_set, tmp_path, capsys):
