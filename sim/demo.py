@@ -27,6 +27,7 @@ Each stage runs through the ``egosurg`` command as a user would run it.
 from __future__ import annotations
 
 import argparse
+import shutil
 import subprocess
 import sys
 import time
@@ -299,6 +300,9 @@ def stage_evaluation(out: Path, seed: int, phase: str, stamp: DemoTimestamp, ste
         scenes=(scene,),
     ).write()
     print(f"      evaluation set: {manifest} ({len(views)} people's views)")
+    # a rerun of the demo evaluates its new recording afresh (egosurg evaluate keeps an earlier
+    # run's finished jobs unless told --resume, and refuses to overwrite them)
+    shutil.rmtree(out / "evaluation", ignore_errors=True)
     done = _egosurg(
         "evaluate", str(root), "--out", str(out / "evaluation"), "--protocol", "egocentric",
         "--methods", "depth-reprojection", "no-refinement", "egosurg",
