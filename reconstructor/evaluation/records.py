@@ -14,12 +14,16 @@ of it. After each job (one timestamp, every method) the runner writes, in ``OUT/
 ``egosurg evaluate ... --resume`` then loads every recorded job instead of running it, and
 runs the rest; the tables and the report are made from all of them. A record made with other
 settings (another step count, methods, evaluation set...) is refused by name rather than
-mixed in.
+mixed in. A record made by other code (a digest of the reconstructor's and protocol's Python
+sources, which compute every number) is loaded with a warning naming how many: resuming
+after a fix is legitimate, but the reader of the tables should know they mix code versions.
 """
 
 from __future__ import annotations
 
+import functools
 import json
+import logging
 import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -27,12 +31,15 @@ from typing import Any
 
 import numpy as np
 import torch
+import xxhash
 
 from protocol import __version__
 from reconstructor.evaluation.methods import EvalSettings, EvaluationArgumentError
 from reconstructor.evaluation.plan import Job
 from reconstructor.evaluation.tables import ImageScore
 from reconstructor.splats.gaussians import Gaussians
+
+log = logging.getLogger(__name__)
 
 RECORD_FORMAT = 1
 JOBS_DIR = "jobs"
@@ -60,6 +67,19 @@ def job_name(job: Job) -> str:
     text in the set's manifest)."""
     raw = f"{job.scene.name}_set{job.scene.set_index}_{job.train_views}"
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in raw)
+
+
+@functools.cache
+def code_digest() -> str:
+    """xxh3-64 over the Python sources of ``reconstructor/`` and ``protocol/`` (paths and
+    contents, in order): the code that computes an evaluation's numbers."""
+    root = Path(__file__).resolve().parents[2]
+    h = xxhash.xxh3_64()
+    for package in ("reconstructor", "protocol"):
+        for path in sorted((root / package).rglob("*.py")):
+            h.update(str(path.relative_to(root)).encode() + b"\0")
+            h.update(path.read_bytes())
+    return h.hexdigest()
 
 
 def _comparable(settings: EvalSettings) -> dict[str, Any]:
@@ -94,8 +114,11 @@ class JobRecords:
                 "run: add --resume to continue it, or give another --out"
             )
         mine = _jsonable(_comparable(self.settings))
+        other_code = 0
         for path in done:
-            theirs = self._read(path)["settings"]
+            data = self._read(path)
+            other_code += data.get("code", code_digest()) != code_digest()
+            theirs = data["settings"]
             differ = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
             if differ:
                 shown = ", ".join(f"{k} {theirs.get(k)!r} (now {mine.get(k)!r})" for k in differ)
@@ -103,6 +126,14 @@ class JobRecords:
                     f"--resume: {path} was made with other settings: {shown}; run with the "
                     "same options, or give another --out"
                 )
+        if other_code:
+            log.warning(
+                "--resume: %d of %d recorded job(s) were made by other code (the reconstructor's "
+                "or protocol's sources have changed since): the tables will mix code versions; "
+                "for one version, run again into another --out",
+                other_code,
+                len(done),
+            )
         return len(done)
 
     def _read(self, path: Path) -> dict[str, Any]:
@@ -161,6 +192,7 @@ class JobRecords:
         data = {
             "format": RECORD_FORMAT,
             "egosurg": __version__,
+            "code": code_digest(),
             "job": job_name(job),
             "settings": _comparable(self.settings),
             "image_scores": [asdict(s) for s in record.image_scores],

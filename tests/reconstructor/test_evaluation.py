@@ -421,6 +421,27 @@ def test_a_stopped_run_resumes_where_it_stopped_with_the_same_numbers(eval_set, 
         assert (stopped / table).read_text() == (whole / table).read_text(), table
 
 
+def test_a_resume_over_changed_code_says_the_tables_mix_versions(eval_set, tmp_path, caplog):
+    """Resuming after a fix is legitimate, so records made by other code are loaded, with a
+    warning that says so (the reconstructor's sources are digested into every record)."""
+    out = tmp_path / "o"
+    config = _quick_config(tmp_path / "quick.toml")
+    args = ["evaluate", str(eval_set.root), "--out", str(out), "--steps", "8", "--train-width",
+            "96", "--methods", "no-refinement", "--config", str(config)]  # fmt: skip
+    assert egosurg(args) == 0
+    (record,) = (out / "jobs").glob("*.json")
+    data = json.loads(record.read_text())
+    assert len(data["code"]) == 16  # an xxh3-64 digest
+    caplog.set_level("INFO", logger="reconstructor.evaluation")
+    assert egosurg([*args, "--resume"]) == 0
+    assert "other code" not in caplog.text and "resumed from its record" in caplog.text
+    record.write_text(json.dumps({**data, "code": "0" * 16}))
+    caplog.clear()
+    assert egosurg([*args, "--resume"]) == 0
+    assert "1 of 1 recorded job(s) were made by other code" in caplog.text
+    assert "resumed from its record" in caplog.text and "[1/" not in caplog.text
+
+
 @pytest.mark.parametrize(
     ("extra", "words"),
     [
