@@ -28,7 +28,7 @@ from __future__ import annotations
 import argparse
 import csv
 import sys
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -63,13 +63,7 @@ class ViewCoverage:
 
 
 def _small(camera: Camera) -> Camera:
-    k = camera.intrinsics.undistorted()
-    small = replace(
-        k, width_px=k.width_px // SHRINK, height_px=k.height_px // SHRINK,
-        fx_px=k.fx_px / SHRINK, fy_px=k.fy_px / SHRINK,
-        cx_px=(k.cx_px + 0.5) / SHRINK - 0.5, cy_px=(k.cy_px + 0.5) / SHRINK - 0.5,
-    )  # fmt: skip
-    return Camera(name=camera.name, intrinsics=small, pose=camera.pose)
+    return Camera(name=camera.name, intrinsics=camera.intrinsics.shrunk(SHRINK), pose=camera.pose)
 
 
 def _seen(
@@ -225,17 +219,21 @@ def _report(rows: list[dict], methods: list[str]) -> None:
     for name, sel in groups:
         cells = " | ".join(_mean(sel, f"{k}_share") for k in KINDS)
         print(f"| {name} | {len(sel)} | {cells} |")
-    print("\nseen pixels by footprint ratio (the finest training pixel over the view's pixel)")
-    print("| group | " + " | ".join(n for n, _, _ in RATIOS) + " |")
-    print("|---|" + "---|" * len(RATIOS))
-    for name, sel in groups:
-        print(f"| {name} | " + " | ".join(_mean(sel, f"{n}_share") for n, _, _ in RATIOS) + " |")
-    for m in methods:
-        print(f"\n{m}: PSNR (dB) over seen pixels by footprint ratio, mean ± SD over views")
-        print("| group | " + " | ".join(n for n, _, _ in RATIOS) + " |")
-        print("|---|" + "---|" * len(RATIOS))
+    bands = [n for n, _, _ in RATIOS]
+
+    def band_table(title: str, prefix: str) -> None:
+        print(f"\n{title}")
+        print("| group | " + " | ".join(bands) + " |")
+        print("|---|" + "---|" * len(bands))
         for name, sel in groups:
-            print(f"| {name} | " + " | ".join(_mean(sel, f"{m}_{n}") for n, _, _ in RATIOS) + " |")
+            cells = [_mean(sel, prefix.format(n)) for n in bands]
+            print(f"| {name} | " + " | ".join(cells) + " |")
+
+    band_table("seen pixels by footprint ratio (the finest training pixel over the view's pixel)",
+               "{}_share")  # fmt: skip
+    for m in methods:
+        band_table(f"{m}: PSNR (dB) over seen pixels by footprint ratio, mean ± SD over views",
+                   f"{m}_{{}}")  # fmt: skip
     for m in methods:
         print(f"\n{m}: PSNR (dB) over each kind of pixel, mean ± SD over views")
         print("| group | all pixels | seen by a pair | seen once | unseen |")

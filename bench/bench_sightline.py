@@ -31,7 +31,7 @@ import argparse
 import dataclasses
 import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -60,12 +60,7 @@ def true_surface_gaussians(world: World, t_s: float, shrink: int = 4) -> Gaussia
     for unit in world.rig:
         for side in ("left", "right"):
             cam = unit.sensor(side, "SVGA")
-            k = cam.intrinsics.undistorted()
-            small = replace(
-                k, width_px=k.width_px // shrink, height_px=k.height_px // shrink,
-                fx_px=k.fx_px / shrink, fy_px=k.fy_px / shrink,
-                cx_px=(k.cx_px + 0.5) / shrink - 0.5, cy_px=(k.cy_px + 0.5) / shrink - 0.5,
-            )  # fmt: skip
+            small = cam.intrinsics.shrunk(shrink)
             r = world.render(world.virtual_camera(cam.pose, small, name="truth"), t_s)
             v, u = np.nonzero(np.isfinite(r.depth_m))
             z = r.depth_m[v, u]

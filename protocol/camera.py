@@ -118,6 +118,20 @@ class Intrinsics:
             cy_px=self.cy_px,
         )
 
+    def shrunk(self, factor: int) -> Intrinsics:
+        """The same pinhole, undistorted, for an image ``factor`` times smaller (integer sizes,
+        rounded down; pixel centres at integer coordinates: x' = (x + 0.5) / factor - 0.5)."""
+        if factor < 1:
+            raise ValueError(f"factor must be at least 1, got {factor}")
+        return Intrinsics(
+            width_px=self.width_px // factor,
+            height_px=self.height_px // factor,
+            fx_px=self.fx_px / factor,
+            fy_px=self.fy_px / factor,
+            cx_px=(self.cx_px + 0.5) / factor - 0.5,
+            cy_px=(self.cy_px + 0.5) / factor - 0.5,
+        )
+
     @classmethod
     def from_fov(cls, width_px: int, height_px: int, hfov_deg: float) -> Intrinsics:
         """A centred, undistorted pinhole with the given horizontal field of view."""
