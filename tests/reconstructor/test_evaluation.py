@@ -411,6 +411,7 @@ def test_a_stopped_run_resumes_where_it_stopped_with_the_same_numbers(eval_set, 
         return egosurg(["evaluate", str(eval_set.root), "--out", str(out), *common, *extra])
 
     caplog.set_level("INFO")
+    caplog.clear()  # only the resumed run's lines (an earlier test may have set INFO already)
     assert run(stopped, "--resume") == 0
     assert caplog.text.count("resumed from its record") == 3
     assert "[1/2] egosurg at intraoperative@set2" in caplog.text  # only set 2 ran again
@@ -433,6 +434,7 @@ def test_a_resume_over_changed_code_says_the_tables_mix_versions(eval_set, tmp_p
     data = json.loads(record.read_text())
     assert len(data["code"]) == 16  # an xxh3-64 digest
     caplog.set_level("INFO", logger="reconstructor.evaluation")
+    caplog.clear()
     assert egosurg([*args, "--resume"]) == 0
     assert "other code" not in caplog.text and "resumed from its record" in caplog.text
     record.write_text(json.dumps({**data, "code": "0" * 16}))
