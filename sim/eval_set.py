@@ -191,7 +191,7 @@ def _write_session(
     spec: EvalSetSpec,
     times_s: list[float],
     fps: float,
-    view_sets,
+    view_sets: range | tuple[int, ...],
 ) -> list[ReferenceView]:
     """``<name>/session.h5`` with one synchronised set at each of ``times_s`` (sim seconds),
     its calibration, and the egocentric views at the sets ``view_sets``."""

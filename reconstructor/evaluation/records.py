@@ -118,7 +118,11 @@ class JobRecords:
         for path in done:
             data = self._read(path)
             other_code += data.get("code", code_digest()) != code_digest()
-            theirs = data["settings"]
+            theirs = data.get("settings")
+            if not isinstance(theirs, dict):
+                raise EvaluationArgumentError(
+                    f"--resume: {path} names no settings; delete it to run that job again"
+                )
             differ = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
             if differ:
                 shown = ", ".join(f"{k} {theirs.get(k)!r} (now {mine.get(k)!r})" for k in differ)
@@ -139,6 +143,8 @@ class JobRecords:
     def _read(self, path: Path) -> dict[str, Any]:
         try:
             data = json.loads(path.read_text())
+            if not isinstance(data, dict):
+                raise ValueError("not a JSON object")
             if data.get("format") != RECORD_FORMAT:
                 raise ValueError(f"format {data.get('format')!r}, expected {RECORD_FORMAT}")
             return data
@@ -153,14 +159,14 @@ class JobRecords:
         if not path.exists():
             return None
         data = self._read(path)
-        record = JobRecord(
-            image_scores=[ImageScore(**s) for s in data["image_scores"]],
-            recon_seconds={k: list(v) for k, v in data["recon_seconds"].items()},
-            refiner=data["refiner"],
-            seconds=float(data["seconds"]),
-            sequence_phase=dict(data["sequence_phase"]),
-        )
         try:
+            record = JobRecord(
+                image_scores=[ImageScore(**s) for s in data["image_scores"]],
+                recon_seconds={k: list(v) for k, v in data["recon_seconds"].items()},
+                refiner=str(data["refiner"]),
+                seconds=float(data["seconds"]),
+                sequence_phase=dict(data["sequence_phase"]),
+            )
             if data["frames"]:
                 with np.load(self.folder / f"{job_name(job)}.frames.npz") as npz:
                     for i, (seq, cam, method, k) in enumerate(data["frames"]):
@@ -170,9 +176,9 @@ class JobRecords:
                 with np.load(self.folder / f"{job_name(job)}.warm.npz") as npz:
                     model = Gaussians(**{n: torch.from_numpy(npz[n]) for n in npz.files})
                 record.warm = (seq, int(k), model)
-        except (OSError, KeyError, ValueError) as exc:
+        except (OSError, KeyError, ValueError, TypeError, AttributeError) as exc:
             raise EvaluationArgumentError(
-                f"--resume: the files of {path} cannot be read ({exc}); delete {path} to run "
+                f"--resume: {path} or its arrays cannot be read ({exc!r}); delete {path} to run "
                 "that job again"
             ) from exc
         return record

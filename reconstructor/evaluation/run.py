@@ -57,11 +57,11 @@ def run_evaluation(
     depth_only = "depth-reprojection" in settings.methods and not any(
         METHODS[m].depth_init for m in trained
     )
-    to_run = [j for j in jobs if records is None or records.load(j) is None]
-    units = len(to_run) * (len(trained) + (1 if depth_only else 0))
-    if len(to_run) < len(jobs):
-        log.info("resuming: %d of %d timestamp(s) recorded already", len(jobs) - len(to_run),
-                 len(jobs))  # fmt: skip
+    # every recorded job read now, once: a damaged record stops the run before any work
+    recorded = {} if records is None else {id(j): r for j in jobs if (r := records.load(j))}
+    units = (len(jobs) - len(recorded)) * (len(trained) + (1 if depth_only else 0))
+    if recorded:
+        log.info("resuming: %d of %d timestamp(s) recorded already", len(recorded), len(jobs))
     log.info(
         "evaluation plan: %d timestamp(s), %d reconstruction(s) to run (%s); %s",
         len(jobs),
@@ -81,7 +81,7 @@ def run_evaluation(
         records=records,
     )
     for job in jobs:
-        runner.run(job)
+        runner.run(job, recorded.get(id(job)))
     runner.finish_temporal()
     cache = runner.depth_cache
     log.info("depth stage: %d computed, %d reused", cache.misses, cache.hits)

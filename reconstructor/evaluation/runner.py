@@ -146,7 +146,7 @@ class JobRunner:
         self.total = total_units
         # each timestamp's stereo depth and fused cloud, made once for all its rows
         self.depth_cache = depth_cache if depth_cache is not None else DepthCache()
-        self.records = records  # each finished job on disk (a stopped run resumes from them)
+        self.records = records  # where each finished job is written (a stopped run resumes)
         self.resumed = 0  # jobs loaded from their records
         self.resumed_s = 0.0  # the time those jobs took when they ran
         self.done = 0
@@ -181,9 +181,8 @@ class JobRunner:
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(text)
 
-    def run(self, job: Job) -> None:
-        """Run ``job`` (or load it, if an earlier sitting of this run recorded it)."""
-        record = self.records.load(job) if self.records is not None else None
+    def run(self, job: Job, record: JobRecord | None = None) -> None:
+        """Run ``job``, or take its ``record`` from an earlier sitting of this run."""
         if record is not None:
             self._apply(record)
             self.resumed += 1

@@ -445,6 +445,43 @@ def test_a_resume_over_changed_code_says_the_tables_mix_versions(eval_set, tmp_p
 
 
 @pytest.mark.parametrize(
+    "damage",
+    ["truncated", "not_an_object", "no_scores", "bad_score", "no_settings", "frames_missing"],
+)
+def test_a_damaged_record_is_named_in_one_line_and_the_rest_is_kept(
+    damage, eval_set, tmp_path, capsys
+):
+    """A record cut short, edited or missing its arrays stops a resume before any work with one
+    line that names the file and says to delete it, never a traceback; nothing is deleted."""
+    out = tmp_path / "o"
+    config = _quick_config(tmp_path / "quick.toml")
+    args = ["evaluate", str(eval_set.root), "--out", str(out), "--protocol", "temporal",
+            "--steps", "8", "--train-width", "96", "--methods", "no-refinement",
+            "--config", str(config)]  # fmt: skip
+    assert egosurg(args) == 0
+    record = out / "jobs" / "intraoperative_set1_left.json"
+    data = json.loads(record.read_text())
+    text = {
+        "truncated": record.read_text()[:40],
+        "not_an_object": "[1, 2]",
+        "no_scores": json.dumps({k: v for k, v in data.items() if k != "image_scores"}),
+        "bad_score": json.dumps({**data, "image_scores": [{"psnr": "x"}]}),
+        "no_settings": json.dumps({k: v for k, v in data.items() if k != "settings"}),
+        "frames_missing": record.read_text(),
+    }[damage]
+    record.write_text(text)
+    if damage == "frames_missing":
+        (out / "jobs" / "intraoperative_set1_left.frames.npz").unlink()
+    files = sorted(p.name for p in (out / "jobs").iterdir())
+    capsys.readouterr()
+    assert egosurg([*args, "--resume"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert "intraoperative_set1_left.json" in err and "delete" in err, err
+    assert sorted(p.name for p in (out / "jobs").iterdir()) == files
+
+
+@pytest.mark.parametrize(
     ("extra", "words"),
     [
         ([], ["holds 1 finished job", "--resume", "another --out"]),
