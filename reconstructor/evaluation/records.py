@@ -14,7 +14,9 @@ of it. After each job (one timestamp, every method) the runner writes, in ``OUT/
 ``egosurg evaluate ... --resume`` then loads every recorded job instead of running it, and
 runs the rest; the tables and the report are made from all of them. A record made with other
 settings (another step count, methods, evaluation set...) is refused by name rather than
-mixed in. A record made by other code (a digest of the reconstructor's and protocol's Python
+mixed in; which scenes a run chose is not compared, so a run split by ``--scenes`` over
+processes or machines merges by copying their ``jobs/`` folders into one ``--out`` and
+resuming there. A record made by other code (a digest of the reconstructor's and protocol's Python
 sources, which compute every number) is loaded with a warning naming how many: resuming
 after a fix is legitimate, but the reader of the tables should know they mix code versions.
 """
@@ -43,8 +45,10 @@ log = logging.getLogger(__name__)
 
 RECORD_FORMAT = 1
 JOBS_DIR = "jobs"
-# settings that do not change a job's numbers: where the set was read from, how it was named
-_NOT_COMPARED = ("eval_set", "eval_set_description")
+# settings that do not change a job's numbers: where the set was read from, how it was named,
+# and which of its scenes the run chose (a job is one scene's timestamp, named by its file): a
+# run split by --scenes over processes or machines is merged by copying their jobs/ together
+_NOT_COMPARED = ("eval_set", "eval_set_description", "scenes", "phases")
 
 FrameKey = tuple[str, str, str, int]  # (sequence, camera, method, frame)
 
@@ -139,6 +143,10 @@ class JobRecords:
                 len(done),
             )
         return len(done)
+
+    def missing(self, jobs: list[Job]) -> int:
+        """How many of ``jobs`` have no record yet (the work a resumed run has left)."""
+        return sum(not (self.folder / f"{job_name(j)}.json").exists() for j in jobs)
 
     def _read(self, path: Path) -> dict[str, Any]:
         try:

@@ -444,6 +444,38 @@ def test_a_resume_over_changed_code_says_the_tables_mix_versions(eval_set, tmp_p
     assert "resumed from its record" in caplog.text and "[1/" not in caplog.text
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="states what a machine without CUDA does")
+def test_a_run_split_over_machines_is_merged_by_copying_its_jobs(eval_set, tmp_path, capsys):
+    """A long evaluation can be spread by ``--scenes`` over processes or machines (a GPU server
+    among them): each part's ``jobs/`` copied into one folder and resumed there gives the
+    tables, with nothing run again. Which scenes a part chose is not compared, and a resume with
+    nothing left to run needs no GPU, though its records were made with ``--device cuda``; with
+    work left, the missing GPU is still one line before any work."""
+    config = _quick_config(tmp_path / "quick.toml")
+    part, merged = tmp_path / "part", tmp_path / "merged"
+    common = ["--steps", "8", "--train-width", "96", "--methods", "no-refinement",
+              "--config", str(config)]  # fmt: skip
+    assert egosurg(["evaluate", str(eval_set.root), "--out", str(part), *common,
+                    "--scenes", PHASE]) == 0  # fmt: skip
+    (merged / "jobs").mkdir(parents=True)
+    for record in (part / "jobs").glob("*.json"):  # as if made on a GPU server
+        data = json.loads(record.read_text())
+        assert data["settings"]["device"] == ""
+        data["settings"]["device"] = "cuda"
+        (merged / "jobs" / record.name).write_text(json.dumps(data))
+    args = ["evaluate", str(eval_set.root), "--out", str(merged), *common, "--device", "cuda",
+            "--resume"]  # fmt: skip
+    capsys.readouterr()
+    assert egosurg(args) == 0, capsys.readouterr().err
+    table = "near-field/scores.csv"
+    assert (merged / table).read_text() == (part / table).read_text()
+    next(merged.joinpath("jobs").glob("*.json")).unlink()  # one timestamp left to run
+    capsys.readouterr()
+    assert egosurg(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--device cuda" in err, err
+
+
 @pytest.mark.parametrize(
     "damage",
     ["truncated", "not_an_object", "no_scores", "bad_score", "no_settings", "frames_missing"],
