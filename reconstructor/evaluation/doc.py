@@ -218,12 +218,13 @@ def write_evaluation_doc(results: EvalResults, eval_set: EvalSet, path: Path, co
         "",
         f"Settings: {s.describe()}.",
         "",
-        f"Mean time per reconstruction on this machine: {timing}; "
-        f"whole run {results.wall_s:.0f} s"
+        f"Mean time per reconstruction (device: {s.device or 'as the config says'}): {timing}; "
         + (
-            f" ({results.resumed_jobs} timestamp(s) in an earlier sitting, resumed)."
+            f"the jobs took {results.wall_s:.0f} s in all ({results.resumed_jobs} timestamp(s) "
+            "recorded by earlier sittings or by parts run elsewhere, resumed: their times add "
+            "up even where parts ran at once)."
             if results.resumed_jobs
-            else "."
+            else f"whole run {results.wall_s:.0f} s."
         ),
         "",
         "The paper's numbers are from real operating rooms (GPU, 2000 steps at full size); "
