@@ -147,9 +147,15 @@ def main() -> None:
     args = ap.parse_args()
     es = EvalSet.read(args.eval_set)
     methods: list[str] = []
+    scored: dict[tuple[str, str, str], float] = {}  # (scene@set, view, method) -> PSNR, dB
     if args.scores:
         with open(args.scores / "egocentric" / "scores.csv") as fh:
-            methods = list(dict.fromkeys(r["method"] for r in csv.DictReader(fh)))
+            for r in csv.DictReader(fh):
+                methods.append(r["method"])
+                scene_at = r["scene"].split("/")[0]
+                scored[(scene_at, r["view"], r["method"])] = float(r["psnr_db"])
+        methods = list(dict.fromkeys(methods))
+    missing = 0
     rows, covs, pictures = [], [], []
     for scene in es.scenes:
         if not scene.views:
@@ -170,8 +176,16 @@ def main() -> None:
             for name, lo, hi in RATIOS:
                 band = (cov.ratio[seen] > lo) & (cov.ratio[seen] <= hi)
                 row[f"{name}_share"] = float(np.mean(band))
-            if args.scores:
-                png = args.scores / "egocentric" / "png" / _png_name(scene.name, view)
+            for m in methods:  # the evaluation's own score of the whole view
+                row[f"{m}_psnr"] = scored.get((row["scene"], view.name, m), np.nan)
+            png = (
+                args.scores / "egocentric" / "png" / _png_name(scene.name, view)
+                if args.scores
+                else None
+            )
+            if png is not None and not png.is_file():
+                missing += 1  # a run whose pictures stayed elsewhere: coverage and score only
+            elif png is not None:
                 ref, *renders = _tiles(png, view.camera.intrinsics.width_px)
                 keep = np.ones(cov.kind.shape, bool)
                 keep[: LABEL_PX[0], : LABEL_PX[1]] = False
@@ -187,10 +201,13 @@ def main() -> None:
             rows.append(row)
             shares = " ".join(f"{k} {row[f'{k}_share']:.2f}" for k in KINDS)
             print(f"{row['scene']:28s} {view.name:20s} {shares}", flush=True)
+    if missing:
+        print(f"\n{missing} of {len(rows)} views have no side-by-side picture in {args.scores}: "
+              "PSNR by kind of pixel is over the other views only")  # fmt: skip
     _report(rows, methods)
     if args.csv:
         with args.csv.open("w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            w = csv.DictWriter(fh, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))
             w.writeheader()
             w.writerows(rows)
     if args.picture and pictures:
@@ -235,11 +252,21 @@ def _report(rows: list[dict], methods: list[str]) -> None:
         band_table(f"{m}: PSNR (dB) over seen pixels by footprint ratio, mean ± SD over views",
                    f"{m}_{{}}")  # fmt: skip
     for m in methods:
+        share = np.array([r["r>4_share"] for r in rows])
+        psnr = np.array([r.get(f"{m}_psnr", np.nan) for r in rows])
+        ok = np.isfinite(share) & np.isfinite(psnr)
+        if ok.sum() > 2:
+            slope, icept = np.polyfit(share[ok], psnr[ok], 1)
+            corr = np.corrcoef(share[ok], psnr[ok])[0, 1]
+            fit = f"r = {corr:.2f}, PSNR = {icept:.1f} {slope:+.1f} x share"
+            print(f"\n{m}: whole-view PSNR against the share of seen pixels above ratio 4, over "
+                  f"{ok.sum()} views: {fit}")  # fmt: skip
         print(f"\n{m}: PSNR (dB) over each kind of pixel, mean ± SD over views")
-        print("| group | all pixels | seen by a pair | seen once | unseen |")
-        print("|---|---|---|---|---|")
+        print("| group | scored (whole view) | all pixels (pictured views) | seen by a pair | "
+              "seen once | unseen |")  # fmt: skip
+        print("|---|---|---|---|---|---|")
         for name, sel in groups:
-            cells = [_mean(sel, f"{m}_{k}") for k in ("all", *KINDS)]
+            cells = [_mean(sel, f"{m}_{k}") for k in ("psnr", "all", *KINDS)]
             print(f"| {name} | " + " | ".join(cells) + " |")
 
 

@@ -214,10 +214,39 @@ def breakdown_table(results: EvalResults, protocol: str, by: str) -> str:
     return "\n".join(lines)
 
 
+def instant_of(score: ImageScore) -> str:
+    """The timestamp an egocentric view was scored at (its ``scene`` is ``<instant>/<view>``)."""
+    return score.scene.split("/")[0]
+
+
+def instants_table(results: EvalResults, protocol: str) -> str:
+    """Each method's PSNR and SSIM as the paper reports them: each instant's mean over its
+    views, then mean ± SD over the instants."""
+    scores = [s for s in results.image_scores if s.protocol == protocol]
+    methods = [m for m in results.settings.methods if any(s.method == m for s in scores)]
+    lines = ["| Method | PSNR (dB) ↑ | SSIM ↑ | instants |", "|---|---|---|---|"]
+    for m in methods:
+        by_instant: dict[str, list[ImageScore]] = {}
+        for s in scores:
+            if s.method == m:
+                by_instant.setdefault(instant_of(s), []).append(s)
+        cells = [method_label(results, m)]
+        for metric in ("psnr_db", "ssim"):
+            means = [float(np.mean([getattr(s, metric) for s in v])) for v in by_instant.values()]
+            cells.append(fmt(stat(means), metric))
+        lines.append("| " + " | ".join([*cells, str(len(by_instant))]) + " |")
+    return "\n".join(lines)
+
+
 def egocentric_breakdowns(results: EvalResults) -> str:
-    """Per phase (when the views span several) and per role, as Markdown; "" for one of each."""
+    """Over instants (when there are several), per phase (when the views span several) and per
+    role, as Markdown; "" for one of each."""
     scores = [s for s in results.image_scores if s.protocol == "egocentric"]
     parts = []
+    if len({instant_of(s) for s in scores}) > 1:
+        parts.append("Over instants (each instant's mean over its views, then mean ± SD over the "
+                     "instants, as the paper reports):\n\n"
+                     + instants_table(results, "egocentric"))  # fmt: skip
     if len({s.phase for s in scores}) > 1:
         parts.append("Per phase (PSNR in dB, mean ± SD over its views):\n\n"
                      + breakdown_table(results, "egocentric", "phase"))  # fmt: skip

@@ -335,6 +335,30 @@ def test_evaluate_command_writes_tables_pictures_and_the_report(eval_set, tmp_pa
     assert "Not run in this evaluation (add `--protocol egocentric`" in report
 
 
+def test_egocentric_scores_are_also_summarised_over_instants_as_the_paper_does():
+    """The paper's mean ± SD is over instants: each instant's views are averaged first, so an
+    instant with six people counts once, not six times."""
+    from reconstructor.evaluation.tables import EvalResults, ImageScore, egocentric_breakdowns
+
+    def view(instant: str, name: str, psnr: float) -> ImageScore:
+        return ImageScore(
+            "egocentric", "egosurg", PHASE, f"{instant}/{name}", name, psnr, 0.5, None
+        )
+
+    results = EvalResults(
+        settings=EvalSettings(protocols=("egocentric",), methods=("egosurg",)),
+        image_scores=[
+            view("a@set0", "surgeon@0", 20.0),
+            view("a@set0", "nurse@0", 22.0),
+            view("b@set1", "surgeon@1", 25.0),
+        ],
+    )
+    text = egocentric_breakdowns(results)
+    row = next(line for line in text.splitlines() if line.startswith("| EgoSurg"))
+    # instants 21.0 and 25.0: mean 23.0, SD 2.83 (over the three views it would be 22.3)
+    assert row.strip("| ").split(" | ")[1:4] == ["23.0 ± 2.8", ".500 ± .000", "2"], row
+
+
 def test_the_warm_start_row_continues_each_frame_from_the_one_before(eval_set, tmp_path, caplog):
     """Table 3B's warm-start row is a real warm chain: the first frame is EgoSurg's own cold
     model (identical renders), each later frame starts from the previous frame's warm model
