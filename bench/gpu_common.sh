@@ -1,13 +1,24 @@
 # Shared set-up of the scripts that run on a lent CUDA machine (bench/gpu_*.sh): sourced, with
-# OUT set. Logs to $OUT/run.log; installs gsplat's carried wheel (.gpu/gsplat-*.whl) into
-# /tmp/site; compile_kernels builds gsplat's CUDA kernels (background, $OUT/gsplat_build.log) and
-# numba's CPU kernels (foreground) at once, and stops the script if gsplat did not build.
+# OUT set. Logs to $OUT/run.log; install_gsplat installs gsplat's carried wheel
+# (.gpu/gsplat-*.whl) into /tmp/site; compile_kernels builds gsplat's CUDA kernels (background,
+# $OUT/gsplat_build.log) and numba's CPU kernels (foreground) at once, and stops the script if
+# gsplat did not build; prepare_gpu does both after checking the machine and the imports.
 REPO=$PWD
 mkdir -p "$OUT"
 exec > >(tee -a "$OUT/run.log") 2>&1
 export PYTHONUNBUFFERED=1 TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=${MAX_JOBS:-16}
 export TORCH_EXTENSIONS_DIR=$REPO/.gpu/ext
 stamp() { echo "== $(date +%T) $*"; }
+
+# the machine, gsplat installed, the evaluation's imports checked, both kernels compiled
+prepare_gpu() {
+  nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
+  python3 -c "import sys, torch; print(sys.version.split()[0], 'torch', torch.__version__)"
+  install_gsplat
+  stamp "imports"
+  python3 -c "import reconstructor.evaluation.cli, reconstructor.evaluation.run, reconstructor.pipeline" || exit 5
+  compile_kernels
+}
 
 install_gsplat() {
   python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .gpu/gsplat-*.whl || exit 3

@@ -18,12 +18,7 @@ DEVICE=${DEVICE:-cuda}
 source bench/gpu_common.sh
 stamp machine
 if [ "$DEVICE" = cuda ]; then
-  nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
-  python3 -c "import sys, torch; print(sys.version.split()[0], 'torch', torch.__version__)"
-  install_gsplat
-  stamp "imports"
-  python3 -c "import reconstructor.evaluation.cli, reconstructor.evaluation.run" || exit 5
-  compile_kernels
+  prepare_gpu
   PY=python3
 else
   PY=${PY:-.venv/bin/python}

@@ -13,12 +13,7 @@ EVALSET=${EVALSET:-out/evalset10}
 CACHE=${CACHE:-.gpu/depthcache}
 source bench/gpu_common.sh
 stamp machine
-nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
-python3 -c "import sys, torch; print(sys.version.split()[0], 'torch', torch.__version__)"
-install_gsplat
-stamp "imports"
-python3 -c "import reconstructor.evaluation.cli, reconstructor.evaluation.run, reconstructor.pipeline" || exit 5
-compile_kernels
+prepare_gpu
 stamp "evaluate"
 timeout ${EVAL_TIMEOUT:-480} python3 -c "import sys; from protocol.cli import main; sys.exit(main())" \
   evaluate "$EVALSET" --out "$OUT/eval" --depth-cache "$CACHE" --device cuda \
