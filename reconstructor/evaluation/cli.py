@@ -163,6 +163,8 @@ def _check_refiner(settings: EvalSettings) -> None:
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
     settings = settings_from_args(args)
+    if not args.resume:  # a resume may have nothing left to run: checked once its records are read
+        check_device(settings.device or None)  # no GPU: one line now, before any work
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise EvaluationArgumentError(f"--out {out} is a file; give a folder")
@@ -193,12 +195,14 @@ def main(argv: list[str]) -> int:
 
     records = JobRecords(out, settings)
     records.check_start(args.resume)  # an earlier run's work is never overwritten
-    if records.missing(jobs):
-        check_device(settings.device or None)  # no GPU: one line now, before any work
-    elif settings.device:
+    if args.resume and records.missing(jobs):
+        check_device(settings.device or None)  # work is left: the device it needs, before it
+    elif args.resume and settings.device:
         # a run made elsewhere (a GPU server's jobs/ copied here): only the tables are left
-        log.info("every job is recorded: writing the tables, nothing runs on --device %s",
-                 settings.device)
+        log.info(
+            "every job is recorded: writing the tables, nothing runs on --device %s",
+            settings.device,
+        )
     out.mkdir(parents=True, exist_ok=True)
 
     command = "egosurg evaluate " + shlex.join(argv)
