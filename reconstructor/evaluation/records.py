@@ -144,9 +144,12 @@ class JobRecords:
             )
         return len(done)
 
+    def _record_path(self, job: Job) -> Path:
+        return self.folder / f"{job_name(job)}.json"
+
     def missing(self, jobs: list[Job]) -> int:
         """How many of ``jobs`` have no record yet (the work a resumed run has left)."""
-        return sum(not (self.folder / f"{job_name(j)}.json").exists() for j in jobs)
+        return sum(not self._record_path(j).exists() for j in jobs)
 
     def _read(self, path: Path) -> dict[str, Any]:
         try:
@@ -163,7 +166,7 @@ class JobRecords:
 
     def load(self, job: Job) -> JobRecord | None:
         """The job's record, or None if it has not finished."""
-        path = self.folder / f"{job_name(job)}.json"
+        path = self._record_path(job)
         if not path.exists():
             return None
         data = self._read(path)
