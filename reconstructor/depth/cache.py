@@ -12,6 +12,12 @@ image bytes, its calibration, and the resolved stereo, fill and fusion settings,
 its weights path, and the room box. A changed image or setting is a different key, never a stale
 hit. Entries are written to a temporary name and renamed, so a killed run leaves no partial one.
 
+Each entry also names the libraries that made it (``made_by``: OpenCV, whose matcher and
+filter make the depth, and open3d, which fuses it): they are not part of the key, because a
+machine without them must read what one with them made, but a depth stage made by another
+OpenCV is another depth (an evaluation says which made its jobs' depth, and warns when they
+differ). An entry written before these were kept reads back with ``made_by`` empty (unknown).
+
 On a hit, each ``DepthMap``'s rectified image is made again from the recorded left image (a
 remap, milliseconds), and its ``disparity_px`` holds the disparity of the kept pixels only
 (``fb / depth``; NaN elsewhere): what the matcher returned for rejected pixels is not stored,
@@ -21,6 +27,7 @@ and nothing after the depth stage reads it.
 from __future__ import annotations
 
 import dataclasses
+import importlib.metadata
 import json
 import logging
 import os
@@ -47,15 +54,43 @@ log = logging.getLogger(__name__)
 FORMAT_VERSION = 1  # bump when what the stage computes, or the stored layout, changes
 
 
+def depth_libraries() -> dict[str, str]:
+    """The versions of the libraries that compute the depth stage here: OpenCV (the matcher,
+    the WLS filter, rectification) and open3d (fusion); "absent" where one is not installed."""
+    out = {}
+    for name, dist in (("opencv", None), ("open3d", "open3d")):
+        try:
+            if dist is None:
+                import cv2
+
+                out[name] = str(cv2.__version__)
+            else:
+                out[name] = importlib.metadata.version(dist)
+        except (ImportError, importlib.metadata.PackageNotFoundError):
+            out[name] = "absent"
+    return out
+
+
+def describe_made_by(made_by: dict[str, str]) -> str:
+    """``made_by`` in words, e.g. "OpenCV 4.11.0, open3d 0.19.0"."""
+    if not made_by:
+        return "unknown libraries (made before the depth cache kept their versions)"
+    names = {"opencv": "OpenCV", "open3d": "open3d"}
+    order = [k for k in names if k in made_by] + sorted(k for k in made_by if k not in names)
+    return ", ".join(f"{names.get(k, k)} {made_by[k]}" for k in order)
+
+
 @dataclass
 class DepthStage:
     """One timestamp's depth stage: ``depths`` per camera ("SN<serial>"), the ``fused`` cloud,
-    and ``clouds`` (the per-camera world points fusion merged; None on a hit from disk, where
-    only the fused result is kept)."""
+    ``clouds`` (the per-camera world points fusion merged; None on a hit from disk, where
+    only the fused result is kept) and ``made_by``, the libraries that computed it (this
+    machine's, unless it was read from disk)."""
 
     depths: dict[str, DepthMap]
     fused: FusedCloud
     clouds: list[tuple[np.ndarray, np.ndarray]] | None = None
+    made_by: dict[str, str] = dataclasses.field(default_factory=depth_libraries)
 
 
 def stage_key(ts: Timestamp, cfg: ReconstructConfig) -> str:
@@ -89,6 +124,7 @@ class DepthCache:
         self.memory = memory
         self._recent: OrderedDict[str, DepthStage] = OrderedDict()
         self.hits = self.misses = 0
+        self.served: list[dict[str, str]] = []  # made_by of each stage given or stored, in order
         if self.folder is not None:
             if self.folder.exists() and not self.folder.is_dir():
                 raise DepthCacheError(f"depth cache {self.folder} is a file; give a folder")
@@ -115,11 +151,13 @@ class DepthCache:
             self.misses += 1
             return None
         self.hits += 1
+        self.served.append(stage.made_by)
         self._remember(key, stage)
         return stage
 
     def put(self, ts: Timestamp, cfg: ReconstructConfig, stage: DepthStage) -> None:
         key = stage_key(ts, cfg)
+        self.served.append(stage.made_by)
         self._remember(key, stage)
         if self.folder is not None:
             _write(self.folder / f"{key}.npz", stage)
@@ -138,7 +176,7 @@ def _write(path: Path, stage: DepthStage) -> None:
         "fused_points_m": stage.fused.points_m,
         "fused_colours": stage.fused.colours,
     }
-    meta: dict = {"fused_stats": stage.fused.stats, "depths": {}}
+    meta: dict = {"fused_stats": stage.fused.stats, "depths": {}, "made_by": stage.made_by}
     for name, d in stage.depths.items():
         arrays[f"{name}/depth_m"] = d.depth_m
         arrays[f"{name}/valid"] = np.packbits(d.valid)
@@ -196,4 +234,4 @@ def _read(path: Path, ts: Timestamp, cfg: ReconstructConfig) -> DepthStage:
                 baseline_m=float(m["baseline_m"]),
                 rgb=rgb,
             )
-    return DepthStage(depths=depths, fused=fused)
+    return DepthStage(depths=depths, fused=fused, made_by=dict(meta.get("made_by", {})))

@@ -174,7 +174,7 @@ def main(argv: list[str]) -> int:
         ReconstructConfig.read(settings.config)  # a bad file fails now, with its key named
     eval_set = EvalSet.read(args.eval_set)  # EvalSetError: one line naming what is wrong
     settings = dataclasses.replace(settings, eval_set_description=eval_set.description)
-    from reconstructor.evaluation.doc import write_evaluation_doc
+    from reconstructor.evaluation.doc import depth_makers_line, write_evaluation_doc
     from reconstructor.evaluation.lpips import load_lpips
     from reconstructor.evaluation.plan import plan
     from reconstructor.evaluation.run import check_plan, run_evaluation
@@ -215,7 +215,7 @@ def main(argv: list[str]) -> int:
     )
     parts = [
         f"# EgoSurg evaluation\n\nEvaluation set: `{eval_set.root}` ({eval_set.description})\n\n"
-        f"Command: `{command}`\n"
+        f"Command: `{command}`\n\n{depth_makers_line(results)}\n"
     ]
     for protocol in settings.protocols:
         parts.append(write_protocol(results, protocol, out / protocol, TITLES[protocol]))

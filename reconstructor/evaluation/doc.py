@@ -207,6 +207,20 @@ def _scene_lines(eval_set: EvalSet) -> str:
     return "; ".join(parts)
 
 
+def depth_makers_line(results: EvalResults) -> str:
+    """Which libraries made the jobs' depth stages (stereo and fusion), and whether they mix."""
+    makers = results.depth_made_by
+    if not makers:
+        return "Depth stage: none made (no method here reads stereo depth)."
+    said = "; ".join(f"{k} ({n} job{'s' if n != 1 else ''})" for k, n in makers.items())
+    if len(makers) == 1:
+        return f"Depth stage (stereo and fusion) made with {said}."
+    return (
+        f"**Depth stages made by different libraries**: {said}. Another OpenCV gives other "
+        "depths; for one version, run again with a new --depth-cache and --out."
+    )
+
+
 def write_evaluation_doc(results: EvalResults, eval_set: EvalSet, path: Path, command: str) -> None:
     s = results.settings
     secs = mean_seconds(results)
@@ -226,6 +240,8 @@ def write_evaluation_doc(results: EvalResults, eval_set: EvalSet, path: Path, co
             if results.resumed_jobs
             else f"whole run {results.wall_s:.0f} s."
         ),
+        "",
+        depth_makers_line(results),
         "",
         "The paper's numbers are from real operating rooms (GPU, 2000 steps at full size); "
         "ours are from this evaluation set (docs/evaluation.md): they are beside ours for "

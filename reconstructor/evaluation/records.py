@@ -64,6 +64,9 @@ class JobRecord:
     frames: dict[FrameKey, np.ndarray] = field(default_factory=dict)
     sequence_phase: dict[str, str] = field(default_factory=dict)
     warm: tuple[str, int, Gaussians] | None = None  # (sequence, frame, model)
+    # the libraries that made its depth stage(s) (DepthStage.made_by); None: a record written
+    # before they were kept
+    depth_made_by: list[dict[str, str]] | None = field(default_factory=list)
 
 
 def job_name(job: Job) -> str:
@@ -177,6 +180,7 @@ class JobRecords:
                 refiner=str(data["refiner"]),
                 seconds=float(data["seconds"]),
                 sequence_phase=dict(data["sequence_phase"]),
+                depth_made_by=data.get("depth_made_by"),
             )
             if data["frames"]:
                 with np.load(self.folder / f"{job_name(job)}.frames.npz") as npz:
@@ -219,6 +223,7 @@ class JobRecords:
             "sequence_phase": record.sequence_phase,
             "frames": [list(k) for k in keys],
             "warm": None if record.warm is None else [record.warm[0], record.warm[1]],
+            "depth_made_by": record.depth_made_by,
         }
         tmp = Path(f"{stem}.json.tmp")
         tmp.write_text(json.dumps(data, indent=1) + "\n")

@@ -85,6 +85,12 @@ def run_evaluation(
     runner.finish_temporal()
     cache = runner.depth_cache
     log.info("depth stage: %d computed, %d reused", cache.misses, cache.hits)
+    if len(results.depth_made_by) > 1:
+        log.warning(
+            "the jobs' depth stages were made by different libraries: %s; another OpenCV gives "
+            "other depths: for one version, run again with a new --depth-cache and --out",
+            "; ".join(f"{k} ({n} jobs)" for k, n in results.depth_made_by.items()),
+        )
     results.wall_s = time.perf_counter() - runner.started + runner.resumed_s
     results.resumed_jobs = runner.resumed
     return results

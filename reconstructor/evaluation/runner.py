@@ -28,7 +28,7 @@ from reconstructor.case.warm import WarmStartConfig, warm_config, warm_seed
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import Timestamp, check_calibration, load_timestamp
 from reconstructor.data.views import EYE_NEAR_M, View, novel_view
-from reconstructor.depth.cache import DepthCache, DepthStage
+from reconstructor.depth.cache import DepthCache, DepthStage, describe_made_by
 from reconstructor.depth.fusion import fuse
 from reconstructor.depth.stereo import DepthMap
 from reconstructor.evaluation.baselines import hole_fraction
@@ -121,6 +121,15 @@ def _file_name(label: str) -> str:
     return f"{safe}.png"
 
 
+def _distinct(made_by: list[dict[str, str]]) -> list[dict[str, str]]:
+    """Each different ``made_by`` once, in the order first seen."""
+    out: list[dict[str, str]] = []
+    for m in made_by:
+        if m not in out:
+            out.append(dict(m))
+    return out
+
+
 def _u8(image: np.ndarray) -> np.ndarray:
     return (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
 
@@ -190,12 +199,16 @@ class JobRunner:
             log.info("%s (%s views): resumed from its record", job.scene.label, job.train_views)
             return
         t0 = time.perf_counter()
+        served_before = len(self.depth_cache.served)
         scores_before = len(self.results.image_scores)
         seconds_before = {k: len(v) for k, v in self.results.recon_seconds.items()}
         refiner_before = self.results.refiner
         self._run(job)
+        made_by = _distinct(self.depth_cache.served[served_before:])
+        self._count_depth_makers(made_by)
         if self.records is not None:
             record = JobRecord(
+                depth_made_by=made_by,
                 image_scores=self.results.image_scores[scores_before:],
                 recon_seconds={
                     k: v[seconds_before.get(k, 0) :]
@@ -215,8 +228,14 @@ class JobRunner:
                     record.warm = (sequence, k, chain[1])
             self.records.save(job, record)
 
+    def _count_depth_makers(self, made_by: list[dict[str, str]] | None) -> None:
+        for m in [{}] if made_by is None else made_by:  # None: a record from before they were kept
+            said = describe_made_by(m)
+            self.results.depth_made_by[said] = self.results.depth_made_by.get(said, 0) + 1
+
     def _apply(self, record: JobRecord) -> None:
         """Put a recorded job's results where running it would have put them."""
+        self._count_depth_makers(record.depth_made_by)
         self.results.image_scores.extend(record.image_scores)
         for k, v in record.recon_seconds.items():
             self.results.recon_seconds.setdefault(k, []).extend(v)

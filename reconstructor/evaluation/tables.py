@@ -73,6 +73,9 @@ class EvalResults:
     refiner: str = ""  # the refiner's own description, from a run that used it
     wall_s: float = 0.0  # every job's time, those of earlier sittings (resumed) included
     resumed_jobs: int = 0  # timestamps loaded from an earlier sitting's records
+    # the libraries that made the jobs' depth stages, in words -> how many jobs (a job whose
+    # depth came from two makers counts under both)
+    depth_made_by: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

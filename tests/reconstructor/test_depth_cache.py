@@ -6,8 +6,11 @@ inputs to training as computing them there would."""
 from __future__ import annotations
 
 import dataclasses
+import importlib.metadata
+import json
 import logging
 import sys
+import zipfile
 
 import cv2
 import numpy as np
@@ -16,7 +19,7 @@ import pytest
 from protocol.rig_calibration import RigCalibration
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import load_timestamp
-from reconstructor.depth.cache import DepthCache, stage_key
+from reconstructor.depth.cache import DepthCache, describe_made_by, stage_key
 from reconstructor.errors import DepthCacheError
 from reconstructor.pipeline import reconstruct
 from sim.eval_set import EvalSetSpec, write_eval_set
@@ -88,6 +91,9 @@ def test_a_stored_depth_stage_trains_on_a_machine_without_opencv_contrib_or_open
         assert np.array_equal(result.fused.colours, computed.fused.colours)
         assert result.fused.stats == computed.fused.stats
     assert again.gaussians.num == computed.gaussians.num
+    # what made the depth is the machine that computed it, not the one that reads it
+    made_here = {"opencv": cv2.__version__, "open3d": importlib.metadata.version("open3d")}
+    assert made.served == elsewhere.served == [made_here]
 
 
 def test_only_what_the_depth_stage_reads_changes_its_key(scene):
@@ -153,3 +159,26 @@ def test_a_case_rerun_with_other_training_settings_reuses_the_stored_depth(scene
     assert second.returncode == 0, second.stderr
     assert second.stderr.count("from the depth cache") == 1
     assert len(list(cache.glob("*.npz"))) == 1
+
+
+def test_an_entry_from_before_the_libraries_were_kept_reads_as_made_by_unknown(scene, tmp_path):
+    """Depth caches written by earlier versions stay usable; what made them is then unknown,
+    and said so, rather than taken for this machine's libraries."""
+    _, ts, calibration, cfg = scene
+    reconstruct(ts, cfg, calibration=calibration, depth_cache=DepthCache(tmp_path / "dc"))
+    (entry,) = (tmp_path / "dc").glob("*.npz")
+    with np.load(entry) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(arrays["meta"].tobytes().decode())
+    assert meta.pop("made_by")["opencv"] == cv2.__version__
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    with open(entry, "wb") as f:
+        np.savez_compressed(f, **arrays)
+    assert zipfile.is_zipfile(entry)
+    old = DepthCache(tmp_path / "dc")
+    stage = old.get(ts, cfg.resolved(ts.frames[0].camera.intrinsics.width_px))
+    assert stage is not None and stage.made_by == {}
+    assert describe_made_by(stage.made_by).startswith("unknown libraries")
+    assert (
+        describe_made_by({"opencv": "4.11.0", "open3d": "0.19.0"}) == "OpenCV 4.11.0, open3d 0.19.0"
+    )

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import importlib.metadata
 import importlib.util
 import json
 import math
@@ -451,8 +452,9 @@ def test_a_resume_over_changed_code_says_the_tables_mix_versions(eval_set, tmp_p
     warning that says so (the reconstructor's sources are digested into every record)."""
     out = tmp_path / "o"
     config = _quick_config(tmp_path / "quick.toml")
-    args = ["evaluate", str(eval_set.root), "--out", str(out), "--steps", "8", "--train-width",
-            "96", "--methods", "no-refinement", "--config", str(config)]  # fmt: skip
+    args = ["evaluate", str(eval_set.root), "--out", str(out), "--protocol", "temporal",
+            "--steps", "8", "--train-width", "96", "--methods", "no-refinement",
+            "--config", str(config)]  # fmt: skip
     assert egosurg(args) == 0
     (record,) = (out / "jobs").glob("*.json")
     data = json.loads(record.read_text())
@@ -498,6 +500,40 @@ def test_a_run_split_over_machines_is_merged_by_copying_its_jobs(eval_set, tmp_p
     assert egosurg(args) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--device cuda" in err, err
+
+
+def test_the_report_names_the_libraries_that_made_the_depth_and_says_when_they_differ(
+    eval_set, tmp_path, capsys, caplog
+):
+    """Another OpenCV gives other depths (issue 22: 5.0 against 4.x), and a run spread over
+    machines, or resumed on an upgraded one, can mix them: each job's record names the
+    libraries that made its depth stage, and the tables say which, or that they differ."""
+    out = tmp_path / "o"
+    config = _quick_config(tmp_path / "quick.toml")
+    args = ["evaluate", str(eval_set.root), "--out", str(out), "--protocol", "temporal",
+            "--steps", "8", "--train-width", "96", "--methods", "no-refinement",
+            "--config", str(config)]  # fmt: skip
+    assert egosurg(args) == 0
+    here = {"opencv": cv2.__version__, "open3d": importlib.metadata.version("open3d")}
+    records = sorted((out / "jobs").glob("*.json"))
+    assert len(records) >= 2
+    for record in records:
+        assert json.loads(record.read_text())["depth_made_by"] == [here]
+    said = f"made with OpenCV {cv2.__version__}, open3d {here['open3d']} ({len(records)} jobs)"
+    assert said in (out / "summary.md").read_text()
+
+    # one job's depth made elsewhere with another OpenCV, one record from before they were kept
+    data = json.loads(records[0].read_text())
+    records[0].write_text(json.dumps({**data, "depth_made_by": [{**here, "opencv": "4.0.0"}]}))
+    data = json.loads(records[1].read_text())
+    records[1].write_text(json.dumps({k: v for k, v in data.items() if k != "depth_made_by"}))
+    caplog.clear()
+    assert egosurg([*args, "--resume"]) == 0
+    summary = (out / "summary.md").read_text()
+    assert "Depth stages made by different libraries" in summary
+    assert f"OpenCV 4.0.0, open3d {here['open3d']} (1 job)" in summary
+    assert "unknown libraries (made before the depth cache kept their versions) (1 job)" in summary
+    assert any("made by different libraries" in r.message for r in caplog.records)
 
 
 @pytest.mark.parametrize(
