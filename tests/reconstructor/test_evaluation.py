@@ -452,9 +452,8 @@ def test_a_resume_over_changed_code_says_the_tables_mix_versions(eval_set, tmp_p
     warning that says so (the reconstructor's sources are digested into every record)."""
     out = tmp_path / "o"
     config = _quick_config(tmp_path / "quick.toml")
-    args = ["evaluate", str(eval_set.root), "--out", str(out), "--protocol", "temporal",
-            "--steps", "8", "--train-width", "96", "--methods", "no-refinement",
-            "--config", str(config)]  # fmt: skip
+    args = ["evaluate", str(eval_set.root), "--out", str(out), "--steps", "8", "--train-width",
+            "96", "--methods", "no-refinement", "--config", str(config)]  # fmt: skip
     assert egosurg(args) == 0
     (record,) = (out / "jobs").glob("*.json")
     data = json.loads(record.read_text())
