@@ -408,6 +408,16 @@ def _quick_config(path: Path) -> Path:
     return path
 
 
+def _quick_run(eval_set: EvalSet, tmp_path: Path, *extra: str) -> tuple[Path, list[str]]:
+    """``OUT`` and the arguments of a quick run (8 steps of EgoSurg w/o refinement)."""
+    out = tmp_path / "o"
+    config = _quick_config(tmp_path / "quick.toml")
+    args = ["evaluate", str(eval_set.root), "--out", str(out), *extra, "--steps", "8",
+            "--train-width", "96", "--methods", "no-refinement",
+            "--config", str(config)]  # fmt: skip
+    return out, args
+
+
 def test_a_stopped_run_resumes_where_it_stopped_with_the_same_numbers(eval_set, tmp_path, caplog):
     """An overnight evaluation that is stopped (killed, machine given back) keeps every
     timestamp it finished: ``--resume`` loads them, runs the rest, and the tables are the ones
@@ -450,10 +460,7 @@ def test_a_stopped_run_resumes_where_it_stopped_with_the_same_numbers(eval_set, 
 def test_a_resume_over_changed_code_says_the_tables_mix_versions(eval_set, tmp_path, caplog):
     """Resuming after a fix is legitimate, so records made by other code are loaded, with a
     warning that says so (the reconstructor's sources are digested into every record)."""
-    out = tmp_path / "o"
-    config = _quick_config(tmp_path / "quick.toml")
-    args = ["evaluate", str(eval_set.root), "--out", str(out), "--steps", "8", "--train-width",
-            "96", "--methods", "no-refinement", "--config", str(config)]  # fmt: skip
+    out, args = _quick_run(eval_set, tmp_path)
     assert egosurg(args) == 0
     (record,) = (out / "jobs").glob("*.json")
     data = json.loads(record.read_text())
@@ -507,11 +514,7 @@ def test_the_report_names_the_libraries_that_made_the_depth_and_says_when_they_d
     """Another OpenCV gives other depths (issue 22: 5.0 against 4.x), and a run spread over
     machines, or resumed on an upgraded one, can mix them: each job's record names the
     libraries that made its depth stage, and the tables say which, or that they differ."""
-    out = tmp_path / "o"
-    config = _quick_config(tmp_path / "quick.toml")
-    args = ["evaluate", str(eval_set.root), "--out", str(out), "--protocol", "temporal",
-            "--steps", "8", "--train-width", "96", "--methods", "no-refinement",
-            "--config", str(config)]  # fmt: skip
+    out, args = _quick_run(eval_set, tmp_path, "--protocol", "temporal")
     assert egosurg(args) == 0
     here = {"opencv": cv2.__version__, "open3d": importlib.metadata.version("open3d")}
     records = sorted((out / "jobs").glob("*.json"))
@@ -544,11 +547,7 @@ def test_a_damaged_record_is_named_in_one_line_and_the_rest_is_kept(
 ):
     """A record cut short, edited or missing its arrays stops a resume before any work with one
     line that names the file and says to delete it, never a traceback; nothing is deleted."""
-    out = tmp_path / "o"
-    config = _quick_config(tmp_path / "quick.toml")
-    args = ["evaluate", str(eval_set.root), "--out", str(out), "--protocol", "temporal",
-            "--steps", "8", "--train-width", "96", "--methods", "no-refinement",
-            "--config", str(config)]  # fmt: skip
+    out, args = _quick_run(eval_set, tmp_path, "--protocol", "temporal")
     assert egosurg(args) == 0
     record = out / "jobs" / "intraoperative_set1_left.json"
     data = json.loads(record.read_text())
