@@ -237,8 +237,8 @@ class JobRunner:
         """Put a recorded job's results where running it would have put them."""
         self._count_depth_makers(record.depth_made_by)
         self.results.image_scores.extend(record.image_scores)
-        for k, v in record.recon_seconds.items():
-            self.results.recon_seconds.setdefault(k, []).extend(v)
+        for name, seconds in record.recon_seconds.items():
+            self.results.recon_seconds.setdefault(name, []).extend(seconds)
         if record.refiner:
             self.results.refiner = record.refiner
         for (seq, view, method, k), frame in record.frames.items():
