@@ -234,4 +234,9 @@ def _read(path: Path, ts: Timestamp, cfg: ReconstructConfig) -> DepthStage:
                 baseline_m=float(m["baseline_m"]),
                 rgb=rgb,
             )
-    return DepthStage(depths=depths, fused=fused, made_by=dict(meta.get("made_by", {})))
+    made_by = meta.get("made_by", {})
+    if not isinstance(made_by, dict) or not all(
+        isinstance(k, str) and isinstance(v, str) for k, v in made_by.items()
+    ):
+        raise ValueError(f"made_by {made_by!r} is not {{library: version}}")
+    return DepthStage(depths=depths, fused=fused, made_by=made_by)

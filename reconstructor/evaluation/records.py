@@ -180,7 +180,7 @@ class JobRecords:
                 refiner=str(data["refiner"]),
                 seconds=float(data["seconds"]),
                 sequence_phase=dict(data["sequence_phase"]),
-                depth_made_by=data.get("depth_made_by"),
+                depth_made_by=_made_by(data.get("depth_made_by")),
             )
             if data["frames"]:
                 with np.load(self.folder / f"{job_name(job)}.frames.npz") as npz:
@@ -228,6 +228,18 @@ class JobRecords:
         tmp = Path(f"{stem}.json.tmp")
         tmp.write_text(json.dumps(data, indent=1) + "\n")
         os.replace(tmp, f"{stem}.json")
+
+
+def _made_by(value: Any) -> list[dict[str, str]] | None:
+    """A record's ``depth_made_by``: a list of {library: version}, or None (not kept then)."""
+    if value is None:
+        return None
+    if not isinstance(value, list) or not all(
+        isinstance(m, dict) and all(isinstance(k, str) and isinstance(v, str) for k, v in m.items())
+        for m in value
+    ):
+        raise ValueError(f"depth_made_by {value!r} is not a list of {{library: version}}")
+    return value
 
 
 def _atomic_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:

@@ -10,7 +10,6 @@ import importlib.metadata
 import json
 import logging
 import sys
-import zipfile
 
 import cv2
 import numpy as np
@@ -161,24 +160,40 @@ def test_a_case_rerun_with_other_training_settings_reuses_the_stored_depth(scene
     assert len(list(cache.glob("*.npz"))) == 1
 
 
-def test_an_entry_from_before_the_libraries_were_kept_reads_as_made_by_unknown(scene, tmp_path):
+def _rewrite_meta(entry, **changes) -> None:
+    """Rewrite a stored entry's meta: ``changes`` set (None: removed)."""
+    with np.load(entry) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(arrays["meta"].tobytes().decode())
+    for k, v in changes.items():
+        if v is None:
+            meta.pop(k)
+        else:
+            meta[k] = v
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    with open(entry, "wb") as f:
+        np.savez_compressed(f, **arrays)
+
+
+def test_an_entry_from_before_the_libraries_were_kept_reads_as_made_by_unknown(
+    scene, tmp_path, caplog
+):
     """Depth caches written by earlier versions stay usable; what made them is then unknown,
-    and said so, rather than taken for this machine's libraries."""
+    and said so, rather than taken for this machine's libraries. An entry whose makers are
+    not {library: version} is damaged: made again."""
     _, ts, calibration, cfg = scene
     reconstruct(ts, cfg, calibration=calibration, depth_cache=DepthCache(tmp_path / "dc"))
     (entry,) = (tmp_path / "dc").glob("*.npz")
     with np.load(entry) as z:
-        arrays = {k: z[k] for k in z.files}
-    meta = json.loads(arrays["meta"].tobytes().decode())
-    assert meta.pop("made_by")["opencv"] == cv2.__version__
-    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-    with open(entry, "wb") as f:
-        np.savez_compressed(f, **arrays)
-    assert zipfile.is_zipfile(entry)
-    old = DepthCache(tmp_path / "dc")
-    stage = old.get(ts, cfg.resolved(ts.frames[0].camera.intrinsics.width_px))
+        assert json.loads(z["meta"].tobytes().decode())["made_by"]["opencv"] == cv2.__version__
+    _rewrite_meta(entry, made_by=None)
+    stage = DepthCache(tmp_path / "dc").get(ts, fresh_cfg(cfg, ts))
     assert stage is not None and stage.made_by == {}
     assert describe_made_by(stage.made_by).startswith("unknown libraries")
-    assert (
-        describe_made_by({"opencv": "4.11.0", "open3d": "0.19.0"}) == "OpenCV 4.11.0, open3d 0.19.0"
+    assert describe_made_by({"open3d": "0.19.0", "opencv": "4.11.0"}) == (
+        "OpenCV 4.11.0, open3d 0.19.0"
     )
+    _rewrite_meta(entry, made_by="OpenCV 4")
+    with caplog.at_level(logging.WARNING, logger="reconstructor.depth.cache"):
+        assert DepthCache(tmp_path / "dc").get(ts, fresh_cfg(cfg, ts)) is None
+    assert "unreadable" in caplog.text

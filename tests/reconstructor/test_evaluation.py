@@ -540,7 +540,15 @@ def test_the_report_names_the_libraries_that_made_the_depth_and_says_when_they_d
 
 @pytest.mark.parametrize(
     "damage",
-    ["truncated", "not_an_object", "no_scores", "bad_score", "no_settings", "frames_missing"],
+    [
+        "truncated",
+        "not_an_object",
+        "no_scores",
+        "bad_score",
+        "no_settings",
+        "frames_missing",
+        "bad_made_by",
+    ],
 )
 def test_a_damaged_record_is_named_in_one_line_and_the_rest_is_kept(
     damage, eval_set, tmp_path, capsys
@@ -558,6 +566,7 @@ def test_a_damaged_record_is_named_in_one_line_and_the_rest_is_kept(
         "bad_score": json.dumps({**data, "image_scores": [{"psnr": "x"}]}),
         "no_settings": json.dumps({k: v for k, v in data.items() if k != "settings"}),
         "frames_missing": record.read_text(),
+        "bad_made_by": json.dumps({**data, "depth_made_by": "OpenCV 4"}),
     }[damage]
     record.write_text(text)
     if damage == "frames_missing":
