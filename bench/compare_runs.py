@@ -17,32 +17,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from reconstructor.evaluation.methods import METHODS
+from reconstructor.evaluation.tables import stat
+
 PSNR = "psnr_db"
-LABELS = {"no-refinement": "EgoSurg w/o refinement", "egosurg": "EgoSurg"}
-
-
-@dataclass(frozen=True)
-class Paired:
-    """One method's scores on the views both runs scored, in the same order."""
-
-    method: str
-    base_db: list[float]
-    variant_db: list[float]
-    base_ssim: list[float]
-    variant_ssim: list[float]
-
-    @property
-    def diff_db(self) -> list[float]:
-        return [v - b for b, v in zip(self.base_db, self.variant_db, strict=True)]
-
-    @property
-    def better(self) -> int:
-        return sum(d > 0 for d in self.diff_db)
 
 
 def read_scores(folders: list[Path], protocol: str) -> dict[tuple[str, str], dict]:
@@ -68,15 +51,9 @@ def common_keys(runs: list[dict], methods: list[str]) -> tuple[list[tuple[str, s
     return sorted(common), len(set.union(*wanted) - common)
 
 
-def paired(base: dict, variant: dict, keys: list[tuple[str, str]], method: str) -> Paired:
-    ks = [k for k in keys if k[1] == method]
-    return Paired(
-        method,
-        [base[k][PSNR] for k in ks],
-        [variant[k][PSNR] for k in ks],
-        [base[k]["ssim"] for k in ks],
-        [variant[k]["ssim"] for k in ks],
-    )
+def values(run: dict, keys: list[tuple[str, str]], method: str, metric: str) -> list[float]:
+    """``metric`` of ``method`` on each view of ``keys``, in their order."""
+    return [run[k][metric] for k in keys if k[1] == method]
 
 
 def refinement_worth(scores: dict, keys: list[tuple[str, str]]) -> list[float] | None:
@@ -88,8 +65,8 @@ def refinement_worth(scores: dict, keys: list[tuple[str, str]]) -> list[float] |
 
 
 def _ms(values: list[float], digits: int = 2) -> str:
-    sd = statistics.stdev(values) if len(values) > 1 else 0.0
-    return f"{statistics.mean(values):.{digits}f} ± {sd:.{digits}f}"
+    st = stat(values)
+    return f"{st.mean:.{digits}f} ± {0.0 if st.n < 2 else st.sd:.{digits}f}"
 
 
 def table(runs: list[tuple[str, dict]], keys: list[tuple[str, str]], methods: list[str]) -> str:
@@ -99,23 +76,23 @@ def table(runs: list[tuple[str, dict]], keys: list[tuple[str, str]], methods: li
         "| row | PSNR (dB) | SSIM | paired difference (dB) | views better |",
         "|---|---|---|---|---|",
     ]
-    (base_name, base), variants = runs[0], runs[1:]
+    base = runs[0][1]
     for m in methods:
         if not any(k[1] == m for k in keys):
             continue
-        label = LABELS.get(m, m)
-        first = paired(base, base, keys, m)
-        lines.append(
-            f"| {label}, {base_name} | {_ms(first.base_db)} | {_ms(first.base_ssim, 3)} | | |"
-        )
-        for name, scores in variants:
-            p = paired(base, scores, keys, m)
-            lines.append(
-                f"| {label}, {name} | {_ms(p.variant_db)} | {_ms(p.variant_ssim, 3)} | "
-                f"{_ms(p.diff_db)} | {p.better} / {len(p.diff_db)} |"
-            )
-    for name, scores in runs:
-        worth = refinement_worth(scores, keys)
+        label = METHODS[m].label if m in METHODS else m
+        base_db = values(base, keys, m, PSNR)
+        for i, (name, run) in enumerate(runs):
+            db, ssim = values(run, keys, m, PSNR), values(run, keys, m, "ssim")
+            row = f"| {label}, {name} | {_ms(db)} | {_ms(ssim, 3)} |"
+            if i == 0:
+                lines.append(row + " | |")
+                continue
+            diff = [v - b for b, v in zip(base_db, db, strict=True)]
+            better = sum(d > 0 for d in diff)
+            lines.append(f"{row} {_ms(diff)} | {better} / {len(diff)} |")
+    for name, run in runs:
+        worth = refinement_worth(run, keys)
         if worth is not None:
             better = sum(w > 0 for w in worth)
             lines.append(

@@ -27,6 +27,7 @@ and nothing after the depth stage reads it.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib.metadata
 import json
 import logging
@@ -57,6 +58,11 @@ FORMAT_VERSION = 1  # bump when what the stage computes, or the stored layout, c
 def depth_libraries() -> dict[str, str]:
     """The versions of the libraries that compute the depth stage here: OpenCV (the matcher,
     the WLS filter, rectification) and open3d (fusion); "absent" where one is not installed."""
+    return dict(_depth_libraries())
+
+
+@functools.cache  # read once a process: every timestamp's stage names them
+def _depth_libraries() -> dict[str, str]:
     out = {}
     for name, dist in (("opencv", None), ("open3d", "open3d")):
         try:
