@@ -37,9 +37,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import cv2
 import numpy as np
 
-from protocol.rig_calibration import RigCalibration
+from protocol.formats.rig_calibration import RigCalibration
+from protocol.formats.wand import WandSpec
 from protocol.session import SessionReader
-from protocol.wand import WandSpec
 from sim import World
 from sim.deploy import SimRig, SimRigSpec, write_sim_rig
 from sim.truth import calibration_errors, true_rig_calibration

@@ -31,8 +31,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from protocol.eval_set import EvalSet
-from protocol.rig_calibration import RigCalibration
+from protocol.formats.eval_set import EvalSet
+from protocol.formats.rig_calibration import RigCalibration
 from reconstructor.case.warm import WarmStartConfig, seed_from_previous, warm_config
 from reconstructor.case.work import limit_threads
 from reconstructor.config import ReconstructConfig

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol.rig_calibration import RigCalibration
+from protocol.formats.rig_calibration import RigCalibration
 from reconstructor.case.index import CaseIndex
 from reconstructor.case.storage import load_model
 from reconstructor.config import ReconstructConfig

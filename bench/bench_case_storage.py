@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from protocol.rig_calibration import RigCalibration
+from protocol.formats.rig_calibration import RigCalibration
 from reconstructor.case import storage
 from reconstructor.case.index import checksum_file
 from reconstructor.case.warm import WarmStartConfig, seed_from_previous, warm_config

@@ -37,7 +37,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from protocol.camera import Camera
-from protocol.eval_set import EvalSet, ReferenceView
+from protocol.formats.eval_set import EvalSet, ReferenceView
 from protocol.session import SessionReader
 from sim.world import World
 

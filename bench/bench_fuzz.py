@@ -136,9 +136,9 @@ def _socket(name: str, endpoint: str, cases: int, seed: int, daemon) -> Tally:
 
 
 def _daemons(cases: int, seed: int, tmp: Path) -> list[Tally]:
-    from capture_agent.agent import Agent
+    from capture_agent.agent.agent import Agent
     from capture_agent.config import NodeConfig
-    from capture_agent.recorder import Recorder
+    from capture_agent.recorder.recorder import Recorder
     from sim.deploy import free_ports
 
     fport, cport = free_ports(2)

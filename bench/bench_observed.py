@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 import torch
 
-from protocol.eval_set import EvalSet
+from protocol.formats.eval_set import EvalSet
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.views import EYE_NEAR_M, novel_view
 from reconstructor.evaluation.methods import EvalSettings, method_config

@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np
 import torch
 
-from protocol.trajectory import Keyframe, Trajectory
+from protocol.formats.trajectory import Keyframe, Trajectory
 from reconstructor.case.index import CaseIndex, Entry, checksum_file
 from reconstructor.replay.path import CameraPath
 from reconstructor.replay.run import ReplayConfig, replay

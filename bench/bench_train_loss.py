@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np
 
 import reconstructor  # noqa: F401  (flushes denormals before torch starts its threads)
-from protocol.eval_set import EvalSet
+from protocol.formats.eval_set import EvalSet
 from reconstructor.config import apply_overrides
 from reconstructor.evaluation.methods import EvalSettings, method_config
 from reconstructor.evaluation.runner import EvalSource

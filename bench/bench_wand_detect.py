@@ -121,7 +121,7 @@ def _stats(errors: list[float]) -> str:
 
 def run(cache: Path, repeat: int) -> None:
     from calibration.detect import DetectorConfig, SphereDetector
-    from protocol.wand import WandSpec
+    from protocol.formats.wand import WandSpec
     from sim import World
 
     cv2.setNumThreads(1)

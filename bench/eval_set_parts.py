@@ -23,7 +23,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from protocol.eval_set import EvalSet
+from protocol.formats.eval_set import EvalSet
 
 
 def parts(eval_set: EvalSet, per_part: int, scenes: list[str]) -> list[tuple[str, EvalSet]]:

@@ -34,8 +34,8 @@ from calibration.report import ReportData, Thresholds, annotate, verdict
 from calibration.report_page import write_report
 from calibration.solve import Solution, SolveConfig, solve
 from protocol.errors import UserError
-from protocol.rig_calibration import RigCalibration
-from protocol.wand import WandSpec
+from protocol.formats.rig_calibration import RigCalibration
+from protocol.formats.wand import WandSpec
 
 log = logging.getLogger(__name__)
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from protocol.camera import Pose
-from protocol.rig_calibration import RigCalibration
+from protocol.formats.rig_calibration import RigCalibration
 
 
 @dataclass(frozen=True)

@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 
 from protocol.camera import Intrinsics, Pose, Resolution, undistort_to_normalized
-from protocol.rig_calibration import CalibrationFileError, RigCalibration, SensorCalibration
+from protocol.formats.rig_calibration import CalibrationFileError, RigCalibration, SensorCalibration
 
 log = logging.getLogger(__name__)
 

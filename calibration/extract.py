@@ -44,10 +44,10 @@ from calibration.detect import DetectorConfig, SphereDetector
 from calibration.label import label_stereo, label_wand, refit_without_rod
 from calibration.observations import SIDES, SensorKey, WandObservations
 from protocol.errors import UserError
+from protocol.formats.wand import WandSpec
+from protocol.formats.zed_conf import ConfFormatError, StereoCalibration, ZedFactoryCalibration
 from protocol.images import EncodeError, decode_image
 from protocol.session import CameraInfo, SessionReader
-from protocol.wand import WandSpec
-from protocol.zed_conf import ConfFormatError, StereoCalibration, ZedFactoryCalibration
 
 log = logging.getLogger(__name__)
 

@@ -34,8 +34,8 @@ import numpy as np
 
 from calibration.detect import SphereBlob, SphereDetector
 from protocol.camera import undistort_to_normalized
-from protocol.wand import WandSpec
-from protocol.zed_conf import StereoCalibration
+from protocol.formats.wand import WandSpec
+from protocol.formats.zed_conf import StereoCalibration
 
 FEWER_THAN_3 = "fewer than 3 spheres"
 NOT_COLLINEAR = "not collinear"

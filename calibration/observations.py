@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol.camera import Intrinsics
-from protocol.wand import WandSpec
-from protocol.zed_conf import StereoCalibration
+from protocol.formats.wand import WandSpec
+from protocol.formats.zed_conf import StereoCalibration
 
 SIDES = ("left", "right")
 

@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from protocol.rig_calibration import RigCalibration, SensorCalibration
+from protocol.formats.rig_calibration import RigCalibration, SensorCalibration
 
 log = logging.getLogger(__name__)
 

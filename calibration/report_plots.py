@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from calibration.report import ReportData, Thresholds, coverage_counts, residual_stats
-from protocol.rig_calibration import SensorCalibration
+from protocol.formats.rig_calibration import SensorCalibration
 
 
 def _png(fig: Any) -> bytes:

@@ -48,7 +48,7 @@ from calibration.observations import SensorKey, WandObservations
 from calibration.world_frame import find_floor
 from protocol.camera import Pose
 from protocol.errors import ConfigError, UserError
-from protocol.rig_calibration import RigCalibration, SensorCalibration
+from protocol.formats.rig_calibration import RigCalibration, SensorCalibration
 
 log = logging.getLogger(__name__)
 

@@ -42,7 +42,7 @@ from protocol.messages import (
     MalformedMessageError,
     PtpState,
 )
-from protocol.session_format import CameraInfo
+from protocol.session.format import CameraInfo
 
 MAX_CAMERAS_PER_AGENT = 16
 MAX_FACTORY_CONF_BYTES = 64 * 1024  # a ZED SN<serial>.conf is about 3 KB

@@ -22,13 +22,25 @@ from protocol.errors import UserError
 # name -> ("module:function", one-line summary). Order is the order shown in --help.
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("sim.demo:main", "run the whole chain on the simulated rig and write pictures"),
-    "agent": ("capture_agent.agent:main", "the capture daemon of one Jetson node"),
-    "recorder": ("capture_agent.recorder:main", "the recorder: sync all agents, write sessions"),
-    "record": ("capture_agent.control:main_record", "start or stop recording a case"),
-    "status": ("capture_agent.control:main_status", "the rig's health: fps, drops, PTP, disk"),
-    "shell": ("capture_agent.console:main", "an operator console with a connected 'rig'"),
-    "keys": ("capture_agent.keys_cli:main", "make the CURVE keys that secure the rig's links"),
-    "session": ("capture_agent.session_cli:main", "inspect, verify and export a session file"),
+    "agent": ("capture_agent.agent.agent:main", "the capture daemon of one Jetson node"),
+    "recorder": (
+        "capture_agent.recorder.recorder:main",
+        "the recorder: sync all agents, write sessions",
+    ),
+    "record": ("capture_agent.operator.control:main_record", "start or stop recording a case"),
+    "status": (
+        "capture_agent.operator.control:main_status",
+        "the rig's health: fps, drops, PTP, disk",
+    ),
+    "shell": ("capture_agent.operator.console:main", "an operator console with a connected 'rig'"),
+    "keys": (
+        "capture_agent.operator.keys_cli:main",
+        "make the CURVE keys that secure the rig's links",
+    ),
+    "session": (
+        "capture_agent.operator.session_cli:main",
+        "inspect, verify and export a session file",
+    ),
     "calibrate": ("calibration.cli:main", "extrinsic calibration of the rig from a wand session"),
     "reconstruct": (
         "reconstructor.cli:main_reconstruct",

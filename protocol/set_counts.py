@@ -3,7 +3,7 @@
 A camera is *missing in a set* when the set's member row for it is ``MISSING`` (-1): the set was
 written to the session's ``/sets`` table without a frame of that camera. Only sets in the file
 count: the partial windows a recording trims at its start and end (see
-``capture_agent/recording.py``) are not sets of the take, so they are not counted either.
+``capture_agent/recorder/recording.py``) are not sets of the take, so they are not counted either.
 
 The stop summary (``Recording.finish``, also stored in ``/summary`` as ``summary_json``),
 ``SessionReader.summary()`` and ``egosurg session info`` all call ``missing_in_sets``; they

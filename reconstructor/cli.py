@@ -46,7 +46,7 @@ import torch
 
 from protocol.camera import Camera, Intrinsics, Pose
 from protocol.errors import UserError
-from protocol.rig_calibration import RigCalibration
+from protocol.formats.rig_calibration import RigCalibration
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import load_timestamp
 from reconstructor.data.views import EYE_NEAR_M

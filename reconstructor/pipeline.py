@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from protocol.camera import Pose
-from protocol.rig_calibration import RigCalibration
+from protocol.formats.rig_calibration import RigCalibration
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import Timestamp, calibration_at, right_from_left
 from reconstructor.data.views import View, view_from_image

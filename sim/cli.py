@@ -150,7 +150,7 @@ def cmd_factory(args: argparse.Namespace) -> int:
 
 
 def cmd_wand_file(args: argparse.Namespace) -> int:
-    from protocol.wand import WandSpec
+    from protocol.formats.wand import WandSpec
 
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -14,8 +14,8 @@ to 1 ms. It covers every person of the scene, so a test can check that only the 
 touches enter the field.
 
 ``egosurg sim contact SESSION.h5 --field-out field.toml --truth-out contact.csv``
-(``sim/contact_cli.py``) writes the field box (a site file, ``protocol/site.py``) and the true
-intervals over the session's span.
+(``sim/contact_cli.py``) writes the field box (a site file, ``protocol/formats/site.py``) and the
+true intervals over the session's span.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from protocol.site import SiteBox
+from protocol.formats.site import SiteBox
 from sim.geometry import rot_z
 from sim.people import Person, PersonState, Waypoint, person_objects, person_state
 from sim.room import SceneObject

@@ -12,7 +12,7 @@ import argparse
 from pathlib import Path
 
 from protocol.errors import UserError
-from protocol.site import site_toml
+from protocol.formats.site import site_toml
 from sim.contact import DRAPE_FIELD, true_field_intervals, write_truth_csv
 
 

@@ -16,7 +16,7 @@ Stages so far:
    (``egosurg render``) beside the simulator's ground-truth view from the same eyes;
 5. evaluate that timestamp as the paper does (``egosurg evaluate``): stage 2's session, the
    calibration and every person's true egocentric view at that instant become an evaluation set
-   (``protocol/eval_set.py``), and the table compares depth reprojection, EgoSurg without
+   (``protocol/formats/eval_set.py``), and the table compares depth reprojection, EgoSurg without
    refinement and EgoSurg against those views;
 6. batch-reconstruct three consecutive timestamps from there as a case (``egosurg reconstruct
    --every ... --warm-start``, a short schedule) and print its summary (``egosurg case info``).
@@ -38,10 +38,10 @@ import cv2
 import numpy as np
 
 from protocol.camera import Pose
-from protocol.eval_set import EvalScene, EvalSet, ReferenceView
-from protocol.rig_calibration import RigCalibration
+from protocol.formats.eval_set import EvalScene, EvalSet, ReferenceView
+from protocol.formats.rig_calibration import RigCalibration
+from protocol.formats.wand import WandSpec
 from protocol.session import SessionReader
-from protocol.wand import WandSpec
 from sim import pictures
 from sim.cli import write_pictures
 from sim.deploy import SimRig, SimRigFiles, SimRigSpec, write_sim_rig

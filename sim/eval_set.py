@@ -13,7 +13,7 @@ on a real site: the exact view from each person's eyes at the same instant.
   apart (a second scene of the same phase: its session is one set per instant), each with every
   person's view; the first ``near_field_instants`` instants (counting set 0 of ``<phase>``)
   are also near-field instants;
-- ``eval_set.toml``: the manifest (format in ``protocol/eval_set.py``).
+- ``eval_set.toml``: the manifest (format in ``protocol/formats/eval_set.py``).
 
 The defaults are the paper's scale (issue 22): every phase at 5 instants 8 s apart, each with
 every person's view (60 egocentric views over the three phases that have people: setup 3,
@@ -38,7 +38,7 @@ import numpy as np
 
 from protocol import __version__
 from protocol.camera import Resolution
-from protocol.eval_set import SIM_COMMAND_MARK, EvalScene, EvalSet, ReferenceView
+from protocol.formats.eval_set import SIM_COMMAND_MARK, EvalScene, EvalSet, ReferenceView
 from protocol.images import encode_image
 from protocol.session import CameraInfo, SessionWriter
 from sim.phases import PHASES

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from protocol.camera import Camera, Intrinsics, Pose, Resolution
-from protocol.zed_conf import ZedFactoryCalibration, derive_intrinsics
+from protocol.formats.zed_conf import ZedFactoryCalibration, derive_intrinsics
 from sim.room import RoomSpec
 
 ZEDX_FX_HD1200_PX = 740.0

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from protocol.errors import UserError
-from protocol.site import SiteBox, site_toml, surface_points
-from protocol.trajectory import Keyframe, Trajectory, write_trajectories
+from protocol.formats.site import SiteBox, site_toml, surface_points
+from protocol.formats.trajectory import Keyframe, Trajectory, write_trajectories
 from sim.phases import PHASES
 from sim.timing import SIM_EPOCH_UNIX_NS
 from sim.world import World

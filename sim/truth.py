@@ -1,7 +1,7 @@
 """The simulator's true rig as a calibration, and how far an estimated calibration is from it.
 
 The calibration a user would get from a perfect wand session is the sim's own camera model: this
-module writes it in the product's calibration format (``protocol.rig_calibration``), so the
+module writes it in the product's calibration format (``protocol.formats.rig_calibration``), so the
 reconstructor can run on the truth before a wand calibration exists, and a wand calibration can
 be scored against it.
 """
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from protocol.camera import Camera, Pose, Resolution
-from protocol.rig_calibration import RigCalibration, SensorCalibration
+from protocol.formats.rig_calibration import RigCalibration, SensorCalibration
 from sim.render import SPHERE_OBJECT_BASE
 from sim.world import Render, World
 

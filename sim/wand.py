@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from protocol.camera import Camera
-from protocol.wand import WandSpec
+from protocol.formats.wand import WandSpec
 from sim.wand_tour import Tour, coverage_tour
 
 HANDLE_M = 0.25  # rod beyond the first sphere, where the operator holds it

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from protocol.camera import Camera, Intrinsics, Pose, Resolution
-from protocol.wand import WandSpec
+from protocol.formats.wand import WandSpec
 from sim.contact import contact_script
 from sim.geometry import Mesh, cylinder
 from sim.people import Person, PersonState, Waypoint, person_objects, person_state

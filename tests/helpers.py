@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from protocol.camera import Pose
-from protocol.rig_calibration import RigCalibration
+from protocol.formats.rig_calibration import RigCalibration
 
 if TYPE_CHECKING:
     from sim.deploy import SimRigSpec

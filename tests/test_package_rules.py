@@ -67,7 +67,7 @@ def _imported(path: Path, modules: dict[str, Path]) -> set[str]:
     where that is a module, else as ``a`` (a package's own ``__init__`` runs before its
     submodules, so the package a submodule sits in is not an edge). Imports under
     ``if TYPE_CHECKING:`` never run, so they close no cycle: they are how a helper module names
-    the class it serves (``recorder_start`` takes a ``Recorder``) without importing it."""
+    the class it serves (a helper module that takes the class it serves) without importing it."""
     name = _module_name(path)
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found: set[str] = set()
@@ -198,7 +198,8 @@ def test_every_module_the_dispatcher_names_imports_and_has_its_function(command)
 def test_protocol_and_the_command_import_without_heavy_libraries():
     """The agent runs on a Jetson: protocol/ and the egosurg dispatcher stay light."""
     snippet = (
-        "import sys, protocol.cli, protocol.zed_conf, protocol.camera, protocol.wand\n"
+        "import sys, protocol.cli, protocol.formats.zed_conf, protocol.camera\n"
+        "import protocol.formats.wand\n"
         "import capture_agent\n"
         "heavy = [m for m in ('torch', 'open3d', 'matplotlib', 'numba') if m in sys.modules]\n"
         "print(','.join(heavy))\n"

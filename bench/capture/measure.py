@@ -215,8 +215,13 @@ def summarize_py_spy(path: Path, top: int = 12) -> str:
         if any(
             k in f
             for k in (
-                "recorder.py",
-                "session.py",
+                "recorder.py",  # capture_agent/recorder/: the loop and its parts
+                "intake.py",
+                "recording.py",
+                "write_queue.py",
+                "write.py",  # protocol/session/: the writer, its datasets and chunk sink
+                "datasets.py",
+                "chunk_sink.py",
                 "sync.py",
                 "accounting.py",
                 "messages.py",

@@ -117,7 +117,7 @@ def run_step(job: ChainJob, step: StepJob, warm_from: str, progress: Any) -> Ste
 
 
 def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) -> dict[str, Any]:
-    from protocol.rig_calibration import RigCalibration
+    from protocol.formats.rig_calibration import RigCalibration
     from reconstructor.case import storage
     from reconstructor.case.index import CaseIndex
     from reconstructor.case.warm import WarmStartConfig, seed_from_previous

@@ -20,10 +20,10 @@ from pathlib import Path
 import numpy as np
 
 from protocol.camera import Camera, Intrinsics, Pose, Resolution
+from protocol.formats.rig_calibration import RigCalibration
+from protocol.formats.zed_conf import derive_intrinsics
 from protocol.images import EncodeError, decode_image
-from protocol.rig_calibration import RigCalibration
 from protocol.session import SessionInfo, SessionReader
-from protocol.zed_conf import derive_intrinsics
 from reconstructor.errors import ReconstructError
 
 log = logging.getLogger(__name__)

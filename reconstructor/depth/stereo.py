@@ -139,7 +139,8 @@ def check_stereo_calibration(left: Intrinsics, right: Intrinsics, right_from_lef
         raise StereoError(
             f"right_from_left has a baseline of {baseline_m * 1000:.1f} mm: the stereo pair is "
             "uncalibrated (an identity pose?). Use the camera's factory calibration "
-            "(SN<serial>.conf via protocol.zed_conf) or the rig calibration's left-to-right pose"
+            "(SN<serial>.conf via protocol.formats.zed_conf) or the rig calibration's "
+            "left-to-right pose"
         )
     if t_mm[0] >= 0 or abs(t_mm[0]) < 0.8 * np.linalg.norm(t_mm):
         raise StereoError(
@@ -268,7 +269,8 @@ def check_images(left_rgb: np.ndarray, right_rgb: np.ndarray, left: Intrinsics) 
     if (w, h) != (left.width_px, left.height_px):
         raise StereoError(
             f"images are {w}x{h} but the intrinsics are for {left.width_px}x{left.height_px}; "
-            "use the calibration of the recorded resolution (protocol.zed_conf.derive_intrinsics)"
+            "use the calibration of the recorded resolution "
+            "(protocol.formats.zed_conf.derive_intrinsics)"
         )
 
 

@@ -3,8 +3,9 @@
 Reconstructs the set's timestamps with each method of the paper's Tables 3/4 (depth
 reprojection, image-only 3DGS, EgoSurg w/o refinement, EgoSurg) and scores them against the
 held-out right cameras and the set's reference views. The set is read through
-``protocol.eval_set``: ``egosurg sim eval-set`` writes one for the simulated OR, with the exact
-view from each person's eyes; a site writes its point-of-view recordings with registered poses
+``protocol.formats.eval_set``: ``egosurg sim eval-set`` writes one for the simulated OR, with
+the exact view from each person's eyes; a site writes its point-of-view recordings with registered
+poses
 in the same format. See docs/evaluation.md for the protocols and metrics.
 
 Examples::
@@ -36,7 +37,7 @@ import shlex
 import time
 from pathlib import Path
 
-from protocol.eval_set import EvalSet
+from protocol.formats.eval_set import EvalSet
 from reconstructor.case.warm import WarmStartConfig
 from reconstructor.evaluation.methods import (
     METHODS,

@@ -18,7 +18,7 @@ import itertools
 import math
 from pathlib import Path
 
-from protocol.eval_set import SIM_COMMAND_MARK, EvalSet
+from protocol.formats.eval_set import SIM_COMMAND_MARK, EvalSet
 from reconstructor.evaluation.lpips import NO_WEIGHTS
 from reconstructor.evaluation.methods import PAPER_ORDER, PROTOCOLS
 from reconstructor.evaluation.tables import (

@@ -105,7 +105,7 @@ class EvalSettings:
     """Everything that decides an evaluation's numbers; printed in every table's header.
 
     The scenes, their instants and the reference views come from the evaluation set
-    (``protocol.eval_set``); ``scenes`` and ``phases`` only choose among its scenes.
+    (``protocol.formats.eval_set``); ``scenes`` and ``phases`` only choose among its scenes.
     """
 
     eval_set: str = ""  # the evaluation set's folder, as given

@@ -1,6 +1,6 @@
 """The paper's evaluation protocols on an evaluation set (paper, "Evaluation Protocols").
 
-The set (``protocol.eval_set``) says what there is to judge: per scene a session, its
+The set (``protocol.formats.eval_set``) says what there is to judge: per scene a session, its
 calibration, the sets (instants) to evaluate, consecutive sets for temporal stability and the
 reference views. Each protocol takes what the chosen scenes offer:
 
@@ -34,7 +34,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
-from protocol.eval_set import EvalScene, EvalSet, ReferenceView
+from protocol.formats.eval_set import EvalScene, EvalSet, ReferenceView
 from reconstructor.evaluation.methods import EvalSettings, EvaluationArgumentError
 
 log = logging.getLogger(__name__)

@@ -10,7 +10,7 @@ import logging
 import time
 from pathlib import Path
 
-from protocol.eval_set import EvalSet, EvalSetError
+from protocol.formats.eval_set import EvalSet, EvalSetError
 from reconstructor.depth.cache import DepthCache
 from reconstructor.evaluation.lpips import Lpips
 from reconstructor.evaluation.methods import METHODS, EvalSettings

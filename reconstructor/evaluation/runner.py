@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol.eval_set import EvalScene, EvalSet, ReferenceView
-from protocol.rig_calibration import RigCalibration
+from protocol.formats.eval_set import EvalScene, EvalSet, ReferenceView
+from protocol.formats.rig_calibration import RigCalibration
 from protocol.session import SessionReader
 from reconstructor.case.warm import WarmStartConfig, warm_config, warm_seed
 from reconstructor.config import ReconstructConfig

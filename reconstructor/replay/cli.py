@@ -18,7 +18,7 @@ import math
 from pathlib import Path
 
 from protocol.errors import UserError
-from protocol.trajectory import Trajectory, read_trajectories
+from protocol.formats.trajectory import Trajectory, read_trajectories
 from reconstructor.data.views import EYE_NEAR_M
 from reconstructor.errors import ReconstructError
 from reconstructor.raster.device import add_device_option, check_device
@@ -142,7 +142,7 @@ def main_replay(argv: list[str]) -> int:
 
 
 def main_sightline(argv: list[str]) -> int:
-    from protocol.site import read_site
+    from protocol.formats.site import read_site
     from reconstructor.replay.path import CameraPath
     from reconstructor.replay.sightline import parse_offset
     from reconstructor.replay.sightline_run import VISIBLE_ENOUGH, sightline
@@ -187,7 +187,7 @@ def main_sightline(argv: list[str]) -> int:
 
 def main_sterile(argv: list[str]) -> int:
     """``egosurg sterile CASE/ --field field.toml --out sterile/`` (docs/replay.md)."""
-    from protocol.site import read_site
+    from protocol.formats.site import read_site
     from reconstructor.replay.sterile import SterileConfig
     from reconstructor.replay.sterile_run import read_roles, sterile
 

@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from protocol.camera import Camera
-from protocol.rig_calibration import RigCalibration
+from protocol.formats.rig_calibration import RigCalibration
 from reconstructor.errors import ReconstructError
 from reconstructor.raster import RasterConfig, rasterize
 from reconstructor.splats.gaussians import Gaussians

@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from protocol.camera import Camera, Intrinsics, Pose
 from protocol.errors import UserError
-from protocol.trajectory import Trajectory
+from protocol.formats.trajectory import Trajectory
 
 
 class TrajectoryTimeError(UserError, ValueError):

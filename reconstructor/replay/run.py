@@ -18,7 +18,7 @@ import torch
 
 from protocol.camera import Camera
 from protocol.errors import UserError
-from protocol.rig_calibration import RigCalibration
+from protocol.formats.rig_calibration import RigCalibration
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.views import novel_view
 from reconstructor.raster import RasterConfig

@@ -4,7 +4,7 @@
 At each instant the viewer's eye comes from their trajectory. A camera at the eye, aimed at the
 target's centre and just wide enough to hold it, renders the case's model (our rasterizer) with
 its far plane just before the target: the opacity of what lies in front. Each sampled target
-point (``protocol.site.surface_points``: the faces that face the eye) is visible where that
+point (``protocol.formats.site.surface_points``: the faces that face the eye) is visible where that
 opacity is under one half. Aiming at the target, not where the head points, asks "could they
 see it by looking", the question of a review; ``in_view_fraction`` says whether the target was
 in their field of view then.
@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from protocol.camera import Camera, Intrinsics, Pose
-from protocol.site import SiteBox, surface_points
+from protocol.formats.site import SiteBox, surface_points
 from reconstructor.errors import ReconstructError
 from reconstructor.raster import RasterConfig
 from reconstructor.splats.gaussians import Gaussians

@@ -11,7 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from protocol.site import SiteBox
+from protocol.formats.site import SiteBox
 from reconstructor.data.views import EYE_NEAR_M
 from reconstructor.replay.models import CaseModels, CaseReplayError, ModelSource
 from reconstructor.replay.observed_case import CaseObserved

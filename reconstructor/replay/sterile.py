@@ -56,7 +56,7 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
-from protocol.site import SiteBox
+from protocol.formats.site import SiteBox
 from reconstructor.errors import ReconstructError
 
 

@@ -25,8 +25,8 @@ import cv2
 import numpy as np
 
 from protocol.camera import Camera, Intrinsics, Pose
-from protocol.rig_calibration import RigCalibration
-from protocol.site import SiteBox
+from protocol.formats.rig_calibration import RigCalibration
+from protocol.formats.site import SiteBox
 from reconstructor.case.storage import load_points
 from reconstructor.data.views import EYE_NEAR_M
 from reconstructor.replay.models import CaseModels, ModelSource
@@ -257,7 +257,7 @@ def _plot(path: Path, result: SterileResult, config: SterileConfig) -> None:
 
 
 def read_roles(path: str | None, sterile_roles: tuple[str, ...]) -> list[CameraPath]:
-    from protocol.trajectory import read_trajectories
+    from protocol.formats.trajectory import read_trajectories
 
     if path is None:
         if sterile_roles:

@@ -27,8 +27,8 @@ from typing import Any
 import numpy as np
 
 from protocol.errors import UserError
-from protocol.site import SiteBox, read_site
-from protocol.trajectory import Keyframe, Trajectory, read_trajectories
+from protocol.formats.site import SiteBox, read_site
+from protocol.formats.trajectory import Keyframe, Trajectory, read_trajectories
 from reconstructor.case.index import Entry
 from reconstructor.errors import ReconstructError
 from reconstructor.replay.models import CaseModels

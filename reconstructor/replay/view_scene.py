@@ -32,8 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from protocol.camera import Pose
-from protocol.site import SiteBox
-from protocol.trajectory import (
+from protocol.formats.site import SiteBox
+from protocol.formats.trajectory import (
     Keyframe,
     Trajectory,
     TrajectoryFileError,

@@ -43,7 +43,7 @@ from calibration.label import (
     refit_without_rod,
 )
 from protocol.camera import Camera, Intrinsics, Pose
-from protocol.wand import WandSpec
+from protocol.formats.wand import WandSpec
 from sim.render import SPHERE_OBJECT_BASE, FrameScene, Spheres, render_view
 from sim.sensor import SensorSpec, expose
 from sim.truth import (

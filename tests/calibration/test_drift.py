@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from calibration.drift import align_to
 from protocol.camera import Pose
-from protocol.rig_calibration import RigCalibration
+from protocol.formats.rig_calibration import RigCalibration
 from sim import World
 from sim.truth import true_rig_calibration
 from tests.helpers import moved_camera

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from protocol.camera import Pose
-from protocol.rig_calibration import RigCalibration
+from protocol.formats.rig_calibration import RigCalibration
+from protocol.formats.wand import WandSpec
 from protocol.session import CameraInfo, SessionReader, SessionWriter
-from protocol.wand import WandSpec
 from sim import World
 from sim.deploy import SimRigSpec
 from sim.truth import calibration_errors, true_rig_calibration

@@ -24,7 +24,7 @@ from calibration.exports import (
     undistorted_pinhole,
 )
 from protocol.camera import Camera, undistort_to_normalized
-from protocol.rig_calibration import CalibrationFileError, RigCalibration
+from protocol.formats.rig_calibration import CalibrationFileError, RigCalibration
 
 EXACT_PX = 1e-6
 

@@ -19,7 +19,7 @@ from calibration.report import (
     verdict,
 )
 from calibration.report_page import write_report
-from protocol.rig_calibration import RigCalibration
+from protocol.formats.rig_calibration import RigCalibration
 
 SPEC_MM = 450.0
 SPHERES_M = np.array([0.0, 0.150, 0.450])

@@ -21,8 +21,8 @@ from calibration.observations import WandObservations
 from calibration.solve import SolveConfig, SolveError, solve, thin_sets
 from protocol.camera import Intrinsics, Resolution
 from protocol.errors import ConfigError
-from protocol.rig_calibration import RigCalibration
-from protocol.wand import WandSpec
+from protocol.formats.rig_calibration import RigCalibration
+from protocol.formats.wand import WandSpec
 from sim.timing import SIM_EPOCH_UNIX_NS
 
 RES = Resolution.HD1200

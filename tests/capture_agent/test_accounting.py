@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from capture_agent.accounting import (
+from capture_agent.recorder.accounting import (
     MEDIAN_MIN_SAMPLES,
     NO_FRAME_INDEX,
     GapKind,
@@ -270,9 +270,9 @@ def test_stop_summary_session_info_and_summary_count_missing_members_alike(tmp_p
     Camera 12 loses frame 20 (one set of the take lacks it) and stops one frame before camera 11
     (the last window holds camera 11 alone: a partial window the take trims, so no set at all).
     """
-    from capture_agent.recording import Recording
-    from capture_agent.session_cli import summarise
-    from capture_agent.sync import SyncConfig, Synchroniser
+    from capture_agent.operator.session_cli import summarise
+    from capture_agent.recorder.recording import Recording
+    from capture_agent.recorder.sync import SyncConfig, Synchroniser
     from protocol.messages import FrameMessage
     from protocol.session import CameraInfo, SessionReader, SessionWriter
 

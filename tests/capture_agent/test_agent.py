@@ -9,7 +9,7 @@ import time
 import pytest
 import zmq
 
-from capture_agent.agent import Agent
+from capture_agent.agent.agent import Agent
 from capture_agent.config import NodeConfig
 from protocol.agent_info import AgentStatusReply
 from protocol.errors import ConfigError

@@ -27,7 +27,7 @@ def test_missing_and_broken_config_files(tmp_path):
 
 
 def test_no_recorder_answering(tmp_path, monkeypatch):
-    from capture_agent.keys_cli import generate
+    from capture_agent.operator.keys_cli import generate
 
     _, operator = generate(tmp_path / "keys", "operator")
     recorder, _ = generate(tmp_path / "keys", "recorder")

@@ -20,10 +20,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from capture_agent.config import RigConfig
-from capture_agent.console import Rig, namespace
-from capture_agent.keys_cli import generate
-from capture_agent.recorder import Recorder
-from capture_agent.rig_client import CommandRefusedError, RigClient
+from capture_agent.operator.console import Rig, namespace
+from capture_agent.operator.keys_cli import generate
+from capture_agent.operator.rig_client import CommandRefusedError, RigClient
+from capture_agent.recorder.recorder import Recorder
 from protocol.agent_info import AgentReplyError, AgentStatusReply
 from protocol.session import SessionReader
 from sim.deploy import free_ports

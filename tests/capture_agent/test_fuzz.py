@@ -78,7 +78,7 @@ def test_random_bytes_are_rejected_by_every_json_decoder(raw, kind):
 @pytest.fixture(scope="module")
 def recorder_control(tmp_path_factory):
     """A real recorder, its I/O thread running, plaintext links, no agent streaming."""
-    from capture_agent.recorder import Recorder
+    from capture_agent.recorder.recorder import Recorder
 
     cfg = loopback_rig_config(tmp_path_factory.mktemp("fuzz-rec") / "sessions", rig_name="fuzz")
     recorder = Recorder(cfg)
@@ -94,7 +94,7 @@ def recorder_control(tmp_path_factory):
 @pytest.fixture(scope="module")
 def agent_control():
     """A real agent with one simulated camera, plaintext links."""
-    from capture_agent.agent import Agent
+    from capture_agent.agent.agent import Agent
 
     fport, cport = free_ports(2)
     table = {

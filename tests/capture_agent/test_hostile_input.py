@@ -30,12 +30,12 @@ import numpy as np
 import pytest
 import zmq
 
-from capture_agent.agent import Agent
+from capture_agent.agent.agent import Agent
 from capture_agent.config import AgentEndpoint, NodeConfig, RigConfig, SecurityConfig
-from capture_agent.control import format_status, format_summary
 from capture_agent.daemon import Progress, run_until_signal
-from capture_agent.recorder import MAX_UNLISTED_CAMERAS, Recorder, StartRefused
-from capture_agent.sync import SyncConfig, Synchroniser, group_offline
+from capture_agent.operator.control import format_status, format_summary
+from capture_agent.recorder.recorder import MAX_UNLISTED_CAMERAS, Recorder, StartRefused
+from capture_agent.recorder.sync import SyncConfig, Synchroniser, group_offline
 from protocol.messages import MAX_JSON_BYTES, ControlReply, ControlRequest, FrameMessage
 from protocol.session import SessionReader
 from sim.deploy import free_ports

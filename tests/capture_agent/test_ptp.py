@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from capture_agent.ptp import (
+from capture_agent.agent.ptp import (
     PtpConfig,
     PtpMonitor,
     PtpStatus,

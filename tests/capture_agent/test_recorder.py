@@ -12,16 +12,15 @@ import numpy as np
 import pytest
 import zmq
 
-from capture_agent.accounting import StreamAccounting
 from capture_agent.config import RigConfig
-from capture_agent.control import format_status, format_summary
-from capture_agent.recorder import RECEIVE_QUEUE_S, CameraLive, Recorder, receive_hwm
-from capture_agent.recording import Recording
-from capture_agent.session_queue import WriteQueue
-from capture_agent.sync import SyncConfig, Synchroniser
-from protocol import chunk_sink
+from capture_agent.operator.control import format_status, format_summary
+from capture_agent.recorder.accounting import StreamAccounting
+from capture_agent.recorder.recorder import RECEIVE_QUEUE_S, CameraLive, Recorder, receive_hwm
+from capture_agent.recorder.recording import Recording
+from capture_agent.recorder.sync import SyncConfig, Synchroniser
+from capture_agent.recorder.write_queue import WriteQueue
 from protocol.messages import ControlReply, ControlRequest, FrameMessage
-from protocol.session import CameraInfo, SessionReader, SessionWriter
+from protocol.session import CameraInfo, SessionReader, SessionWriter, chunk_sink
 from tests.helpers import loopback_rig_config
 
 FPS = 30.0
@@ -216,7 +215,7 @@ def test_a_disk_full_for_a_moment_loses_only_the_frames_it_refused(queued, monke
 def test_a_recording_that_cannot_write_for_long_stops_with_the_reason(queued, monkeypatch):
     """A disk that stays full stops the take (not the recorder), and the file keeps every frame
     of the last good flush."""
-    from capture_agent import recorder as recorder_module
+    from capture_agent.recorder import recorder as recorder_module
 
     recorder, take = queued
     full = _disk_full(monkeypatch)
@@ -436,7 +435,7 @@ def test_a_stop_while_the_disk_stalls_answers_and_the_file_closes_when_it_return
 ):
     """The stop answers within its budget, counting the frames it could not write; the writer
     thread closes the file (cleanly, with the final counts) once the disk answers again."""
-    from capture_agent import recorder as recorder_module
+    from capture_agent.recorder import recorder as recorder_module
 
     recorder, take = queued
     stalled, _ = _disk(monkeypatch)

@@ -15,11 +15,11 @@ from pathlib import Path
 import pytest
 import zmq
 
-from capture_agent.agent import Agent
+from capture_agent.agent.agent import Agent
 from capture_agent.config import NodeConfig, RigConfig
-from capture_agent.keys_cli import generate
-from capture_agent.recorder import Recorder
-from capture_agent.rig_client import RigClient
+from capture_agent.operator.keys_cli import generate
+from capture_agent.operator.rig_client import RigClient
+from capture_agent.recorder.recorder import Recorder
 from capture_agent.security import LinkSecurity
 from protocol.errors import ConfigError
 from protocol.messages import AgentStatus, ControlReply, ControlRequest, FrameMessage, PtpState

@@ -33,8 +33,8 @@ from capture_agent.sources.sim_source import (
 from capture_agent.sources.zed_source import ZedSource
 from protocol.camera import Resolution
 from protocol.errors import ConfigError, UserError
+from protocol.formats.zed_conf import ZedFactoryCalibration
 from protocol.images import decode_image
-from protocol.zed_conf import ZedFactoryCalibration
 
 REPO = Path(__file__).resolve().parents[2]
 FAKES = Path(__file__).resolve().parents[1] / "fakes"
@@ -278,7 +278,7 @@ def test_sources_import_without_the_simulator_or_the_sdk():
     """The agent on a Jetson imports every backend module but sim's without sim/ or numba."""
     snippet = (
         "import sys\n"
-        "import capture_agent.sources, capture_agent.ptp, protocol.images\n"
+        "import capture_agent.sources, capture_agent.agent.ptp, protocol.images\n"
         "from capture_agent.sources import zed_source, video_source\n"
         "bad = [m for m in ('sim', 'numba', 'torch', 'open3d', 'pyzed') if m in sys.modules]\n"
         "print(','.join(bad))\n"

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from capture_agent.sync import (
+from capture_agent.recorder.sync import (
     MISSING,
     SyncConfig,
     SyncedSet,

@@ -18,8 +18,8 @@ import zmq
 import zmq.auth
 
 from capture_agent.config import RigConfig
-from capture_agent.recorder import Recorder
-from capture_agent.rig_client import CommandRefusedError, RigClient
+from capture_agent.operator.rig_client import CommandRefusedError, RigClient
+from capture_agent.recorder.recorder import Recorder
 from capture_agent.sources.sim_source import SimSource, SimSourceConfig
 from protocol.messages import (
     Encoding,
@@ -258,7 +258,7 @@ def test_recording_stops_cleanly_before_the_disk_fills(rig, tmp_path, small_disk
 
 def test_malformed_messages_are_counted_and_the_receiver_keeps_going(rig, tmp_path):
     from capture_agent.config import AgentEndpoint
-    from capture_agent.keys_cli import generate
+    from capture_agent.operator.keys_cli import generate
 
     ctx = zmq.Context.instance()
     rogue = ctx.socket(zmq.PUB)
@@ -367,7 +367,7 @@ def test_a_killed_agent_leaves_a_recorded_gap_and_spares_the_others(rig):
 
 def test_operator_console_rig_object(rig):
     """What `egosurg shell` gives the operator: a connected rig with readable results."""
-    from capture_agent.console import Rig
+    from capture_agent.operator.console import Rig
 
     console_rig = Rig(RigClient.connect(config=str(rig.files.rig_config)))
     text = repr(console_rig.status())

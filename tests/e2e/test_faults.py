@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 import zmq
 
-from capture_agent.control import format_status
+from capture_agent.operator.control import format_status
 from protocol.messages import ControlReply, ControlRequest
 from protocol.session import GapKind, SessionReader
 from sim.deploy import SimRig, SimRigSpec, free_ports, write_sim_rig

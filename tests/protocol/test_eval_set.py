@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from protocol.eval_set import EvalSet, EvalSetError
+from protocol.formats.eval_set import EvalSet, EvalSetError
+from protocol.formats.rig_calibration import RigCalibration
 from protocol.images import decode_image
-from protocol.rig_calibration import RigCalibration
 from protocol.session import SessionReader
 from sim import World
 from sim.timing import SIM_EPOCH_UNIX_NS

@@ -252,7 +252,7 @@ def test_a_failed_write_loses_nothing_and_is_reported_before_more_is_recorded(
     """Disk full while chunks are queued: the flush says so, appends are refused before they
     change anything until a flush succeeds, and once there is room again every frame is in the
     file, the frames whose chunks failed included."""
-    from protocol import chunk_sink
+    from protocol.session import chunk_sink
 
     path = tmp_path / "s.h5"
     real = chunk_sink._pwrite
@@ -590,7 +590,7 @@ def test_a_file_system_that_refuses_direct_io_gets_the_bytes_through_the_cache(
     on through the page cache, losing nothing."""
     import errno
 
-    from protocol import chunk_sink
+    from protocol.session import chunk_sink
 
     real = chunk_sink._pwrite
     refused: list[int] = []
@@ -621,7 +621,7 @@ def test_a_file_system_that_refuses_direct_io_gets_the_bytes_through_the_cache(
 def test_a_dataset_that_cannot_grow_loses_that_frames_row_and_nothing_else(tmp_path, monkeypatch):
     """Growing a byte dataset fails (the file system refuses HDF5's allocation): that append
     raises SessionWriteError and its frame gets no row; later frames are stored right."""
-    from protocol import session_write
+    from protocol.session import write as session_write
 
     real = session_write._Blob._file_offset
     failures = iter([True])

@@ -25,8 +25,8 @@ import pytest
 import zmq
 
 from protocol.session import SessionFormatError, SessionReader, SessionWriter
-from protocol.session_privacy import make_private_dir
-from protocol.session_recover import recover_session
+from protocol.session.privacy import make_private_dir
+from protocol.session.recover import recover_session
 from tests.conftest import REPO, run_egosurg
 from tests.protocol.test_session import _cameras, _image, _write_session, _writer
 
@@ -171,7 +171,7 @@ def test_a_damaged_string_heap_is_refused_without_hanging(clean, tmp_path, monke
     """Damage in HDF5's global heap (the string attributes; no checksum) made HDF5 loop forever
     inside the first attribute read. The reader's first open reads the metadata in a child with
     a time limit, so the file is refused with a clear error and the caller never hangs."""
-    from protocol import session_probe
+    from protocol.session import probe as session_probe
 
     monkeypatch.setattr(session_probe, "PROBE_STALL_S", 3.0)  # the default is 10 s
     data = bytearray(clean.read_bytes())
@@ -189,7 +189,7 @@ def test_a_damaged_string_heap_is_refused_without_hanging(clean, tmp_path, monke
 def test_a_damaged_string_heap_is_refused_too_while_other_threads_run(clean, tmp_path, monkeypatch):
     """With other threads running the probe is a new interpreter, not a fork (a fork could copy
     a lock another thread holds): the same refusal, and a healthy file still opens."""
-    from protocol import session_probe
+    from protocol.session import probe as session_probe
 
     monkeypatch.setattr(session_probe, "PROBE_STALL_S", 3.0)
     data = bytearray(clean.read_bytes())

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from protocol.camera import Resolution
-from protocol.zed_conf import ConfFormatError, ZedFactoryCalibration
+from protocol.formats.zed_conf import ConfFormatError, ZedFactoryCalibration
 
 # A file in the layout the ZED SDK writes for a ZED X, including keys EgoSurg does not use.
 REAL_LAYOUT = """[LEFT_CAM_FHD1200]

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from protocol.rig_calibration import RigCalibration
+from protocol.formats.rig_calibration import RigCalibration
 from reconstructor.case import storage
 from reconstructor.case.index import CaseIndex, Entry, checksum_file
 from reconstructor.case.warm import WarmStartConfig, seed_from_previous, warm_config

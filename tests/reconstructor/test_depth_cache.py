@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import pytest
 
-from protocol.rig_calibration import RigCalibration
+from protocol.formats.rig_calibration import RigCalibration
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import load_timestamp
 from reconstructor.depth.cache import DepthCache, describe_made_by, stage_key

@@ -19,8 +19,8 @@ import pytest
 import torch
 
 from protocol.cli import main as egosurg
-from protocol.eval_set import EvalSet, EvalSetError
-from protocol.rig_calibration import RigCalibration
+from protocol.formats.eval_set import EvalSet, EvalSetError
+from protocol.formats.rig_calibration import RigCalibration
 from reconstructor.evaluation.doc import measured_order, order_holds
 from reconstructor.evaluation.lpips import LpipsWeightsError, backbone_state_dict, load_lpips
 from reconstructor.evaluation.methods import PROTOCOLS, EvalSettings, EvaluationArgumentError

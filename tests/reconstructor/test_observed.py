@@ -15,9 +15,9 @@ import pytest
 import torch
 
 from protocol.camera import Camera, Intrinsics, Pose
-from protocol.rig_calibration import RigCalibration, SensorCalibration
-from protocol.site import SiteBox, site_toml
-from protocol.trajectory import Keyframe, Trajectory, write_trajectories
+from protocol.formats.rig_calibration import RigCalibration, SensorCalibration
+from protocol.formats.site import SiteBox, site_toml
+from protocol.formats.trajectory import Keyframe, Trajectory, write_trajectories
 from reconstructor.case.index import CaseIndex, Entry, checksum_file
 from reconstructor.raster import RasterConfig
 from reconstructor.replay.observed import (

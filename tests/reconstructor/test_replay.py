@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from protocol.camera import Pose
-from protocol.site import read_site
-from protocol.trajectory import Keyframe, Trajectory, read_trajectories, write_trajectories
+from protocol.formats.site import read_site
+from protocol.formats.trajectory import Keyframe, Trajectory, read_trajectories, write_trajectories
 from reconstructor.replay.models import CaseModels, ModelSource
 from reconstructor.replay.path import CameraPath
 from sim.eval_set import EvalSetSpec, write_eval_set

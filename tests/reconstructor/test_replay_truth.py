@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bench.bench_sightline import true_surface_gaussians
-from protocol.site import SiteBox
+from protocol.formats.site import SiteBox
 from reconstructor.raster import RasterConfig
 from reconstructor.replay.path import CameraPath
 from reconstructor.replay.sightline import HEAD_CLEARANCE_M, parse_offset, visible_fraction

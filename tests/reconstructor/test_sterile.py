@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from protocol.site import SiteBox, site_toml
+from protocol.formats.site import SiteBox, site_toml
 from reconstructor.case.index import CaseIndex, Entry, checksum_file
 from reconstructor.replay.sterile import (
     Instant,
@@ -89,7 +89,7 @@ def egosurg(capsys, *args: str) -> tuple[int, str]:
 
 @pytest.fixture(scope="module")
 def truth_case(tmp_path_factory) -> dict:
-    from protocol.trajectory import write_trajectories
+    from protocol.formats.trajectory import write_trajectories
 
     root = tmp_path_factory.mktemp("sterile")
     world = World.from_seed(3, phase="intraoperative", contact=True)
@@ -148,7 +148,7 @@ def test_without_the_scripted_contact_no_contact_is_reported(tmp_path, capsys):
     world = World.from_seed(3, phase="intraoperative")
     times = TIMES_S[:3]
     write_truth_case(tmp_path / "case", world, times)
-    from protocol.trajectory import write_trajectories
+    from protocol.formats.trajectory import write_trajectories
 
     write_trajectories(tmp_path / "roles.toml", role_trajectories(world, np.array(times)))
     (tmp_path / "field.toml").write_text(site_toml([DRAPE_FIELD]))

@@ -31,7 +31,7 @@ import numpy as np
 import pytest
 import torch
 
-from protocol.trajectory import (
+from protocol.formats.trajectory import (
     Keyframe,
     Trajectory,
     matrix_from_quat_wxyz,
@@ -362,7 +362,7 @@ def test_bad_input_is_one_line_and_exit_2(case, tmp_path):
 
 
 def test_role_cameras_and_site_boxes_are_drawn(case, tmp_path):
-    from protocol.site import SiteBox, site_toml
+    from protocol.formats.site import SiteBox, site_toml
 
     roles = tmp_path / "roles.toml"
     write_trajectories(roles, [Trajectory(name="surgeon", keyframes=(

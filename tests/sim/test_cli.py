@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from protocol.zed_conf import ZedFactoryCalibration
+from protocol.formats.zed_conf import ZedFactoryCalibration
 from tests.helpers import run_egosurg
 
 
@@ -61,7 +61,7 @@ def test_factory_and_wand_files(tmp_path):
     assert len(confs) == 4
     out = run_egosurg("sim", "wand-file", "--out", str(tmp_path / "wand.toml"))
     assert out.returncode == 0
-    from protocol.wand import WandSpec
+    from protocol.formats.wand import WandSpec
 
     assert WandSpec.read(tmp_path / "wand.toml") == WandSpec()
 
@@ -153,7 +153,9 @@ def test_bad_input_gets_one_clear_line_not_a_traceback(tmp_path, args, words):
 def test_malformed_conf_is_reported_by_name(tmp_path):
     bad = tmp_path / "SN123.conf"
     bad.write_text("[LEFT_CAM_FHD1200]\nfx=abc\n")
-    snippet = f"from protocol.zed_conf import ZedFactoryCalibration as Z\nZ.read({str(bad)!r})\n"
+    snippet = (
+        f"from protocol.formats.zed_conf import ZedFactoryCalibration as Z\nZ.read({str(bad)!r})\n"
+    )
     import subprocess
     import sys
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from protocol.camera import Camera, Pose, Resolution
-from protocol.zed_conf import ZedFactoryCalibration
+from protocol.formats.zed_conf import ZedFactoryCalibration
 from sim.render import ray_directions
 
 

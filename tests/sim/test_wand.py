@@ -73,7 +73,7 @@ def test_no_wand_outside_a_wand_session(world):
 
 @pytest.mark.parametrize("bad", [(0.0, 100.0, 110.0), (0.0, 150.0, 100.0), (0.0, 20.0, 400.0)])
 def test_bad_wand_geometry_is_refused(bad):
-    from protocol.wand import WandSpec, WandSpecError
+    from protocol.formats.wand import WandSpec, WandSpecError
 
     with pytest.raises(WandSpecError):
         WandSpec(sphere_positions_mm=bad)

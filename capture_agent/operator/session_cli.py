@@ -30,7 +30,7 @@ import numpy as np
 from protocol.errors import UserError
 from protocol.images import decode_image
 from protocol.session import GapKind, SessionFormatError, SessionReader
-from protocol.session_recover import recover_session
+from protocol.session.recover import recover_session
 from protocol.set_counts import missing_in_sets
 
 

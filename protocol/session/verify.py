@@ -14,7 +14,7 @@ import h5py
 import numpy as np
 import xxhash
 
-from protocol.session_format import GAP_COLUMNS, GapKind
+from protocol.session.format import GAP_COLUMNS, GapKind
 
 # The SessionReader being verified (not imported: session_read imports this module).
 SessionReader = Any

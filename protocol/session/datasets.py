@@ -1,4 +1,4 @@
-"""The HDF5 datasets a session file is made of, for ``protocol.session_write``: ``_Blob``, an
+"""The HDF5 datasets a session file is made of, for ``protocol.session.write``: ``_Blob``, an
 append-only byte dataset written one whole chunk at a time through the file's ``ChunkSink``;
 ``_CameraWriter``, one camera's frame tables and its two blobs; and the helpers that create the
 tables and blobs and append a flush's rows with low-level calls (``docs/session.md``, layout).
@@ -12,8 +12,8 @@ import h5py
 import numpy as np
 import xxhash
 
-from protocol.chunk_sink import DIRECT_ALIGN_BYTES, ChunkSink
-from protocol.session_format import (
+from protocol.session.chunk_sink import DIRECT_ALIGN_BYTES, ChunkSink
+from protocol.session.format import (
     FRAME_COLUMNS,
     TABLE_CHUNK_ROWS,
     CameraInfo,

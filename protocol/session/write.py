@@ -6,14 +6,15 @@ layout.
 Speed. The image bytes are the load (about 70 MB/s on the reference rig, many times that when a
 recorder catches up): each camera side's bytes are gathered into whole chunks, which a
 ``ChunkSink`` writes at their place in the file from a thread of its own, with direct I/O where
-the file system allows it (``protocol.chunk_sink`` says why and what it measured). HDF5 keeps
-the layout: the byte datasets allocate their chunks as they grow (their extent is a capacity;
+the file system allows it (``protocol.session.chunk_sink`` says why and what it measured).
+HDF5 keeps the layout: the byte datasets allocate their chunks as they grow (their extent is a
+capacity;
 the logical end is the last offset + length) and are trimmed at a clean close. The file is
 opened without a chunk cache (``rdcc_nbytes=0``): the tables' chunks are only appended to, so a
 cache would only add a copy. The small tables are written once per flush.
 
 The datasets themselves (the chunk-writing byte blobs, a camera's tables, the low-level row
-appends) live in ``protocol.session_datasets``; this module owns the file, its layout and the
+appends) live in ``protocol.session.datasets``; this module owns the file, its layout and the
 ``SessionWriter`` API.
 """
 
@@ -31,14 +32,14 @@ from typing import Any
 import h5py
 import numpy as np
 
-from protocol.chunk_sink import DIRECT_ALIGN_BYTES, ChunkSink
-from protocol.session_datasets import (
+from protocol.session.chunk_sink import DIRECT_ALIGN_BYTES, ChunkSink
+from protocol.session.datasets import (
     _append_rows,
     _CameraWriter,
     _create_table,
 )
-from protocol.session_datasets import _Blob as _Blob  # where tests and profiles look for it
-from protocol.session_format import (
+from protocol.session.datasets import _Blob as _Blob  # where tests and profiles look for it
+from protocol.session.format import (
     BLOB_CHUNK_BYTES,
     FORMAT,
     FORMAT_VERSION,
@@ -50,7 +51,7 @@ from protocol.session_format import (
     GapKind,
     SessionWriteError,
 )
-from protocol.session_privacy import create_private_file, redact_secrets
+from protocol.session.privacy import create_private_file, redact_secrets
 
 logger = logging.getLogger(__name__)
 
@@ -82,10 +83,11 @@ class SessionWriter:
         take_part: int = 1,
     ) -> None:
         """``direct_io``: write the image chunks past the page cache (``O_DIRECT``); None does
-        where the file system allows it (see ``protocol.chunk_sink``). ``previous_session_file``
-        and ``take_part``: a take resumed after the recorder was killed links its new file to the
+        where the file system allows it (see ``protocol.session.chunk_sink``).
+        ``previous_session_file`` and ``take_part``: a take resumed after the recorder was killed
+        links its new file to the
         previous part (its file name, same folder). ``rig_config_text`` is stored without any key
-        material (``protocol.session_privacy``); the file is created with mode 0600."""
+        material (``protocol.session.privacy``); the file is created with mode 0600."""
         self._path = Path(path)
         serials = [c.camera_serial for c in cameras]
         if not serials:

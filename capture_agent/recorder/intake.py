@@ -1,6 +1,7 @@
 """What the recorder's I/O thread does with each message an agent publishes
-(``capture_agent/recorder.py``): decode it, check that it comes from the agent whose node and
-cameras it names, keep the camera table (``CameraLive``, bounded by rig.toml) and refuse frames
+(``capture_agent/recorder/recorder.py``): decode it, check that it comes from the agent whose
+node and cameras it names, keep the camera table (``CameraLive``, bounded by rig.toml) and refuse
+frames
 stamped too far from the recorder's clock. Every refusal is counted on the recorder and logged,
 rate-limited; no message is kept after it is handled."""
 
@@ -23,7 +24,7 @@ from protocol.messages import (
 from protocol.safe_text import safe_text
 
 if TYPE_CHECKING:
-    from capture_agent.recorder import Recorder
+    from capture_agent.recorder.recorder import Recorder
 
 log = logging.getLogger(__name__)
 

@@ -29,10 +29,10 @@ from dataclasses import dataclass, field
 
 import zmq
 
+from capture_agent.agent.ptp import PtpConfig, PtpMonitor, PtpStatus
 from capture_agent.config import CameraEntry, NodeConfig
 from capture_agent.control_server import ControlServer, Refused
 from capture_agent.daemon import Progress, run_until_signal
-from capture_agent.ptp import PtpConfig, PtpMonitor, PtpStatus
 from capture_agent.security import CONTROL_MAX_BYTES, SUBSCRIPTION_MAX_BYTES, LinkGuard, harden
 from capture_agent.sources import make_source
 from capture_agent.sources.base import CameraSource, CameraUnavailableError, GrabbedFrame

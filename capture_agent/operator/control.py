@@ -16,7 +16,7 @@ import argparse
 import json
 from typing import Any
 
-from capture_agent.rig_client import RigClient
+from capture_agent.operator.rig_client import RigClient
 from protocol.errors import UserError
 from protocol.safe_text import safe_text as _t  # every string from the recorder, terminal-safe
 

@@ -3,7 +3,7 @@ operator console's ``rig`` object.
 
 Example::
 
-    from capture_agent.rig_client import RigClient
+    from capture_agent.operator.rig_client import RigClient
     rig = RigClient.connect(config="/etc/egosurg/rig.toml")   # address and keys from rig.toml
     rig.start("case-0042", surgeon="A. Smith")
     rig.status()["cameras"]

@@ -12,8 +12,9 @@ of them (disk reserve, time), counted per camera in ``not_written_at_stop``; fra
 it are not part of the take, and ``passed_stop`` collects the cameras that sent one (so nothing
 earlier can come from them any more).
 
-Writing happens on the recording's writer thread (``capture_agent/session_queue.py``): the I/O
-thread only queues frames, gap records, sets, flushes and the close, so a stalling disk never
+Writing happens on the recording's writer thread (``capture_agent/recorder/write_queue.py``):
+the I/O thread only queues frames, gap records, sets, flushes and the close, so a stalling disk
+never
 stops it. While the queue (``write_queue_bytes``) is full, frames are refused and counted per
 camera in ``not_written_disk_stalled``; the synchroniser sees only the frames queued, and the
 writer thread maps the sets' frames to file rows (a frame it could not write is a missing member).
@@ -34,9 +35,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from capture_agent.accounting import StreamAccounting
-from capture_agent.session_queue import WriteQueue
-from capture_agent.sync import SyncedSet, Synchroniser
+from capture_agent.recorder.accounting import StreamAccounting
+from capture_agent.recorder.sync import SyncedSet, Synchroniser
+from capture_agent.recorder.write_queue import WriteQueue
 from protocol.messages import FrameMessage
 from protocol.session import SessionWriteError, SessionWriter
 

@@ -1,5 +1,6 @@
-"""A recording's start (``capture_agent/recorder.py``'s ``start`` verb, on its I/O thread): the
-checks of the start's arguments (``start_args``), of the cameras, PTP and the disk, the agents'
+"""A recording's start (``capture_agent/recorder/recorder.py``'s ``start`` verb, on its I/O
+thread): the checks of the start's arguments (``start_args``), of the cameras, PTP and the disk,
+the agents'
 camera infos stored in the session (``camera_infos``, each reply checked against the contract,
 ``protocol/agent_info.py``), and the creation of the session file and its ``Recording``. A start
 that cannot go ahead raises ``StartRefused`` with the reason and what to do."""
@@ -15,13 +16,13 @@ from typing import TYPE_CHECKING, Any
 
 import zmq
 
-from capture_agent.accounting import StreamAccounting
 from capture_agent.control_server import Refused
-from capture_agent.recorder_take import take_started
-from capture_agent.recording import Recording
+from capture_agent.recorder.accounting import StreamAccounting
+from capture_agent.recorder.recording import Recording
+from capture_agent.recorder.sync import SyncConfig, Synchroniser
+from capture_agent.recorder.take import take_started
+from capture_agent.recorder.write_queue import open_writer
 from capture_agent.security import CONTROL_MAX_BYTES, harden, make_client
-from capture_agent.session_queue import open_writer
-from capture_agent.sync import SyncConfig, Synchroniser
 from protocol import __version__
 from protocol.agent_info import AgentReplyError, AgentStatusReply
 from protocol.messages import ControlReply, ControlRequest, MalformedMessageError
@@ -29,7 +30,7 @@ from protocol.safe_text import brief, unsafe_character
 from protocol.session import CameraInfo, SessionWriter
 
 if TYPE_CHECKING:
-    from capture_agent.recorder import Recorder
+    from capture_agent.recorder.recorder import Recorder
 
 log = logging.getLogger(__name__)
 

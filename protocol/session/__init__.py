@@ -29,18 +29,18 @@ Speed. Image bytes are assembled into whole chunks and written past HDF5's chunk
 byte datasets grow geometrically (their extent is a capacity; the logical end is the last
 offset + length) and are trimmed at a clean close. The small tables are written once per flush.
 
-Damaged files give a ``SessionFormatError``, never a hang (``protocol.session_open``);
-``protocol.session_recover`` copies what is intact into a new file; files are owner-only and
-hold no keys (``protocol.session_privacy``).
+Damaged files give a ``SessionFormatError``, never a hang (``protocol.session.open``);
+``protocol.session.recover`` copies what is intact into a new file; files are owner-only and
+hold no keys (``protocol.session.privacy``).
 
-The code lives in three modules, all re-exported here: ``protocol.session_format`` (names,
-types, errors), ``protocol.session_write`` (``SessionWriter``) and ``protocol.session_read``
+The code lives in three modules, all re-exported here: ``protocol.session.format`` (names,
+types, errors), ``protocol.session.write`` (``SessionWriter``) and ``protocol.session.read``
 (``SessionReader``).
 """
 
 from __future__ import annotations
 
-from protocol.session_format import (
+from protocol.session.format import (
     BLOB_CHUNK_BYTES,
     CHECKSUM_COLUMNS,
     ENCODINGS,
@@ -58,8 +58,8 @@ from protocol.session_format import (
     SessionWriteError,
     SetTable,
 )
-from protocol.session_read import SessionReader
-from protocol.session_write import SessionWriter
+from protocol.session.read import SessionReader
+from protocol.session.write import SessionWriter
 
 __all__ = [
     "BLOB_CHUNK_BYTES",

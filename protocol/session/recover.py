@@ -30,9 +30,9 @@ import h5py
 import numpy as np
 import xxhash
 
-from protocol.session_format import GAP_COLUMNS, GapKind, SessionFormatError
-from protocol.session_read import _READ_ERRORS, SessionReader
-from protocol.session_write import SessionWriter
+from protocol.session.format import GAP_COLUMNS, GapKind, SessionFormatError
+from protocol.session.read import _READ_ERRORS, SessionReader
+from protocol.session.write import SessionWriter
 
 logger = logging.getLogger(__name__)
 

@@ -51,9 +51,9 @@ from typing import Any
 import numpy as np
 
 from protocol.camera import Camera
-from protocol.camera_toml import camera_lines, read_camera
-from protocol.camera_toml import toml_value as _v
 from protocol.errors import UserError
+from protocol.formats.camera_toml import camera_lines, read_camera
+from protocol.formats.camera_toml import toml_value as _v
 
 EVAL_SET_FORMAT_VERSION = 1
 EVAL_SET_FILE = "eval_set.toml"

@@ -18,7 +18,7 @@ Two things HDF5 does differently in that mode made damaged files hang the tools:
    does not wrap, through ctypes on the HDF5 library h5py has loaded.
 
 Neither bounds damage in metadata without a checksum, above all HDF5's global heap (every string
-attribute), whose parser can loop forever; so ``protocol.session_probe.open_hdf5`` first reads
+attribute), whose parser can loop forever; so ``protocol.session.probe.open_hdf5`` first reads
 all of a file's metadata in a child process with a time limit, and opens it with
 ``open_unprobed`` only after that finished (imports run one way: the probe uses this module,
 not the reverse). Where the ctypes binding cannot be found (not Linux, or an h5py that links
@@ -36,7 +36,7 @@ from pathlib import Path
 
 import h5py
 
-from protocol.session_format import SessionFormatError
+from protocol.session.format import SessionFormatError
 
 logger = logging.getLogger(__name__)
 

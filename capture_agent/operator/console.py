@@ -17,8 +17,8 @@ the rig refuses (a camera not streaming, nothing to stop, no recorder answering)
 streaming: ...``, and which is false in an ``if``. Why not an exception: at a console an operator
 reads answers, and a traceback for "not recording; nothing to stop" reads like a crash of the
 rig; the reason is what they need, in the words the CLI uses. Scripts that want exceptions use
-``capture_agent.rig_client.RigClient``, which raises ``CommandRefusedError``. Mistakes in the
-Python itself (a misspelt method, a wrong argument) still show Python's own error.
+``capture_agent.operator.rig_client.RigClient``, which raises ``CommandRefusedError``.
+Mistakes in the Python itself (a misspelt method, a wrong argument) still show Python's own error.
 """
 
 from __future__ import annotations
@@ -29,8 +29,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from capture_agent.control import format_started, format_status, format_summary
-from capture_agent.rig_client import RigClient
+from capture_agent.operator.control import format_started, format_status, format_summary
+from capture_agent.operator.rig_client import RigClient
 from protocol.errors import UserError
 
 BANNER = """EgoSurg operator console. The object 'rig' is connected to {url}:

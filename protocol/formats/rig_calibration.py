@@ -44,9 +44,9 @@ from typing import Any
 
 from protocol import __version__
 from protocol.camera import Camera, Intrinsics, Pose, Resolution
-from protocol.camera_toml import camera_lines, read_camera
-from protocol.camera_toml import toml_value as _v
 from protocol.errors import UserError
+from protocol.formats.camera_toml import camera_lines, read_camera
+from protocol.formats.camera_toml import toml_value as _v
 
 CALIBRATION_FORMAT_VERSION = 1
 

@@ -27,7 +27,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from protocol.session_privacy import FILE_MODE
+from protocol.session.privacy import FILE_MODE
 
 log = logging.getLogger(__name__)
 

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 from protocol.safe_text import safe_text
 
 if TYPE_CHECKING:
-    from capture_agent.recorder import Recorder
+    from capture_agent.recorder.recorder import Recorder
 
 
 def link_counts(recorder: Recorder) -> dict[str, Any]:

@@ -39,7 +39,7 @@ reserve was reached, or the queue did not drain in time) is counted per camera a
 ``not_written_at_stop`` in the stop summary, never dropped silently.
 
 The I/O thread never waits for the disk: the session file is written by the recording's writer
-thread (``capture_agent/session_queue.py``), fed through a queue bounded in bytes
+thread (``capture_agent/recorder/write_queue.py``), fed through a queue bounded in bytes
 (``write_queue_mb``), and created at a start on a thread of its own (the start is refused when
 that takes over ``OPEN_WAIT_S``). When the disk stalls, the queue fills; then frames are refused
 and counted per camera (``not_written_disk_stalled``), ``status`` shows ``write_stalled_s`` and
@@ -82,12 +82,16 @@ from typing import Any
 
 import zmq
 
-from capture_agent import recorder_intake, recorder_start, recorder_status, recorder_take
 from capture_agent.config import AgentEndpoint, RigConfig
 from capture_agent.control_server import ControlServer, Refused
 from capture_agent.daemon import Progress, run_until_signal
-from capture_agent.recorder_intake import LIVE_WINDOW_S, MAX_UNLISTED_CAMERAS, CameraLive
-from capture_agent.recorder_start import (
+from capture_agent.recorder import intake as recorder_intake
+from capture_agent.recorder import start as recorder_start
+from capture_agent.recorder import status as recorder_status
+from capture_agent.recorder import take as recorder_take
+from capture_agent.recorder.intake import LIVE_WINDOW_S, MAX_UNLISTED_CAMERAS, CameraLive
+from capture_agent.recorder.recording import Recording
+from capture_agent.recorder.start import (
     CASE_NAME,
     CONTRACT_DOC,
     MAX_META_KEY_CHARS,
@@ -97,8 +101,8 @@ from capture_agent.recorder_start import (
     StartRefused,
     checked_reply,
 )
-from capture_agent.recorder_take import StopLimits
-from capture_agent.recording import Recording
+from capture_agent.recorder.take import StopLimits
+from capture_agent.recorder.take_journal import TakeResume
 from capture_agent.security import (
     CONTROL_MAX_BYTES,
     LinkGuard,
@@ -109,12 +113,11 @@ from capture_agent.security import (
     load_public_key,
     make_client,
 )
-from capture_agent.take_journal import TakeResume
 from protocol.messages import AgentStatus, ControlReply, ControlRequest, FrameMessage
 from protocol.os_thread import NamedThread
 from protocol.safe_text import brief
 
-# Moved to the sibling modules and kept importable from here: ``capture_agent.recorder`` is
+# Moved to the sibling modules and kept importable from here: ``capture_agent.recorder.recorder`` is
 # where callers and tests have always found them.
 __all__ = [
     "CASE_NAME",

@@ -5,7 +5,7 @@ every image by offset and length, so they read files of any blob chunking (1 MiB
 the first recorders, larger since).
 
 Damaged files. The file is checked against its superblock's end of file and opened so that no
-metadata read can hang (``protocol.session_open``); its layout (every dataset's presence, rank,
+metadata read can hang (``protocol.session.open``); its layout (every dataset's presence, rank,
 type and a length the file can hold) is checked when it opens; and any error HDF5, numpy or JSON
 raise while reading it later becomes a ``SessionFormatError`` that names the file and the part
 (``_guarded``). Asking for a camera the session does not have (``KeyError``) or a row past the
@@ -25,7 +25,7 @@ from typing import Any, TypeVar
 import h5py
 import numpy as np
 
-from protocol.session_format import (
+from protocol.session.format import (
     FORMAT,
     FORMAT_VERSION,
     GAP_COLUMNS,
@@ -40,9 +40,9 @@ from protocol.session_format import (
     SetTable,
     frame_columns,
 )
-from protocol.session_open import check_superblock, read_superblock
-from protocol.session_probe import open_hdf5
-from protocol.session_verify import verify_session
+from protocol.session.open import check_superblock, read_superblock
+from protocol.session.probe import open_hdf5
+from protocol.session.verify import verify_session
 from protocol.set_counts import missing_in_sets
 
 logger = logging.getLogger(__name__)
@@ -103,7 +103,7 @@ class SessionReader:
 
     def __init__(self, path: str | os.PathLike[str], *, allow_truncated: bool = False) -> None:
         """``allow_truncated``: open a file shorter than the end its superblock records, for
-        ``protocol.session_recover`` (what is cut off then fails as ``SessionFormatError``)."""
+        ``protocol.session.recover`` (what is cut off then fails as ``SessionFormatError``)."""
         self._path = Path(path)
         self._f, version = _open_session(self._path, allow_truncated)
         self.columns = frame_columns(version)  # the frame table's columns in this file
@@ -246,7 +246,7 @@ class SessionReader:
         A note is what a writer that was killed or is still writing leaves (unequal table
         lengths, sets ahead of their frames); on a cleanly closed file the same is an error.
         ``check_images`` reads every image: its checksum (format_version 2 on) and JPEG markers.
-        See ``protocol.session_verify``.
+        See ``protocol.session.verify``.
         """
         return verify_session(self, check_images=check_images)
 
@@ -416,7 +416,7 @@ def _str_attr(attrs: Any, name: str, default: str | None = None) -> str:
 
 
 def _open_session(path: Path, allow_truncated: bool = False) -> tuple[h5py.File, int]:
-    """The open file and its format_version; see ``protocol.session_open`` for the order."""
+    """The open file and its format_version; see ``protocol.session.open`` for the order."""
     if not path.exists():
         raise SessionNotFoundError(
             f"{path}: no such session file; check the path (sessions are named "

@@ -1,10 +1,11 @@
-"""How a take ends and how it survives a kill (``capture_agent/recorder.py``'s I/O thread).
+"""How a take ends and how it survives a kill (``capture_agent/recorder/recorder.py``'s I/O thread).
 
 At a stop, ``drain_to_stop`` receives the frames captured before the stop that are still queued
 and writes them (or counts them as ``not_written_at_stop``) within ``StopLimits``, then
 ``stop_recording`` closes the take and keeps its summary. The take journal
-(``capture_agent/take_journal.py``) is written at each start and removed once the take's file is
-closed; a recorder killed mid-take finds it at its next start and resumes the take, as the
+(``capture_agent/recorder/take_journal.py``) is written at each start and removed once the
+take's file is closed; a recorder killed mid-take finds it at its next start and resumes the take,
+as the
 next part of the same case, once every expected camera streams again."""
 
 from __future__ import annotations
@@ -16,14 +17,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from capture_agent.control_server import Refused
-from capture_agent.recording import Recording
-from capture_agent.take_journal import TakeJournal, TakeResume
-from capture_agent.take_journal import remove as remove_take_journal
+from capture_agent.recorder.recording import Recording
+from capture_agent.recorder.take_journal import TakeJournal, TakeResume
+from capture_agent.recorder.take_journal import remove as remove_take_journal
 from protocol.session import SessionWriteError
-from protocol.session_privacy import make_private_dir
+from protocol.session.privacy import make_private_dir
 
 if TYPE_CHECKING:
-    from capture_agent.recorder import Recorder
+    from capture_agent.recorder.recorder import Recorder
 
 log = logging.getLogger(__name__)
 

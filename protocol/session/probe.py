@@ -1,7 +1,7 @@
 """Reading a session file's metadata first in a child process, so that no damage hangs or
 crashes the caller.
 
-Why a child. Capping HDF5's metadata read retries (``protocol.session_open``) bounds damage in
+Why a child. Capping HDF5's metadata read retries (``protocol.session.open``) bounds damage in
 the metadata that carries a checksum, but not in what has none. The global heap, where HDF5
 keeps every variable-length string (all the string attributes of a session), has none, and its
 parser (``H5HG__cache_heap_deserialize``, HDF5 1.8 to 2.0) walks the objects of a heap
@@ -15,7 +15,7 @@ checksummed), reporting each object it enters on a pipe. If it stops making prog
 ``PROBE_STALL_S`` (or runs past ``PROBE_TOTAL_S``) it is killed and the file is refused with a
 ``SessionFormatError`` naming the object; if it dies (HDF5 crashing on the damage), likewise.
 Errors HDF5 raises in the child are not judged here: the caller meets them again when it reads
-and reports them as it always has (``protocol.session_read``), which lets ``session recover``
+and reports them as it always has (``protocol.session.read``), which lets ``session recover``
 save what the rest of a damaged file holds.
 
 Cost. The child is forked when the caller has a single Python thread (about 10-20 ms on a
@@ -44,8 +44,8 @@ import h5py
 import numpy as np
 from h5py._objects import phil  # h5py's global lock: held across fork so no thread owns it
 
-from protocol.session_format import SessionFormatError
-from protocol.session_open import open_unprobed
+from protocol.session.format import SessionFormatError
+from protocol.session.open import open_unprobed
 
 logger = logging.getLogger(__name__)
 
@@ -118,7 +118,7 @@ def _probe_forked(path: Path, opener: Callable[[], h5py.File]) -> None:
 
 
 def _probe_spawned(path: Path) -> None:
-    code = "import sys; from protocol.session_probe import child_main; child_main(sys.argv[1])"
+    code = "import sys; from protocol.session.probe import child_main; child_main(sys.argv[1])"
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(_REPO), *sys.path]))
     proc = subprocess.Popen(
         [sys.executable, "-c", code, os.fspath(path)],

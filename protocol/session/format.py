@@ -1,7 +1,7 @@
 """The session file's schema, shared by its writer and its reader: names, types, errors.
 
 The layout is documented for readers without EgoSurg in ``docs/session.md``; ``protocol.session``
-re-exports everything public here, in ``protocol.session_write`` and in ``protocol.session_read``.
+re-exports everything public here, in ``protocol.session.write`` and in ``protocol.session.read``.
 """
 
 from __future__ import annotations
