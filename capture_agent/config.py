@@ -59,7 +59,7 @@ from capture_agent.security import LARGEST_IMAGE_BYTES, frame_message_max_bytes,
 from capture_agent.security_config import NO_KEYS, SecurityConfig
 from capture_agent.toml_table import TableReader, load_toml
 from protocol.errors import ConfigError
-from protocol.messages import MAX_FRAME_BYTES
+from protocol.wire import MAX_FRAME_BYTES
 
 __all__ = [
     "ENCODINGS",
@@ -74,7 +74,7 @@ __all__ = [
     "load_toml",
 ]
 
-# The names of protocol.messages.Encoding, as node.toml spells them.
+# The names of protocol.wire.Encoding, as node.toml spells them.
 EncodingName = Literal["jpeg", "raw_bgr8"]
 ENCODINGS: tuple[EncodingName, ...] = get_args(EncodingName)
 MIN_RECEIVE_MESSAGES = 8  # the smallest receive queue per agent that receive_buffer_mb may give

@@ -33,14 +33,14 @@ from typing import Any
 import zmq
 
 from protocol.errors import UserError
-from protocol.messages import (
+from protocol.safe_text import brief, safe_text
+from protocol.wire import (
     MAX_JSON_BYTES,
     ControlReply,
     ControlRequest,
     MalformedMessageError,
     UnknownVersionError,
 )
-from protocol.safe_text import brief, safe_text
 
 log = logging.getLogger(__name__)
 

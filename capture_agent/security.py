@@ -37,7 +37,7 @@ from zmq.utils import z85
 from zmq.utils.monitor import parse_monitor_message
 
 from protocol.errors import ConfigError
-from protocol.messages import FRAME_HEADER_BYTES, MAX_JSON_BYTES, MAX_NODE_ID_BYTES
+from protocol.wire import FRAME_HEADER_BYTES, MAX_JSON_BYTES, MAX_NODE_ID_BYTES
 
 log = logging.getLogger(__name__)
 

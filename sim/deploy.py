@@ -316,7 +316,7 @@ class SimRig:
         """One control request to the recorder; a refusal raises SimRigError with its reason."""
         import zmq
 
-        from protocol.messages import ControlReply, ControlRequest
+        from protocol.wire import ControlReply, ControlRequest
 
         ctx: zmq.Context = zmq.Context.instance()
         sock = self.files.control_socket(ctx)

@@ -106,7 +106,7 @@ def pick(c: Chooser, options: list | tuple) -> Any:
 
 
 def valid_frame_parts(c: Chooser) -> list[bytes]:
-    from protocol.messages import FrameMessage
+    from protocol.wire import FrameMessage
 
     raw = c.int(0, 1) == 1
     width, height = c.int(1, 16), c.int(1, 16)
@@ -130,7 +130,7 @@ def valid_frame_parts(c: Chooser) -> list[bytes]:
 
 
 def valid_status_parts(c: Chooser) -> list[bytes]:
-    from protocol.messages import AgentStatus, CameraStatus, PtpState
+    from protocol.wire import AgentStatus, CameraStatus, PtpState
 
     cams = tuple(
         CameraStatus(
@@ -159,7 +159,7 @@ def valid_status_parts(c: Chooser) -> list[bytes]:
 
 
 def valid_request(c: Chooser, verbs: tuple[str, ...] = ("status", "heartbeat")) -> bytes:
-    from protocol.messages import ControlRequest
+    from protocol.wire import ControlRequest
 
     verb = pick(c, verbs)
     args: dict[str, Any] = {}
@@ -169,7 +169,7 @@ def valid_request(c: Chooser, verbs: tuple[str, ...] = ("status", "heartbeat")) 
 
 
 def valid_reply(c: Chooser) -> bytes:
-    from protocol.messages import ControlReply
+    from protocol.wire import ControlReply
 
     ok = c.int(0, 1) == 1
     return ControlReply(
@@ -184,7 +184,8 @@ def valid_reply(c: Chooser) -> bytes:
 # Mutators
 # --------------------------------------------------------------------------------------------
 
-# Offsets of the frame header's fields (protocol/messages.py's docstring): where a flip matters.
+# Offsets of the frame header's fields (protocol/wire/__init__.py's docstring): where a flip
+# matters.
 _HEADER_FIELDS = (0, 4, 6, 8, 16, 24, 32, 40, 48, 56, 64, 72, 74, 76, 77, 78, 79, 80, 111)
 
 
@@ -351,7 +352,7 @@ def control_case(c: Chooser) -> list[bytes]:
 
 def decode_frame_or_status(parts: list[bytes]) -> str:
     """'accepted' or 'rejected'; anything but ``MalformedMessageError`` propagates."""
-    from protocol.messages import MalformedMessageError, decode_published
+    from protocol.wire import MalformedMessageError, decode_published
 
     try:
         with time_limit(DECODE_LIMIT_S):
@@ -362,7 +363,7 @@ def decode_frame_or_status(parts: list[bytes]) -> str:
 
 
 def decode_control(data: bytes, kind: str) -> str:
-    from protocol.messages import AgentStatus, ControlReply, ControlRequest, MalformedMessageError
+    from protocol.wire import AgentStatus, ControlReply, ControlRequest, MalformedMessageError
 
     decode = {
         "request": ControlRequest.from_bytes,
@@ -417,7 +418,7 @@ class ControlProbe:
         return frames[1]
 
     def send(self, parts: list[bytes]) -> Any:
-        from protocol.messages import ControlReply, ControlRequest
+        from protocol.wire import ControlReply, ControlRequest
 
         status = ControlRequest(verb="status")
         self.sock.send_multipart([b"", *parts])

@@ -13,7 +13,7 @@ from bench.capture.measure import RESOLUTION, RIG_FPS
 
 
 def _header(seq: int, left: bytes, right: bytes) -> bytes:
-    from protocol.messages import FrameMessage
+    from protocol.wire import FrameMessage
 
     return FrameMessage(
         node_id="bench",

@@ -141,7 +141,7 @@ def feeder(
     import zmq
     import zmq.auth
 
-    from protocol.messages import ControlReply, ControlRequest, FrameMessage
+    from protocol.wire import ControlReply, ControlRequest, FrameMessage
 
     ctx = zmq.Context()
     pub = ctx.socket(zmq.PUB)

@@ -38,7 +38,8 @@ from capture_agent.sources import make_source
 from capture_agent.sources.base import CameraSource, CameraUnavailableError, GrabbedFrame
 from protocol import __version__
 from protocol.images import EncodedPair, encode_pair
-from protocol.messages import (
+from protocol.os_thread import NamedThread
+from protocol.wire import (
     AgentStatus,
     CameraStatus,
     ControlRequest,
@@ -46,7 +47,6 @@ from protocol.messages import (
     FrameMessage,
     PtpState,
 )
-from protocol.os_thread import NamedThread
 
 log = logging.getLogger(__name__)
 
@@ -483,11 +483,7 @@ class Agent:
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(
-        prog="egosurg agent",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = command_parser("egosurg agent", __doc__)
     parser.add_argument("--config", required=True, help="node.toml")
     args = parser.parse_args(argv)
     config = NodeConfig.from_toml(args.config)

@@ -23,7 +23,6 @@ Mistakes in the Python itself (a misspelt method, a wrong argument) still show P
 
 from __future__ import annotations
 
-import argparse
 from typing import Any
 
 import cv2
@@ -31,6 +30,7 @@ import numpy as np
 
 from capture_agent.operator.control import format_started, format_status, format_summary
 from capture_agent.operator.rig_client import RigClient
+from protocol.command import command_parser
 from protocol.errors import UserError
 
 BANNER = """EgoSurg operator console. The object 'rig' is connected to {url}:
@@ -153,11 +153,7 @@ def namespace(client: RigClient) -> dict[str, Any]:
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(
-        prog="egosurg shell",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = command_parser("egosurg shell", __doc__)
     parser.add_argument("--recorder", help="recorder control address")
     parser.add_argument("--config", help="rig.toml, to take the recorder's address from it")
     args = parser.parse_args(argv)

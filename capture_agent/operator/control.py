@@ -17,12 +17,8 @@ import json
 from typing import Any
 
 from capture_agent.operator.rig_client import RigClient
-from protocol.errors import UserError
+from protocol.command import CommandArgumentError, add_subcommand, command_parser
 from protocol.safe_text import safe_text as _t  # every string from the recorder, terminal-safe
-
-
-class ArgumentProblem(UserError, ValueError):
-    pass
 
 
 def _address_args(p: argparse.ArgumentParser) -> None:
@@ -36,7 +32,7 @@ def _meta(items: list[str]) -> dict[str, str]:
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
-            raise ArgumentProblem(f"--meta {item!r} must look like key=value")
+            raise CommandArgumentError(f"--meta {item!r} must look like key=value")
         out[key.strip()] = value
     return out
 
@@ -165,18 +161,14 @@ def _refusals(st: dict[str, Any]) -> list[str]:
 
 
 def main_record(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(
-        prog="egosurg record",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = command_parser("egosurg record", __doc__)
     sub = parser.add_subparsers(dest="action", required=True)
-    p = sub.add_parser("start", help="start recording a case")
+    p = add_subcommand(sub, "start", "start recording a case")
     p.add_argument("--case", required=True, help="case name (letters, digits, - _ .)")
     p.add_argument("--meta", action="append", default=[], help="case metadata key=value")
     p.add_argument("--planned-min", type=float, help="planned duration in minutes (disk check)")
     _address_args(p)
-    p = sub.add_parser("stop", help="stop the recording and print its summary")
+    p = add_subcommand(sub, "stop", "stop the recording and print its summary")
     _address_args(p)
     args = parser.parse_args(argv)
     rig = RigClient.connect(args.recorder, args.config)
@@ -190,11 +182,7 @@ def main_record(argv: list[str]) -> int:
 
 
 def main_status(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(
-        prog="egosurg status",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = command_parser("egosurg status", __doc__)
     _address_args(parser)
     args = parser.parse_args(argv)
     st = RigClient.connect(args.recorder, args.config).status()

@@ -15,7 +15,6 @@ Examples::
 
 from __future__ import annotations
 
-import argparse
 import os
 import re
 import stat
@@ -30,6 +29,7 @@ from capture_agent.security import (
     load_keypair,
     load_public_key,
 )
+from protocol.command import add_subcommand, command_parser
 from protocol.errors import UserError
 
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,31}$")
@@ -80,16 +80,12 @@ def show(path: Path) -> str:
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(
-        prog="egosurg keys",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = command_parser("egosurg keys", __doc__)
     sub = parser.add_subparsers(dest="action", required=True)
-    p = sub.add_parser("generate", help="make a keypair (NAME.key and NAME.key_secret)")
+    p = add_subcommand(sub, "generate", "make a keypair (NAME.key and NAME.key_secret)")
     p.add_argument("--out", type=Path, required=True, help="folder for the two files")
     p.add_argument("--name", required=True, help="the process: recorder, orin-a, operator, ...")
-    p = sub.add_parser("show", help="print the public key of a .key or .key_secret file")
+    p = add_subcommand(sub, "show", "print the public key of a .key or .key_secret file")
     p.add_argument("file", type=Path)
     args = parser.parse_args(argv)
     if args.action == "generate":

@@ -39,7 +39,7 @@ from capture_agent.security import (
 )
 from protocol.errors import ConfigError, UserError
 from protocol.images import decode_image
-from protocol.messages import (
+from protocol.wire import (
     ControlReply,
     ControlRequest,
     FrameMessage,

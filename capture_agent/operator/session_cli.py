@@ -27,16 +27,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from protocol.command import CommandArgumentError, add_subcommand, command_parser
 from protocol.errors import UserError
 from protocol.images import decode_image
 from protocol.session import GapKind, SessionFormatError, SessionReader
 from protocol.session.recover import recover_session
 from protocol.set_counts import missing_in_sets
-
-
-class SessionArgumentError(UserError, ValueError):
-    pass
-
 
 # What reading a damaged file may still raise past the reader's own checks (h5py, numpy, cv2).
 _READ_ERRORS = (OSError, RuntimeError, KeyError, ValueError, TypeError, IndexError, MemoryError)
@@ -56,9 +52,9 @@ def _slice(text: str | None, n: int) -> range:
         start = int(a) if a else 0
         stop = int(b) if (sep and b) else (n if sep else start + 1)
     except ValueError:
-        raise SessionArgumentError(f"{text!r} must look like 10:20, 10: or 10") from None
+        raise CommandArgumentError(f"{text!r} must look like 10:20, 10: or 10") from None
     if start < 0 or start >= max(n, 1) or stop <= start:
-        raise SessionArgumentError(f"range {text!r} is outside 0:{n}")
+        raise CommandArgumentError(f"range {text!r} is outside 0:{n}")
     return range(start, min(stop, n))
 
 
@@ -194,7 +190,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         serials = info.camera_serials
         if args.camera is not None:
             if args.camera not in serials:
-                raise SessionArgumentError(
+                raise CommandArgumentError(
                     f"no camera {args.camera} in {args.file}; cameras: "
                     f"{', '.join(map(str, serials))}"
                 )
@@ -239,21 +235,17 @@ def cmd_recover(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(
-        prog="egosurg session",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = command_parser("egosurg session", __doc__)
     sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("info", help="cameras, duration, sets, drops and spread")
+    p = add_subcommand(sub, "info", "cameras, duration, sets, drops and spread", cmd_info)
     p.add_argument("file")
     p.add_argument("--json", action="store_true")
-    p.set_defaults(func=cmd_info)
-    p = sub.add_parser("verify", help="check the file's integrity (exit 1 on a problem)")
+    p = add_subcommand(
+        sub, "verify", "check the file's integrity (exit 1 on a problem)", cmd_verify
+    )
     p.add_argument("file")
     p.add_argument("--quick", action="store_true", help="skip reading every image")
-    p.set_defaults(func=cmd_verify)
-    p = sub.add_parser("export-frames", help="write frames as PNG")
+    p = add_subcommand(sub, "export-frames", "write frames as PNG", cmd_export)
     p.add_argument("file")
     p.add_argument("--out", required=True)
     p.add_argument("--camera", type=int, help="only this camera serial")
@@ -262,16 +254,17 @@ def main(argv: list[str]) -> int:
     p.add_argument("--by-camera", action="store_true", help="export per camera, not per set")
     p.add_argument("--frames", help="with --by-camera: row range, e.g. 0:100")
     p.add_argument("--every", type=int, default=1, help="take every Nth set or frame")
-    p.set_defaults(func=cmd_export)
-    p = sub.add_parser(
-        "recover", help="copy every intact frame and set of a damaged file into a new session"
+    p = add_subcommand(
+        sub,
+        "recover",
+        "copy every intact frame and set of a damaged file into a new session",
+        cmd_recover,
     )
     p.add_argument("file")
     p.add_argument("--out", required=True, help="the new session file (must not exist)")
-    p.set_defaults(func=cmd_recover)
     args = parser.parse_args(argv)
     if getattr(args, "every", 1) < 1:
-        raise SessionArgumentError("--every must be 1 or more")
+        raise CommandArgumentError("--every must be 1 or more")
     try:
         return int(args.func(args))
     except (UserError, BrokenPipeError):

@@ -14,14 +14,14 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from capture_agent.config import AgentEndpoint
-from protocol.messages import (
+from protocol.safe_text import safe_text
+from protocol.wire import (
     AgentStatus,
     FrameMessage,
     MalformedMessageError,
     UnknownVersionError,
     decode_published,
 )
-from protocol.safe_text import safe_text
 
 if TYPE_CHECKING:
     from capture_agent.recorder.recorder import Recorder

@@ -113,9 +113,9 @@ from capture_agent.security import (
     load_public_key,
     make_client,
 )
-from protocol.messages import AgentStatus, ControlReply, ControlRequest, FrameMessage
 from protocol.os_thread import NamedThread
 from protocol.safe_text import brief
+from protocol.wire import AgentStatus, ControlReply, ControlRequest, FrameMessage
 
 # Moved to the sibling modules and kept importable from here: ``capture_agent.recorder.recorder`` is
 # where callers and tests have always found them.
@@ -410,11 +410,7 @@ def receive_hwm(config: RigConfig, agent: AgentEndpoint) -> int:
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(
-        prog="egosurg recorder",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = command_parser("egosurg recorder", __doc__)
     parser.add_argument("--config", required=True, help="rig.toml")
     args = parser.parse_args(argv)
     config = RigConfig.from_toml(args.config)

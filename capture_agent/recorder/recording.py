@@ -38,8 +38,8 @@ from typing import Any
 from capture_agent.recorder.accounting import StreamAccounting
 from capture_agent.recorder.sync import SyncedSet, Synchroniser
 from capture_agent.recorder.write_queue import WriteQueue
-from protocol.messages import FrameMessage
 from protocol.session import SessionWriteError, SessionWriter
+from protocol.wire import FrameMessage
 
 log = logging.getLogger(__name__)
 

@@ -2,7 +2,8 @@
 thread): the checks of the start's arguments (``start_args``), of the cameras, PTP and the disk,
 the agents'
 camera infos stored in the session (``camera_infos``, each reply checked against the contract,
-``protocol/agent_info.py``), and the creation of the session file and its ``Recording``. A start
+``protocol/wire/agent_info.py``), and the creation of the session file and its ``Recording``. A
+start
 that cannot go ahead raises ``StartRefused`` with the reason and what to do."""
 
 from __future__ import annotations
@@ -24,10 +25,10 @@ from capture_agent.recorder.take import take_started
 from capture_agent.recorder.write_queue import open_writer
 from capture_agent.security import CONTROL_MAX_BYTES, harden, make_client
 from protocol import __version__
-from protocol.agent_info import AgentReplyError, AgentStatusReply
-from protocol.messages import ControlReply, ControlRequest, MalformedMessageError
 from protocol.safe_text import brief, unsafe_character
 from protocol.session import CameraInfo, SessionWriter
+from protocol.wire import ControlReply, ControlRequest, MalformedMessageError
+from protocol.wire.agent_info import AgentReplyError, AgentStatusReply
 
 if TYPE_CHECKING:
     from capture_agent.recorder.recorder import Recorder
@@ -234,7 +235,7 @@ def start_recording(recorder: Recorder, args: dict[str, Any]) -> dict[str, Any]:
 def camera_infos(recorder: Recorder, serials: tuple[int, ...]) -> list[CameraInfo]:
     """Ask each agent for its cameras' modes and factory files (stored in the session).
 
-    The reply is checked field by field (``protocol/agent_info.py``): an agent that does
+    The reply is checked field by field (``protocol/wire/agent_info.py``): an agent that does
     not answer, answers ``ok: false`` or breaks the contract is refused with that reason.
     """
     infos: dict[int, CameraInfo] = {}

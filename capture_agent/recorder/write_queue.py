@@ -36,10 +36,10 @@ from typing import Any
 
 import numpy as np
 
-from protocol.messages import FrameMessage
 from protocol.os_thread import NamedThread
 from protocol.session import SessionWriteError, SessionWriter
 from protocol.set_counts import missing_in_sets
+from protocol.wire import FrameMessage
 
 log = logging.getLogger(__name__)
 

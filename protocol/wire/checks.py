@@ -1,5 +1,5 @@
 """What every wire message shares: the errors, the binary prefix, the version rule, buffer
-views without copies, and the checks of JSON fields. The spec is ``protocol/messages.py``'s
+views without copies, and the checks of JSON fields. The spec is ``protocol/wire/__init__.py``'s
 docstring; each message kind has its own module beside this one."""
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ if TYPE_CHECKING:
 
 
 class MalformedMessageError(UserError, ValueError):
-    """A message that does not follow the wire spec in ``protocol/messages.py``'s docstring."""
+    """A message that does not follow the wire spec in ``protocol/wire/__init__.py``'s docstring."""
 
 
 class UnknownVersionError(MalformedMessageError):

@@ -1,5 +1,5 @@
 """Control messages: a ``ControlRequest`` (a verb, its arguments, a request id) answered by one
-``ControlReply``, each a UTF-8 JSON object in one part. Spec: ``protocol/messages.py``."""
+``ControlReply``, each a UTF-8 JSON object in one part. Spec: ``protocol/wire/__init__.py``."""
 
 from __future__ import annotations
 

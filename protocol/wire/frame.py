@@ -1,6 +1,6 @@
 """The frame message (magic ``b"EGSF"``): one stereo frame of one camera, a 112-byte binary
 header and the two images as raw buffers, never copied. The byte layout is in
-``protocol/messages.py``'s docstring."""
+``protocol/wire/__init__.py``'s docstring."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The agent status message (magic ``b"EGSH"``): an agent's heartbeat with its PTP state and
 every camera's health, a JSON body after the binary prefix; and ``decode_published``, which
-tells it from a frame message on the agent's PUB socket. Spec: ``protocol/messages.py``."""
+tells it from a frame message on the agent's PUB socket. Spec: ``protocol/wire/__init__.py``."""
 
 from __future__ import annotations
 

@@ -1,7 +1,8 @@
 """A capture agent written only from the documented contract, for cameras EgoSurg does not know.
 
 Sources: docs/capture.md ("Writing an agent: the contract") and the byte layout in
-protocol/messages.py's docstring. It imports nothing of EgoSurg (no protocol/, no capture_agent/):
+protocol/wire/__init__.py's docstring. It imports nothing of EgoSurg (no protocol/, no
+capture_agent/):
 frames are packed with ``struct`` from the documented header table and every JSON body is written
 by hand, so a recorder that records from it shows that the documents suffice.
 

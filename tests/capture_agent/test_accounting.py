@@ -273,8 +273,8 @@ def test_stop_summary_session_info_and_summary_count_missing_members_alike(tmp_p
     from capture_agent.operator.session_cli import summarise
     from capture_agent.recorder.recording import Recording
     from capture_agent.recorder.sync import SyncConfig, Synchroniser
-    from protocol.messages import FrameMessage
     from protocol.session import CameraInfo, SessionReader, SessionWriter
+    from protocol.wire import FrameMessage
 
     serials, jpeg = (11, 12), b"\xff\xd8" + bytes(64) + b"\xff\xd9"
     t0 = 1_700_000_000_000_000_000

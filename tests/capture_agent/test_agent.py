@@ -11,15 +11,15 @@ import zmq
 
 from capture_agent.agent.agent import Agent
 from capture_agent.config import NodeConfig
-from protocol.agent_info import AgentStatusReply
 from protocol.errors import ConfigError
-from protocol.messages import (
+from protocol.wire import (
     AgentStatus,
     ControlReply,
     ControlRequest,
     FrameMessage,
     decode_published,
 )
+from protocol.wire.agent_info import AgentStatusReply
 from sim.deploy import free_ports
 
 FPS = 10.0

@@ -24,8 +24,8 @@ from capture_agent.operator.console import Rig, namespace
 from capture_agent.operator.keys_cli import generate
 from capture_agent.operator.rig_client import CommandRefusedError, RigClient
 from capture_agent.recorder.recorder import Recorder
-from protocol.agent_info import AgentReplyError, AgentStatusReply
 from protocol.session import SessionReader
+from protocol.wire.agent_info import AgentReplyError, AgentStatusReply
 from sim.deploy import free_ports
 from tests.capture_agent.spec_agent import SpecAgent
 from tests.conftest import run_egosurg

@@ -148,7 +148,7 @@ def test_the_agent_answers_every_control_request_once_and_keeps_serving(agent_co
 def test_the_hostile_requests_of_issue_24_are_answered(recorder_control, agent_control):
     """The exact inputs that used to stop the daemons: 'hello', a version-2 envelope, an unknown
     verb, two parts, a case of 520k backslashes."""
-    from protocol.messages import MAX_JSON_BYTES
+    from protocol.wire import MAX_JSON_BYTES
 
     hostile = [
         [b"hello"],

@@ -36,8 +36,8 @@ from capture_agent.daemon import Progress, run_until_signal
 from capture_agent.operator.control import format_status, format_summary
 from capture_agent.recorder.recorder import MAX_UNLISTED_CAMERAS, Recorder, StartRefused
 from capture_agent.recorder.sync import SyncConfig, Synchroniser, group_offline
-from protocol.messages import MAX_JSON_BYTES, ControlReply, ControlRequest, FrameMessage
 from protocol.session import SessionReader
+from protocol.wire import MAX_JSON_BYTES, ControlReply, ControlRequest, FrameMessage
 from sim.deploy import free_ports
 
 FPS = 10.0

@@ -19,8 +19,8 @@ from capture_agent.recorder.recorder import RECEIVE_QUEUE_S, CameraLive, Recorde
 from capture_agent.recorder.recording import Recording
 from capture_agent.recorder.sync import SyncConfig, Synchroniser
 from capture_agent.recorder.write_queue import WriteQueue
-from protocol.messages import ControlReply, ControlRequest, FrameMessage
 from protocol.session import CameraInfo, SessionReader, SessionWriter, chunk_sink
+from protocol.wire import ControlReply, ControlRequest, FrameMessage
 from tests.helpers import loopback_rig_config
 
 FPS = 30.0

@@ -22,7 +22,7 @@ from capture_agent.operator.rig_client import RigClient
 from capture_agent.recorder.recorder import Recorder
 from capture_agent.security import LinkSecurity
 from protocol.errors import ConfigError
-from protocol.messages import AgentStatus, ControlReply, ControlRequest, FrameMessage, PtpState
+from protocol.wire import AgentStatus, ControlReply, ControlRequest, FrameMessage, PtpState
 from sim.deploy import free_ports
 from tests.conftest import run_egosurg
 

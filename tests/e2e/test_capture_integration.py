@@ -21,11 +21,11 @@ from capture_agent.config import RigConfig
 from capture_agent.operator.rig_client import CommandRefusedError, RigClient
 from capture_agent.recorder.recorder import Recorder
 from capture_agent.sources.sim_source import SimSource, SimSourceConfig
-from protocol.messages import (
+from protocol.session import GapKind, SessionReader
+from protocol.wire import (
     Encoding,
     FrameMessage,
 )
-from protocol.session import GapKind, SessionReader
 from sim.deploy import SimRig, SimRigSpec, free_ports, write_sim_rig
 
 FPS = 15.0

@@ -28,8 +28,8 @@ import pytest
 import zmq
 
 from capture_agent.operator.control import format_status
-from protocol.messages import ControlReply, ControlRequest
 from protocol.session import GapKind, SessionReader
+from protocol.wire import ControlReply, ControlRequest
 from sim.deploy import SimRig, SimRigSpec, free_ports, write_sim_rig
 from tests.e2e.netproxy import TcpProxy
 

@@ -1,4 +1,4 @@
-"""The wire contract of protocol/messages.py, over real ZeroMQ sockets on loopback."""
+"""The wire contract of protocol/wire/__init__.py, over real ZeroMQ sockets on loopback."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import pytest
 import zmq
 
 from protocol.errors import UserError
-from protocol.messages import (
+from protocol.wire import (
     CONTROL_VERBS,
     MAX_FRAME_BYTES,
     AgentStatus,

@@ -34,7 +34,8 @@ from dataclasses import InitVar, dataclass
 from typing import Any
 
 from protocol.camera import Resolution
-from protocol.messages import (
+from protocol.session.format import CameraInfo
+from protocol.wire import (
     MAX_IMAGE_SIDE_PX,
     AgentStatus,
     CameraStatus,
@@ -42,7 +43,6 @@ from protocol.messages import (
     MalformedMessageError,
     PtpState,
 )
-from protocol.session.format import CameraInfo
 
 MAX_CAMERAS_PER_AGENT = 16
 MAX_FACTORY_CONF_BYTES = 64 * 1024  # a ZED SN<serial>.conf is about 3 KB
