@@ -21,8 +21,11 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check . && $(BIN)/ruff format --check .
 
+# The edge packages (capture_agent, protocol) are checked again as Python 3.10, the Python of
+# JetPack 6 on the nodes.
 typecheck: $(STAMP)
 	$(BIN)/mypy protocol sim capture_agent calibration reconstructor
+	$(BIN)/mypy --python-version 3.10 capture_agent protocol
 
 bench: $(STAMP)
 	$(BIN)/python bench/bench_sim.py

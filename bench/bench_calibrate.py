@@ -17,7 +17,7 @@ Each run is the real command, ``egosurg calibrate SESSION --wand wand.toml --out
 subprocess, timed from start to exit (detection, solve, report and exports). The reference in the
 same run is the floor under any calibration that reads the same images: decoding just those
 images (the count the command reports), in 2 processes. The accuracy columns compare the result
-with the simulator's true rig (after the best rigid fit, as in tests/test_calibration_e2e.py).
+with the simulator's true rig (after the best rigid fit, as in tests/calibration/test_e2e.py).
 Prints a Markdown table; BENCHMARKS.md ("Wand calibration") records a run.
 """
 

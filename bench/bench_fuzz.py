@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tests import fuzzing
 from tests.fuzzing import Hang, RandomChooser
-from tests.helpers import loopback_rig_config
+from tests.helpers import loopback_rig_config, loopback_sim_node
 
 MAX_SHOWN = 3  # failures printed per target
 
@@ -137,35 +137,10 @@ def _socket(name: str, endpoint: str, cases: int, seed: int, daemon) -> Tally:
 
 def _daemons(cases: int, seed: int, tmp: Path) -> list[Tally]:
     from capture_agent.agent.agent import Agent
-    from capture_agent.config import NodeConfig
     from capture_agent.recorder.recorder import Recorder
-    from sim.deploy import free_ports
 
-    fport, cport = free_ports(2)
     recorder = Recorder(loopback_rig_config(tmp / "sessions", rig_name="fuzz"))
-    agent = Agent(
-        NodeConfig.from_table(
-            {
-                "node_id": "orin-f",
-                "frames_bind": f"tcp://127.0.0.1:{fport}",
-                "control_bind": f"tcp://127.0.0.1:{cport}",
-                "ptp": {"source": "none", "require_lock": False},
-                "cameras": [
-                    {
-                        "source": "sim",
-                        "seed": 2,
-                        "fps": 5.0,
-                        "epoch_unix_ns": (time.time_ns() // 10**9 - 1) * 10**9,
-                        "content_fps": 0.5,
-                        "prerender_s": 2.0,
-                        "pre_encode": "jpeg",
-                    }
-                ],
-                "security": {"insecure": True},
-            },
-            "bench node.toml",
-        )
-    )
+    agent = Agent(loopback_sim_node("orin-f", fps=5.0, seed=2, where="bench node.toml"))
     recorder.start()
     agent.start()
     try:
@@ -179,7 +154,7 @@ def _daemons(cases: int, seed: int, tmp: Path) -> list[Tally]:
             ),
             _socket(
                 "agent control socket",
-                f"tcp://127.0.0.1:{cport}",
+                agent.config.control_bind,
                 cases,
                 seed,
                 agent,

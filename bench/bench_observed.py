@@ -14,7 +14,7 @@ same over textured pixels alone (the sim truth's grey level varies by more than
 ``--texture-sd`` (standard deviation in a 7 x 7 window): like against like, since a uniform wall
 renders right whatever its geometry).
 
-Example (the evaluation set of EVALUATION.md's first command)::
+Example (the two-scene set of EVALUATION.md, "Observed versus inferred")::
 
     egosurg sim eval-set --out out/evalset3 --seed 3 --phases intraoperative,turnover \\
         --resolution SVGA --fps 15 --t-start 2 --sets 3 --eval-sets 0 --jpeg-quality 90 \\

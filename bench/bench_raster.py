@@ -117,7 +117,7 @@ def _render(scene: dict, config) -> float:
     return 1e3 * (time.perf_counter() - t0)
 
 
-def main() -> None:
+def _parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--quick", action="store_true", help="480x300, 20k Gaussians")
     parser.add_argument("--steps", type=int, default=7, help="timed numba steps per size")
@@ -130,22 +130,24 @@ def main() -> None:
     )
     parser.add_argument("--use-cache", action="store_true", help="keep numba's on-disk cache")
     parser.add_argument("--default-malloc", action="store_true", help="do not tune glibc malloc")
-    args = parser.parse_args()
+    return parser.parse_args()
+
+
+def main() -> None:
+    args = _parse_args()
 
     import numba
 
-    from reconstructor.raster import RasterConfig, rasterize
-    from reconstructor.raster.function import stage_times_ms
+    from reconstructor.raster import RasterConfig
 
     tuned = False if args.default_malloc else tune_malloc()
     width, height, sizes = (480, 300, [20_000]) if args.quick else (960, 600, [50_000, 200_000])
     steps = 3 if args.quick else args.steps
     fast, twin = RasterConfig(), RasterConfig(backend="torch")
-    threads = numba.get_num_threads()
     print(
         f"# {width}x{height}, {os.cpu_count()} CPUs, numba {numba.__version__} "
-        f"({threads} threads, {numba.config.THREADING_LAYER}), torch {torch.__version__} "
-        f"({torch.get_num_threads()} threads), malloc tuned: {tuned}, "
+        f"({numba.get_num_threads()} threads, {numba.config.THREADING_LAYER}), torch "
+        f"{torch.__version__} ({torch.get_num_threads()} threads), malloc tuned: {tuned}, "
         f"load average at start: {os.getloadavg()[0]:.1f}"
     )
     # untimed warm-up of the twin: its first call pays for imports and first-time dispatch
@@ -154,52 +156,72 @@ def main() -> None:
     rows = []
     for n in sizes:
         scene = make_scene(n, width, height)
-        keys = (*_LEAVES, "viewmat", "K", "width_px", "height_px")
-        # the gradient an L1 loss against a grey target would send (signs vary per pixel)
-        signs = np.random.default_rng(1).choice([-1.0, 1.0], size=(height, width, 3))
-        grad_image = torch.from_numpy(signs.astype(np.float32) / (3 * width * height))
-        t0 = time.perf_counter()
-        _step(scene, fast, grad_image)  # first call: compiles every kernel
-        compile_s = time.perf_counter() - t0
-        with torch.no_grad():
-            out = rasterize(**{k: scene[k] for k in keys}, config=fast)
-        n_vis = int((out.radii_px > 0).sum())
-        step_ms, cpu_ms, stage = [], [], {s: [] for s in STAGES}
-        for _ in range(steps):
-            c0 = time.process_time()
-            step_ms.append(_step(scene, fast, grad_image))
-            cpu_ms.append(1e3 * (time.process_time() - c0))
-            for s, v in stage_times_ms().items():
-                stage[s].append(v)
-        render_ms = [_render(scene, fast) for _ in range(steps)]
-        numba.set_num_threads(1)
-        one_thread_ms = [_step(scene, fast, grad_image) for _ in range(steps)]
-        numba.set_num_threads(threads)
-        twin_ms = [_step(scene, twin, grad_image)]
-        if twin_ms[0] < args.twin_budget_s * 1e3:
-            twin_ms += [_step(scene, twin, grad_image) for _ in range(args.twin_steps - 1)]
-        twin_render_ms = _render(scene, twin)
-        med = statistics.median(step_ms)
-        rows.append(
-            {
-                "n": n,
-                "visible": n_vis,
-                "nn_mm": scene["nn_scale_mm"],
-                "compile_s": compile_s,
-                "numba_ms": med,
-                "numba_min_ms": min(step_ms),
-                "cpu_ms": statistics.median(cpu_ms),
-                "one_thread_ms": statistics.median(one_thread_ms),
-                "stages": {s: statistics.median(v) for s, v in stage.items() if v},
-                "render_ms": statistics.median(render_ms),
-                "twin_ms": statistics.median(twin_ms),
-                "twin_steps": len(twin_ms),
-                "twin_render_ms": twin_render_ms,
-            }
+        rows.append(_measure(scene, n, fast, twin, steps, args.twin_steps, args.twin_budget_s))
+        print(
+            f"done {n}: numba {rows[-1]['numba_ms']:.0f} ms, twin {rows[-1]['twin_ms']:.0f} ms",
+            flush=True,
         )
-        print(f"done {n}: numba {med:.0f} ms, twin {rows[-1]['twin_ms']:.0f} ms", flush=True)
 
     print(f"# load average at end: {os.getloadavg()[0]:.1f}")
+    _print_tables(rows)
+
+
+def _measure(
+    scene: dict, n: int, fast, twin, steps: int, twin_steps: int, twin_budget_s: float
+) -> dict:
+    """One size: the first (compiling) numba step, then timed numba steps (all threads and one),
+    renders, and the twin's steps (just one if it is slower than ``twin_budget_s``)."""
+    import numba
+
+    from reconstructor.raster import rasterize
+    from reconstructor.raster.function import stage_times_ms
+
+    width, height = scene["width_px"], scene["height_px"]
+    threads = numba.get_num_threads()
+    keys = (*_LEAVES, "viewmat", "K", "width_px", "height_px")
+    # the gradient an L1 loss against a grey target would send (signs vary per pixel)
+    signs = np.random.default_rng(1).choice([-1.0, 1.0], size=(height, width, 3))
+    grad_image = torch.from_numpy(signs.astype(np.float32) / (3 * width * height))
+    t0 = time.perf_counter()
+    _step(scene, fast, grad_image)  # first call: compiles every kernel
+    compile_s = time.perf_counter() - t0
+    with torch.no_grad():
+        out = rasterize(**{k: scene[k] for k in keys}, config=fast)
+    n_vis = int((out.radii_px > 0).sum())
+    step_ms, cpu_ms, stage = [], [], {s: [] for s in STAGES}
+    for _ in range(steps):
+        c0 = time.process_time()
+        step_ms.append(_step(scene, fast, grad_image))
+        cpu_ms.append(1e3 * (time.process_time() - c0))
+        for s, v in stage_times_ms().items():
+            stage[s].append(v)
+    render_ms = [_render(scene, fast) for _ in range(steps)]
+    numba.set_num_threads(1)
+    one_thread_ms = [_step(scene, fast, grad_image) for _ in range(steps)]
+    numba.set_num_threads(threads)
+    twin_ms = [_step(scene, twin, grad_image)]
+    if twin_ms[0] < twin_budget_s * 1e3:
+        twin_ms += [_step(scene, twin, grad_image) for _ in range(twin_steps - 1)]
+    twin_render_ms = _render(scene, twin)
+    return {
+        "n": n,
+        "visible": n_vis,
+        "nn_mm": scene["nn_scale_mm"],
+        "compile_s": compile_s,
+        "numba_ms": statistics.median(step_ms),
+        "numba_min_ms": min(step_ms),
+        "cpu_ms": statistics.median(cpu_ms),
+        "one_thread_ms": statistics.median(one_thread_ms),
+        "stages": {s: statistics.median(v) for s, v in stage.items() if v},
+        "render_ms": statistics.median(render_ms),
+        "twin_ms": statistics.median(twin_ms),
+        "twin_steps": len(twin_ms),
+        "twin_render_ms": twin_render_ms,
+    }
+
+
+def _print_tables(rows: list[dict]) -> None:
+    """The Markdown tables: speed per size, then the numba step's stages."""
     print()
     print(
         "| Gaussians (visible) | NN scale p5-p95 | numba fwd+bwd ms, median (min) | CPU ms | "

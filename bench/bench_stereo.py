@@ -15,8 +15,8 @@ depth edge, where the four truth neighbours differ by more than 1 %, are left ou
 as in tests/reconstructor/test_stereo.py); ``right`` and ``centre`` are the densities of the
 right-most 120 columns and of the central 120, and ``tex`` the same over textured pixels only
 (the right edge sees more blank wall than the centre in the sim). The rows "+ fill" add the
-pipeline's fill stage (``depth/fill.py`` at stride 1): "image" spreads confident disparity
-along colour edges, "+ shell" also puts what is still a hole on the room's box (the site's
+pipeline's fill stage (``reconstructor/depth/fill.py`` at stride 1): "image" spreads confident
+disparity along colour edges, "+ shell" also puts what is still a hole on the room's box (the site's
 ``room_bounds_m``).
 Prints Markdown tables: the mean over the cameras per phase, then every camera for the matchers
 named by ``--per-camera``. EVALUATION.md ("Stereo depth against the sim's truth") records a run.

@@ -2,7 +2,7 @@
 defaults (λ = 0.05, needle term μ = 10), in one run on the same timestamp.
 
     .venv/bin/egosurg sim eval-set --out out/evalset3 --phases intraoperative,turnover \\
-        --sets 3 --eval-sets 0 --view-size 480x300          # once (EVALUATION.md's first command)
+        --sets 3 --eval-sets 0 --view-size 480x300          # once (docs/history/evaluation.md)
     .venv/bin/python bench/bench_train_loss.py [--evalset out/evalset3] [--steps 2000]
 
 One intraoperative timestamp of the evaluation set, all 8 views at 480 px, the evaluation's
@@ -24,7 +24,6 @@ import numpy as np
 
 import reconstructor  # noqa: F401  (flushes denormals before torch starts its threads)
 from protocol.formats.eval_set import EvalSet
-from reconstructor.config import apply_overrides
 from reconstructor.evaluation.methods import EvalSettings, method_config
 from reconstructor.evaluation.runner import EvalSource
 from reconstructor.pipeline import reconstruct
@@ -56,7 +55,7 @@ def main() -> None:
     rows = []
     for name, overrides in ARMS.items():
         base = method_config(settings, "no-refinement", "all", scene.room_bounds_m)
-        cfg = apply_overrides(base, overrides, "bench")
+        cfg = base.overridden(overrides, "bench")
         steps = reconstruct(ts, cfg, calibration=source.calibration(args.scene)).trainer.log.steps
         ms = 1000 * float(np.median([s.seconds for s in steps]))
         rows.append((name, ms, sum(s.seconds for s in steps)))

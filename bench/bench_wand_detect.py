@@ -9,7 +9,7 @@ what calibration sees. The background of each sensor is the median of its frames
 21 and 27 s. Rendering all of it takes about half a minute; the JPEG bytes and the truth (projected
 sphere centres, and which spheres are whole and unoccluded) are cached in ``--cache``.
 
-Per frame, single thread (``cv2.setNumThreads(1)``), what ``calibration.extract`` does::
+Per frame, single thread (``cv2.setNumThreads(1)``), what ``calibration.detect.extract`` does::
 
     label = refit_without_rod(det, image, label_wand(det.detect(image), wand))
 
@@ -19,7 +19,7 @@ turn, best of ``--repeat`` runs each. Prints a Markdown table: ms per image, lab
 centre error against the truth (labelled spheres that are whole in the image, and all labelled
 spheres) and how far the default path's final centres lie from the reference path's; and the
 default path's first call in the process (numba compiling its kernels, about 10 s, or loading
-them from the cache next to calibration/detect_kernels.py, well under a second).
+them from the cache next to calibration/detect/kernels.py, well under a second).
 """
 
 from __future__ import annotations
@@ -105,7 +105,7 @@ def load_cache(cache: Path) -> dict[tuple[int, str], dict]:
 
 
 def _pipeline(det, image: np.ndarray, wand) -> tuple[np.ndarray | None, float]:
-    from calibration.label import label_wand, refit_without_rod
+    from calibration.detect.label import label_wand, refit_without_rod
 
     t0 = time.perf_counter()
     label = refit_without_rod(det, image, label_wand(det.detect(image), wand))
@@ -120,7 +120,8 @@ def _stats(errors: list[float]) -> str:
 
 
 def run(cache: Path, repeat: int) -> None:
-    from calibration.detect import DetectorConfig, SphereDetector
+    from calibration.detect.config import DetectorConfig
+    from calibration.detect.detector import SphereDetector
     from protocol.formats.wand import WandSpec
     from sim import World
 

@@ -19,7 +19,6 @@ writing a calibration; it exits with code 1 when a camera moved past the drift l
 
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
 import time
@@ -27,13 +26,17 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration import exports
-from calibration.drift import align_to
-from calibration.extract import ExtractConfig, extract
-from calibration.report import ReportData, Thresholds, annotate, verdict
-from calibration.report_page import write_report
-from calibration.solve import Solution, SolveConfig, solve
-from protocol.errors import UserError
+from calibration.detect.extract import ExtractConfig, extract
+from calibration.observations import WandObservations
+from calibration.report import exports
+from calibration.report.page import write_report
+from calibration.report.stats import ReportData
+from calibration.report.thresholds import Thresholds
+from calibration.report.verdict import annotate, verdict
+from calibration.solve.config import SolveConfig
+from calibration.solve.drift import Drift, align_to
+from calibration.solve.solver import Solution, solve
+from protocol.command import CommandArgumentError, command_parser
 from protocol.formats.rig_calibration import RigCalibration
 from protocol.formats.wand import WandSpec
 
@@ -41,10 +44,6 @@ log = logging.getLogger(__name__)
 
 DRIFT_LIMIT_DEG = 0.1
 DRIFT_LIMIT_MM = 5.0
-
-
-class CalibrateArgumentError(UserError, ValueError):
-    pass
 
 
 def report_data(
@@ -69,11 +68,7 @@ def report_data(
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(
-        prog="egosurg calibrate",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = command_parser("egosurg calibrate", __doc__)
     parser.add_argument("session", help="a wand session recorded by 'egosurg record'")
     parser.add_argument(
         "--wand", required=True, help="wand.toml (egosurg sim wand-file writes one)"
@@ -106,82 +101,25 @@ def main(argv: list[str]) -> int:
     )
     args = parser.parse_args(argv)
     if args.check and args.refine:
-        raise CalibrateArgumentError("use either --refine or --check, not both")
+        raise CommandArgumentError("use either --refine or --check, not both")
     if not args.check and not args.out:
-        raise CalibrateArgumentError("say where to write the calibration: --out calibration.toml")
+        raise CommandArgumentError("say where to write the calibration: --out calibration.toml")
     if not Path(args.session).exists():
-        raise CalibrateArgumentError(f"{args.session} does not exist")
+        raise CommandArgumentError(f"{args.session} does not exist")
     wand = WandSpec.read(args.wand)
     old = RigCalibration.read(args.check or args.refine) if (args.check or args.refine) else None
     t0 = time.perf_counter()
-
-    def progress(k: int, n: int) -> None:
-        print(f"\rdetecting the wand: {k}/{n} chunks", end="", file=sys.stderr, flush=True)
-
-    obs = extract(args.session, wand, ExtractConfig(max_sets=args.max_sets), progress=progress)
-    print(file=sys.stderr)
+    obs = _detect(args.session, wand, args.max_sets)
     t_detect = time.perf_counter() - t0
-    used = obs.frames_used()
-    for key in obs.sensors:
-        rej = obs.rejected.get(key, {})
-        print(
-            f"{key.name}: wand in {used[key]} of {obs.frames_seen.get(key, 0)} frames"
-            + (f"; rejected: {', '.join(f'{r} {n}' for r, n in rej.items())}" if rej else "")
-        )
+    _print_detections(obs)
     solution = solve(obs, SolveConfig())
     t_solve = time.perf_counter() - t0 - t_detect
     thresholds = Thresholds(min_coverage_cells=args.min_coverage_cells, min_frames=args.min_frames)
-    frames = {
-        key.name: (used[key], sum(obs.rejected.get(key, {}).values()), obs.rejected.get(key, {}))
-        for key in obs.sensors
-    }
-    data = report_data(solution, wand, frames, thresholds, f"Calibration from {args.session}")
-    cal = annotate(data, thresholds)
-    cal = RigCalibration(
-        sensors=cal.sensors,
-        resolution=cal.resolution,
-        world_frame=cal.world_frame,
-        quality={**solution.calibration.quality, **cal.quality},
-        metadata={**cal.metadata, "session": str(args.session)},
-    )
-    drift = None
-    if old is not None:
-        moved_rig = align_to(cal, old, outlier_mm=DRIFT_LIMIT_MM)
-        cal = moved_rig.aligned
-        drift = (moved_rig.rotation_deg, moved_rig.position_mm)
-        data = report_data(
-            Solution(**{**solution.__dict__, "calibration": cal}),
-            wand,
-            frames,
-            thresholds,
-            f"Calibration from {args.session}",
-        )
+    cal, data, drift = _calibration(obs, solution, wand, thresholds, old, args.session)
     passed, reasons = verdict(data, thresholds)
-    q = cal.quality
-    print(
-        f"reprojection error: mean {q['reprojection_px_mean']:.3f} px, p95 "
-        f"{q['reprojection_px_p95']:.3f} px; wand length {q['wand_length_mm_mean']:.2f} +- "
-        f"{q['wand_length_mm_sd']:.2f} mm, wand score {q['wand_score']:.3f} %"
-    )
-    print(f"verdict: {'PASS' if passed else 'FAIL'}")
-    for r in reasons:
-        print(f"  - {r}")
-    if drift is not None:
-        print(
-            "camera drift against the old calibration (rotation deg, position mm), in the frame "
-            "of SN" + ", SN".join(str(c) for c in moved_rig.fitted_serials) + ":"
-        )
-        for s, rd, pm in zip(cal.sensors, *drift, strict=True):
-            flag = "  MOVED" if rd > DRIFT_LIMIT_DEG or pm > DRIFT_LIMIT_MM else ""
-            print(f"  {s.name:<20} {rd:8.4f} deg {pm:8.2f} mm{flag}")
+    _print_result(cal, passed, reasons, drift)
     if args.check:
-        rd, pm = drift if drift is not None else (np.zeros(1), np.zeros(1))
-        moved = bool((rd > DRIFT_LIMIT_DEG).any() or (pm > DRIFT_LIMIT_MM).any())
-        print(
-            f"drift check: {'RECALIBRATE: a camera moved' if moved else 'OK'} (limits "
-            f"{DRIFT_LIMIT_DEG} deg, {DRIFT_LIMIT_MM} mm); took {time.perf_counter() - t0:.0f} s"
-        )
-        return 1 if moved else 0
+        return _drift_check(drift, t0)
     out = Path(args.out)
     cal.write(out)
     report_dir = Path(args.report_dir) if args.report_dir else out.with_name(out.stem + "_report")
@@ -199,3 +137,92 @@ def main(argv: list[str]) -> int:
         f"({time.perf_counter() - t0:.0f} s)"
     )
     return 0
+
+
+def _detect(session: str, wand: WandSpec, max_sets: int) -> WandObservations:
+    """The wand in the session's frames, with a progress line on stderr."""
+
+    def progress(k: int, n: int) -> None:
+        print(f"\rdetecting the wand: {k}/{n} chunks", end="", file=sys.stderr, flush=True)
+
+    obs = extract(session, wand, ExtractConfig(max_sets=max_sets), progress=progress)
+    print(file=sys.stderr)
+    return obs
+
+
+def _print_detections(obs: WandObservations) -> None:
+    used = obs.frames_used()
+    for key in obs.sensors:
+        rej = obs.rejected.get(key, {})
+        print(
+            f"{key.name}: wand in {used[key]} of {obs.frames_seen.get(key, 0)} frames"
+            + (f"; rejected: {', '.join(f'{r} {n}' for r, n in rej.items())}" if rej else "")
+        )
+
+
+def _calibration(
+    obs: WandObservations,
+    solution: Solution,
+    wand: WandSpec,
+    thresholds: Thresholds,
+    old: RigCalibration | None,
+    session: str,
+) -> tuple[RigCalibration, ReportData, Drift | None]:
+    """The calibration with the report's quality and stats (in ``old``'s world frame when there
+    is one), the report's data, and how far each sensor moved from ``old``."""
+    used = obs.frames_used()
+    frames = {
+        key.name: (used[key], sum(obs.rejected.get(key, {}).values()), obs.rejected.get(key, {}))
+        for key in obs.sensors
+    }
+    title = f"Calibration from {session}"
+    data = report_data(solution, wand, frames, thresholds, title)
+    cal = annotate(data, thresholds)
+    cal = RigCalibration(
+        sensors=cal.sensors,
+        resolution=cal.resolution,
+        world_frame=cal.world_frame,
+        quality={**solution.calibration.quality, **cal.quality},
+        metadata={**cal.metadata, "session": str(session)},
+    )
+    if old is None:
+        return cal, data, None
+    drift = align_to(cal, old, outlier_mm=DRIFT_LIMIT_MM)
+    cal = drift.aligned
+    solved = Solution(**{**solution.__dict__, "calibration": cal})
+    return cal, report_data(solved, wand, frames, thresholds, title), drift
+
+
+def _print_result(
+    cal: RigCalibration, passed: bool, reasons: list[str], drift: Drift | None
+) -> None:
+    q = cal.quality
+    print(
+        f"reprojection error: mean {q['reprojection_px_mean']:.3f} px, p95 "
+        f"{q['reprojection_px_p95']:.3f} px; wand length {q['wand_length_mm_mean']:.2f} +- "
+        f"{q['wand_length_mm_sd']:.2f} mm, wand score {q['wand_score']:.3f} %"
+    )
+    print(f"verdict: {'PASS' if passed else 'FAIL'}")
+    for r in reasons:
+        print(f"  - {r}")
+    if drift is None:
+        return
+    print(
+        "camera drift against the old calibration (rotation deg, position mm), in the frame "
+        "of SN" + ", SN".join(str(c) for c in drift.fitted_serials) + ":"
+    )
+    for s, rd, pm in zip(cal.sensors, drift.rotation_deg, drift.position_mm, strict=True):
+        flag = "  MOVED" if rd > DRIFT_LIMIT_DEG or pm > DRIFT_LIMIT_MM else ""
+        print(f"  {s.name:<20} {rd:8.4f} deg {pm:8.2f} mm{flag}")
+
+
+def _drift_check(drift: Drift | None, t0: float) -> int:
+    """``--check``'s answer: exit code 1 when a camera moved past the drift limits."""
+    none = (np.zeros(1), np.zeros(1))
+    rd, pm = (drift.rotation_deg, drift.position_mm) if drift is not None else none
+    moved = bool((rd > DRIFT_LIMIT_DEG).any() or (pm > DRIFT_LIMIT_MM).any())
+    print(
+        f"drift check: {'RECALIBRATE: a camera moved' if moved else 'OK'} (limits "
+        f"{DRIFT_LIMIT_DEG} deg, {DRIFT_LIMIT_MM} mm); took {time.perf_counter() - t0:.0f} s"
+    )
+    return 1 if moved else 0

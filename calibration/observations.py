@@ -1,8 +1,9 @@
 """What the solver works from: labelled wand-sphere centres per synchronised set and sensor.
 
-Built from a recorded session by ``calibration.extract`` (detection and labelling of every frame),
-or synthesised from the simulator's truth in tests. Everything a solver needs travels in one
-object, so the solver never touches images or files.
+The hand-off between the two halves of calibration, so it sits between them: built from a
+recorded session by ``calibration.detect.extract`` (detection and labelling of every frame), or
+synthesised from the simulator's truth in tests, and read by ``calibration.solve``. Everything a
+solver needs travels in one object, so the solver never touches images or files.
 
 Conventions: pixel coordinates are *distorted* sensor pixels (as in the image) of the projection
 of each sphere's centre, already corrected for the eccentricity bias of the sphere's imaged

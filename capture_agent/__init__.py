@@ -1,4 +1,4 @@
 """The edge half of EgoSurg: capture agents on the Jetson nodes and the recorder.
 
-Imports neither torch nor open3d, so it runs on a small node (see DESIGN.md).
+Imports neither torch nor open3d, so it runs on a small node (docs/architecture.md).
 """

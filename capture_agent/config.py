@@ -1,5 +1,9 @@
 """``node.toml`` (one capture agent) and ``rig.toml`` (the recorder), as typed configs.
 
+Every option's range or rule is stated once, on its field; a config checks itself when it is made
+(``protocol/config_fields.py``), from a file (``protocol/toml_config.py``: an unknown key or a bad
+value fails at load, in one line naming the file, the table and the field) or in code.
+
 Example ``node.toml``::
 
     node_id = "orin-a"
@@ -20,7 +24,7 @@ Example ``node.toml``::
 
     [[cameras]]
     source = "zed"                     # "zed", "sim" or "video"; the rest of the table is the
-    serial = 41234567                  # source's own options (see capture_agent/sources/)
+    serial = 41234567                  # source's own options (capture_agent/camera_config.py)
 
 Example ``rig.toml``::
 
@@ -55,59 +59,86 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, get_args
 
+from capture_agent.camera_config import CameraConfig
 from capture_agent.security import LARGEST_IMAGE_BYTES, frame_message_max_bytes, key_path
-from capture_agent.security_config import NO_KEYS, SecurityConfig
-from capture_agent.toml_table import TableReader, load_toml
+from capture_agent.security_config import NO_KEYS, NodeSecurityConfig, RigSecurityConfig
+from protocol.config_fields import internal, option, validate
 from protocol.errors import ConfigError
+from protocol.toml_config import load_toml, read_table
 from protocol.wire import MAX_FRAME_BYTES
 
 __all__ = [
     "ENCODINGS",
     "MIN_RECEIVE_MESSAGES",
+    "PTP_SOURCES",
     "AgentEndpoint",
-    "CameraEntry",
     "EncodingName",
     "NodeConfig",
+    "PtpConfig",
     "RigConfig",
-    "SecurityConfig",
     "connect_address",
-    "load_toml",
 ]
 
 # The names of protocol.wire.Encoding, as node.toml spells them.
 EncodingName = Literal["jpeg", "raw_bgr8"]
 ENCODINGS: tuple[EncodingName, ...] = get_args(EncodingName)
+PtpSource = Literal["pmc", "none"]  # "none": no PTP (simulation)
+PTP_SOURCES: tuple[PtpSource, ...] = get_args(PtpSource)
 MIN_RECEIVE_MESSAGES = 8  # the smallest receive queue per agent that receive_buffer_mb may give
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,31}$")
-_NAME_HINT = "a name of letters, digits, - _ . (at most 32)"
+_NAME_HINT = "must be a name of letters, digits, - _ . (at most 32)"
+
+
+def _is_name(value: str) -> bool:
+    return bool(_NAME.match(value))
 
 
 def _endpoint(value: str) -> bool:
     return bool(re.match(r"^(tcp://[^:]+:\d{1,5}|ipc://.+|inproc://.+)$", value))
 
 
+def _endpoint_like(example: str) -> Any:
+    return option(test=_endpoint, must=f"must be an endpoint like {example}")
+
+
 @dataclass(frozen=True, kw_only=True)
-class CameraEntry:
-    source: str
-    table: dict[str, Any]
-    where: str
+class PtpConfig:
+    """node.toml's ``[ptp]``: how this node's clock lock is read (capture_agent/agent/ptp.py)."""
+
+    source: PtpSource = "pmc"
+    pmc_path: str = option("pmc", test=bool, must="must name the pmc program")
+    lock_threshold_ns: int = option(
+        1000, gt=0, must="must be > 0 ns (1000 suits hardware timestamping)"
+    )
+    require_lock: bool = True
+    poll_interval_s: float = option(1.0, ge=0.05, le=60, must="must be from 0.05 to 60 seconds")
+    timeout_s: float = option(2.0, gt=0, le=30, must="must be > 0 and <= 30 s")
+
+    def __post_init__(self) -> None:
+        validate(self)
 
 
 @dataclass(frozen=True, kw_only=True)
 class NodeConfig:
-    node_id: str
-    frames_bind: str
-    control_bind: str
+    node_id: str = option(test=_is_name, must=_NAME_HINT)
+    frames_bind: str = _endpoint_like("tcp://10.10.0.11:5550")
+    control_bind: str = _endpoint_like("tcp://10.10.0.11:5551")
     encoding: EncodingName = "jpeg"
-    jpeg_quality: int = 90
-    queue_frames: int = 120
-    status_interval_s: float = 1.0
-    watchdog_timeout_s: float = 2.0
-    reopen_interval_s: float = 1.0
-    ptp: dict[str, Any] = field(default_factory=dict)
-    cameras: tuple[CameraEntry, ...] = ()
-    security: SecurityConfig = field(default_factory=SecurityConfig)
-    source_path: str = ""
+    jpeg_quality: int = option(90, ge=1, le=100)
+    queue_frames: int = option(120, ge=2, le=10_000)
+    status_interval_s: float = option(1.0, ge=0.05, le=60)
+    watchdog_timeout_s: float = option(2.0, ge=0.1, le=600)
+    reopen_interval_s: float = option(1.0, ge=0.05, le=600)
+    ptp: PtpConfig = field(default_factory=PtpConfig)
+    cameras: tuple[CameraConfig, ...] = option(test=bool, must="add at least one [[cameras]] table")
+    security: NodeSecurityConfig = field(default_factory=NodeSecurityConfig)
+    source_path: str = internal("")
+
+    def __post_init__(self) -> None:
+        validate(self)
+        self.security.require_keys()
+        self.security.check_bind(self.frames_bind, "frames_bind")
+        self.security.check_bind(self.control_bind, "control_bind")
 
     @classmethod
     def from_toml(cls, path: Path | str) -> NodeConfig:
@@ -116,90 +147,81 @@ class NodeConfig:
 
     @classmethod
     def from_table(cls, data: dict[str, Any], where: str) -> NodeConfig:
-        t = TableReader(data, where)
-        node_id = t.text("node_id", check=_NAME.match, hint=_NAME_HINT)
-        cams = data.get("cameras")
-        t.skip("cameras", "security")
-        if not isinstance(cams, list) or not cams:
-            raise ConfigError(f"{where}: add at least one [[cameras]] table")
-        entries = []
-        for i, cam in enumerate(cams):
-            cw = f"{where} [[cameras]] #{i + 1}"
-            if not isinstance(cam, dict) or "source" not in cam:
-                raise ConfigError(f'{cw}: needs source = "zed", "sim" or "video"')
-            rest = {k: v for k, v in cam.items() if k != "source"}
-            entries.append(CameraEntry(source=str(cam["source"]), table=rest, where=cw))
-        cfg = cls(
-            node_id=node_id,
-            frames_bind=t.text(
-                "frames_bind", check=_endpoint, hint="an endpoint like tcp://10.10.0.11:5550"
-            ),
-            control_bind=t.text(
-                "control_bind", check=_endpoint, hint="an endpoint like tcp://10.10.0.11:5551"
-            ),
-            encoding=t.choice("encoding", ENCODINGS, "jpeg"),
-            jpeg_quality=t.integer(
-                "jpeg_quality", 90, check=lambda v: 1 <= v <= 100, hint="an integer, 1 to 100"
-            ),
-            queue_frames=t.integer(
-                "queue_frames",
-                120,
-                check=lambda v: 2 <= v <= 10_000,
-                hint="an integer, 2 to 10000",
-            ),
-            status_interval_s=t.number(
-                "status_interval_s", 1.0, check=lambda v: 0.05 <= v <= 60, hint="0.05 to 60 s"
-            ),
-            watchdog_timeout_s=t.number(
-                "watchdog_timeout_s", 2.0, check=lambda v: 0.1 <= v <= 600, hint="0.1 to 600 s"
-            ),
-            reopen_interval_s=t.number(
-                "reopen_interval_s", 1.0, check=lambda v: 0.05 <= v <= 600, hint="0.05 to 600 s"
-            ),
-            ptp=t.table_of("ptp"),
-            cameras=tuple(entries),
-            source_path=where,
-        )
-        t.finish()
-        security = SecurityConfig.from_table(data, where, rig=False)
-        security.check_bind(cfg.frames_bind, "frames_bind")
-        security.check_bind(cfg.control_bind, "control_bind")
-        return dataclasses.replace(cfg, security=security)
+        """From node.toml's parsed ``data``; key paths are relative to ``where``'s folder."""
+        cfg = read_table(cls, data, where)
+        return dataclasses.replace(cfg, security=cfg.security.resolved(where), source_path=where)
+
+
+def _serials(cameras: tuple[int, ...]) -> bool:
+    return all(s > 0 for s in cameras)
 
 
 @dataclass(frozen=True, kw_only=True)
 class AgentEndpoint:
-    node_id: str
-    frames: str
-    control: str
-    cameras: tuple[int, ...] = ()
+    node_id: str = option(test=_is_name, must=_NAME_HINT)
+    frames: str = _endpoint_like("tcp://host:5550")
+    control: str = _endpoint_like("tcp://host:5551")
+    # expected serials; a start is refused if one is missing
+    cameras: tuple[int, ...] = option((), test=_serials, must="must list camera serial numbers")
     public_key: str = ""  # the agent's public key file: the only key its frames may come from
+
+    def __post_init__(self) -> None:
+        validate(self)
 
 
 @dataclass(frozen=True, kw_only=True)
 class RigConfig:
-    rig_name: str
-    fps: float
-    control_bind: str
-    output_dir: str
-    agents: tuple[AgentEndpoint, ...]
+    rig_name: str = option("rig", test=_is_name, must=_NAME_HINT)
+    fps: float = option(ge=1, le=120)
+    control_bind: str = _endpoint_like("tcp://127.0.0.1:5560")
+    output_dir: str = option(must="the folder sessions are written to")
+    agents: tuple[AgentEndpoint, ...] = option(
+        test=bool, must="add one [[agents]] table per capture node"
+    )
     require_ptp_lock: bool = True
     # 0.2 s: capture-to-durable p99 under 250 ms at the full rig for about 1-2 % of a core more
     # than 0.5 s (BENCHMARKS.md); a crash loses at most this much
-    flush_interval_s: float = 0.2
-    max_wait_ms: float = 500.0
-    disk_reserve_gb: float = 2.0
-    planned_duration_min: float = 60.0
-    agent_timeout_s: float = 3.0
-    receive_buffer_mb: float = 1024.0
+    flush_interval_s: float = option(
+        0.2, ge=0.01, le=1.0, must="must be 0.01 to 1 s (a crash loses at most this much)"
+    )
+    max_wait_ms: float = option(500.0, ge=10, le=10_000)
+    disk_reserve_gb: float = option(2.0, ge=0, must="must be a non-negative size in GB")
+    planned_duration_min: float = option(60.0, gt=0)
+    agent_timeout_s: float = option(3.0, ge=0.5, le=60)
+    # the MB of queued frames the recorder may hold, all agents
+    receive_buffer_mb: float = option(1024.0, ge=1, le=1_000_000)
     # frames received but not yet written (a stalling disk); ~3.5 s of the reference rig's
     # 4 x HD1200 JPEG streams (~75 MB/s); at least one largest legal frame message
-    write_queue_mb: float = 256.0
-    max_image_bytes: int = LARGEST_IMAGE_BYTES
-    max_clock_skew_s: float = 10.0  # frames stamped further from the recorder's clock: refused
-    security: SecurityConfig = field(default_factory=SecurityConfig)
-    toml_text: str = ""
-    source_path: str = ""
+    write_queue_mb: float = option(256.0, ge=1, le=1_000_000)
+    max_image_bytes: int = option(
+        LARGEST_IMAGE_BYTES,
+        ge=1024,
+        le=MAX_FRAME_BYTES,
+        must=f"must be bytes per image, 1024 to {MAX_FRAME_BYTES}; larger images are refused",
+    )
+    # frames stamped further from the recorder's clock: refused
+    max_clock_skew_s: float = option(10.0, ge=0.1, le=86_400)
+    security: RigSecurityConfig = field(default_factory=RigSecurityConfig)
+    toml_text: str = internal("")
+    source_path: str = internal("")
+
+    def __post_init__(self) -> None:
+        validate(self)
+        names = [a.node_id for a in self.agents]
+        if len(set(names)) != len(names):
+            raise ConfigError("two [[agents]] share a node_id; each node needs its own")
+        serials = self.expected_cameras
+        if len(set(serials)) != len(serials):
+            raise ConfigError("a camera serial is listed under two agents")
+        self.security.require_keys()
+        self.security.check_bind(self.control_bind, "control_bind")
+        for i, a in enumerate(self.agents):
+            if not a.public_key and not self.security.insecure:
+                raise ConfigError(
+                    f"agents[{i}] ({a.node_id}): 'public_key' is required (the agent's .key "
+                    f"file); {NO_KEYS}"
+                )
+        _check_buffers(self)
 
     @property
     def expected_cameras(self) -> tuple[int, ...]:
@@ -212,120 +234,35 @@ class RigConfig:
 
     @classmethod
     def from_table(cls, data: dict[str, Any], where: str, text: str = "") -> RigConfig:
-        t = TableReader(data, where)
-        agents_raw = data.get("agents")
-        t.skip("agents", "security")
-        if not isinstance(agents_raw, list) or not agents_raw:
-            raise ConfigError(f"{where}: add one [[agents]] table per capture node")
-        agents = tuple(_agent(a, f"{where} [[agents]] #{i + 1}") for i, a in enumerate(agents_raw))
-        names = [a.node_id for a in agents]
-        if len(set(names)) != len(names):
-            raise ConfigError(f"{where}: two [[agents]] share a node_id; each node needs its own")
-        serials = [s for a in agents for s in a.cameras]
-        if len(set(serials)) != len(serials):
-            raise ConfigError(f"{where}: a camera serial is listed under two agents")
-        cfg = cls(
-            rig_name=t.text("rig_name", "rig", check=_NAME.match, hint=_NAME_HINT),
-            fps=t.number("fps", check=lambda v: 1 <= v <= 120, hint="a number, 1 to 120"),
-            control_bind=t.text(
-                "control_bind", check=_endpoint, hint="an endpoint like tcp://127.0.0.1:5560"
-            ),
-            output_dir=t.text("output_dir", hint="the folder sessions are written to"),
-            agents=agents,
-            require_ptp_lock=t.boolean("require_ptp_lock", True),
-            flush_interval_s=t.number(
-                "flush_interval_s",
-                0.2,
-                check=lambda v: 0.01 <= v <= 1.0,
-                hint="0.01 to 1 s (a crash loses at most this much)",
-            ),
-            max_wait_ms=t.number(
-                "max_wait_ms", 500.0, check=lambda v: 10 <= v <= 10_000, hint="10 to 10000 ms"
-            ),
-            disk_reserve_gb=t.number(
-                "disk_reserve_gb", 2.0, check=lambda v: v >= 0, hint="a non-negative size in GB"
-            ),
-            planned_duration_min=t.number(
-                "planned_duration_min", 60.0, check=lambda v: v > 0, hint="minutes, > 0"
-            ),
-            agent_timeout_s=t.number(
-                "agent_timeout_s", 3.0, check=lambda v: 0.5 <= v <= 60, hint="0.5 to 60 s"
-            ),
-            receive_buffer_mb=t.number(
-                "receive_buffer_mb",
-                1024.0,
-                check=lambda v: 1 <= v <= 1_000_000,
-                hint="the MB of queued frames the recorder may hold, 1 to 1000000",
-            ),
-            write_queue_mb=t.number(
-                "write_queue_mb",
-                256.0,
-                check=lambda v: 1 <= v <= 1_000_000,
-                hint="the MB of frames waiting for the disk the recorder may hold, 1 to 1000000",
-            ),
-            max_image_bytes=t.integer(
-                "max_image_bytes",
-                LARGEST_IMAGE_BYTES,
-                check=lambda v: 1024 <= v <= MAX_FRAME_BYTES,
-                hint=f"bytes per image, 1024 to {MAX_FRAME_BYTES}; larger images are refused",
-            ),
-            max_clock_skew_s=t.number(
-                "max_clock_skew_s",
-                10.0,
-                check=lambda v: 0.1 <= v <= 86_400,
-                hint="the seconds a frame's capture time may differ from the recorder's clock, "
-                "0.1 to 86400",
-            ),
-            toml_text=text,
-            source_path=where,
+        """From rig.toml's parsed ``data``; key paths are relative to ``where``'s folder."""
+        cfg = read_table(cls, data, where)
+        base = Path(where).parent
+        agents = tuple(
+            dataclasses.replace(a, public_key=key_path(a.public_key, base)) if a.public_key else a
+            for a in cfg.agents
         )
-        t.finish()
-        return _with_rig_security(cfg, data, where)
-
-
-def _agent(table: object, where: str) -> AgentEndpoint:
-    # a non-table entry reads as an empty one, so the error names its first required field
-    at = TableReader(table if isinstance(table, dict) else {}, where)
-    agent = AgentEndpoint(
-        node_id=at.text("node_id", check=_NAME.match, hint=_NAME_HINT),
-        frames=at.text("frames", check=_endpoint, hint="an endpoint like tcp://host:5550"),
-        control=at.text("control", check=_endpoint, hint="an endpoint like tcp://host:5551"),
-        cameras=tuple(at.integers("cameras", [], hint="a list of camera serial numbers")),
-        public_key=at.text("public_key", "", hint="the agent's public key file path"),
-    )
-    at.finish()
-    return agent
-
-
-def _with_rig_security(cfg: RigConfig, data: dict[str, Any], where: str) -> RigConfig:
-    security = SecurityConfig.from_table(data, where, rig=True)
-    security.check_bind(cfg.control_bind, "control_bind")
-    base = Path(where).parent
-    agents = []
-    for i, a in enumerate(cfg.agents):
-        if not a.public_key and not security.insecure:
-            raise ConfigError(
-                f"{where} [[agents]] #{i + 1} ({a.node_id}): 'public_key' is required (the "
-                f"agent's .key file); {NO_KEYS}"
-            )
-        agents.append(
-            dataclasses.replace(a, public_key=key_path(a.public_key, base) if a.public_key else "")
+        security = cfg.security.resolved(where)
+        return dataclasses.replace(
+            cfg, agents=agents, security=security, toml_text=text, source_path=where
         )
-    per_agent = cfg.receive_buffer_mb * 1e6 / len(agents)
-    need = MIN_RECEIVE_MESSAGES * frame_message_max_bytes(cfg.max_image_bytes)
+
+
+def _check_buffers(cfg: RigConfig) -> None:
+    """The receive and write queues must each hold the largest legal frame messages."""
+    largest = frame_message_max_bytes(cfg.max_image_bytes)
+    per_agent = cfg.receive_buffer_mb * 1e6 / len(cfg.agents)
+    need = MIN_RECEIVE_MESSAGES * largest
     if per_agent < need:
         raise ConfigError(
-            f"{where}: receive_buffer_mb = {cfg.receive_buffer_mb:g} leaves {per_agent / 1e6:.0f} "
+            f"receive_buffer_mb = {cfg.receive_buffer_mb:g} leaves {per_agent / 1e6:.0f} "
             f"MB per agent, under {MIN_RECEIVE_MESSAGES} of the largest legal frame messages "
             f"({need / 1e6:.0f} MB); raise receive_buffer_mb or lower max_image_bytes"
         )
-    if cfg.write_queue_mb * 1e6 < frame_message_max_bytes(cfg.max_image_bytes):
+    if cfg.write_queue_mb * 1e6 < largest:
         raise ConfigError(
-            f"{where}: write_queue_mb = {cfg.write_queue_mb:g} cannot hold one largest legal "
-            f"frame message ({frame_message_max_bytes(cfg.max_image_bytes) / 1e6:.0f} MB); "
-            "raise write_queue_mb or lower max_image_bytes"
+            f"write_queue_mb = {cfg.write_queue_mb:g} cannot hold one largest legal "
+            f"frame message ({largest / 1e6:.0f} MB); raise write_queue_mb or lower max_image_bytes"
         )
-    return dataclasses.replace(cfg, agents=tuple(agents), security=security)
 
 
 def connect_address(bind: str) -> str:

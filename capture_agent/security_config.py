@@ -1,17 +1,25 @@
 """The ``[security]`` table of node.toml and rig.toml: which key files a daemon uses, checked
 when the config is read and loaded only when the daemon starts (``capture_agent/security.py``
-does the loading and the CURVE setup; docs/capture.md, "Security", is the operator's guide)."""
+does the loading and the CURVE setup; docs/capture.md, "Security", is the operator's guide).
+
+A node's table lists the keys allowed to connect (``allowed_keys``: the recorder's and the
+operators'); a rig's lists the operators allowed on the control socket (``operator_keys``), the
+recorder's public key clients connect to, and the key ``egosurg record``/``status`` use. Key paths
+are kept as written; ``resolved`` makes the relative ones relative to the config's folder.
+"""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from capture_agent.security import SECRET_SUFFIX, LinkSecurity, key_path, secure_bind_check
-from capture_agent.toml_table import TableReader
+from protocol.config_fields import internal, validate
 from protocol.errors import ConfigError
 
+_S = TypeVar("_S", bound="SecurityConfig")
 NO_KEYS = (
     "make keys with 'egosurg keys generate --out DIR --name NAME' and name them in [security] "
     "(see docs/capture.md, Security), or set insecure = true in [security] for plaintext links"
@@ -20,59 +28,97 @@ NO_KEYS = (
 
 @dataclass(frozen=True, kw_only=True)
 class SecurityConfig:
-    """The ``[security]`` table of node.toml or rig.toml: key file paths (relative paths are
-    relative to the config's folder), not keys: a client reading rig.toml need not be able to
-    read the recorder's secret key. ``links()`` loads them when a daemon starts."""
+    """What node.toml's and rig.toml's ``[security]`` share: key file paths, not keys (a client
+    reading rig.toml need not be able to read the recorder's secret key). ``links()`` loads them
+    when a daemon starts."""
 
-    insecure: bool = False
-    allow_all_interfaces: bool = False
+    insecure: bool = False  # plaintext links: only for a bench, warns at every start
+    allow_all_interfaces: bool = False  # allow binding tcp://* / 0.0.0.0
     secret_key: str = ""  # this daemon's keypair (a .key_secret file, mode 0600)
-    allowed_keys: tuple[str, ...] = ()  # node: recorder + operators; rig: operators on control
-    public_key: str = ""  # rig: the recorder's public key, which clients connect to
-    operator_key: str = ""  # rig: the keypair that egosurg record/status/shell use
-    where: str = ""
+    where: str = internal("")  # the config file's [security], for errors
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+    @property
+    def peer_keys(self) -> tuple[str, ...]:
+        """The public key files allowed to connect to this daemon."""
+        return ()
+
+    def require_keys(self) -> None:
+        """Refuse a table that names no keys and does not say ``insecure = true`` (the node and
+        rig configs ask last, so a file's other mistakes are named first)."""
+        if not self.insecure and not self.secret_key:
+            raise ConfigError(f"[security]: 'secret_key' is required; {NO_KEYS}")
 
     def links(self) -> LinkSecurity:
         """This daemon's keys, loaded (ConfigError when missing, unreadable or not 0600)."""
         if self.insecure:
             return LinkSecurity.plaintext()
-        if not self.secret_key or not self.allowed_keys:
+        if not self.secret_key or not self.peer_keys:
             raise ConfigError(f"{self.where or 'config'}: no CURVE keys; {NO_KEYS}")
-        return LinkSecurity.load(self.secret_key, self.allowed_keys)
-
-    @classmethod
-    def from_table(cls, data: dict[str, Any], where: str, *, rig: bool) -> SecurityConfig:
-        raw = data.get("security", {})
-        if not isinstance(raw, dict):
-            raise ConfigError(f"{where}: [security] must be a table")
-        t = TableReader(raw, f"{where} [security]")
-        base = Path(where).parent
-        insecure = t.boolean("insecure", False)
-        allowed_name = "operator_keys" if rig else "allowed_keys"
-        allowed = t.texts(allowed_name, [], hint="a list of public key file paths")
-        secret = t.text("secret_key", "", hint="a secret key file path")
-        if not insecure and not secret:
-            raise ConfigError(f"{t.where}: 'secret_key' is required; {NO_KEYS}")
-        if not insecure and not allowed:
-            who = "the operators' public keys" if rig else "the recorder's and operators' keys"
-            raise ConfigError(f"{t.where}: '{allowed_name}' must list {who}; {NO_KEYS}")
-        public = t.text("public_key", "", hint="a public key file path") if rig else ""
-        if rig and not public and secret.endswith(SECRET_SUFFIX):
-            public = secret[: -len("_secret")]
-        operator = t.text("operator_key", "", hint="a secret key file path") if rig else ""
-        cfg = cls(
-            insecure=insecure,
-            allow_all_interfaces=t.boolean("allow_all_interfaces", False),
-            secret_key=key_path(secret, base) if secret else "",
-            allowed_keys=tuple(key_path(k, base) for k in allowed),
-            public_key=key_path(public, base) if public else "",
-            operator_key=key_path(operator, base) if operator else "",
-            where=t.where,
-        )
-        t.finish()
-        return cfg
+        return LinkSecurity.load(self.secret_key, self.peer_keys)
 
     def check_bind(self, address: str, name: str) -> None:
-        secure_bind_check(
-            address, self.insecure, self.allow_all_interfaces, f"{self.where} ({name})"
-        )
+        where = f"{self.where} ({name})" if self.where else name
+        secure_bind_check(address, self.insecure, self.allow_all_interfaces, where)
+
+    def resolved(self: _S, config_path: str) -> _S:
+        """Key paths relative to the folder of ``config_path`` made whole; ``where`` set."""
+        base = Path(config_path).parent
+        paths: dict[str, Any] = {
+            f.name: _paths(getattr(self, f.name), base)
+            for f in dataclasses.fields(self)
+            if f.name.endswith(("_key", "_keys"))
+        }
+        return dataclasses.replace(self, **paths, where=f"{config_path} [security]")
+
+
+def _paths(value: str | tuple[str, ...], base: Path) -> str | tuple[str, ...]:
+    if isinstance(value, tuple):
+        return tuple(key_path(v, base) for v in value)
+    return key_path(value, base) if value else ""
+
+
+@dataclass(frozen=True, kw_only=True)
+class NodeSecurityConfig(SecurityConfig):
+    """node.toml's ``[security]``."""
+
+    allowed_keys: tuple[str, ...] = ()  # the recorder's and the operators' public keys
+
+    def require_keys(self) -> None:
+        super().require_keys()
+        if not self.insecure and not self.allowed_keys:
+            raise ConfigError(
+                f"[security]: 'allowed_keys' must list the recorder's and operators' keys; "
+                f"{NO_KEYS}"
+            )
+
+    @property
+    def peer_keys(self) -> tuple[str, ...]:
+        return self.allowed_keys
+
+
+@dataclass(frozen=True, kw_only=True)
+class RigSecurityConfig(SecurityConfig):
+    """rig.toml's ``[security]``."""
+
+    operator_keys: tuple[str, ...] = ()  # allowed on the control socket
+    public_key: str = ""  # the recorder's public key; default: secret_key minus _secret
+    operator_key: str = ""  # the keypair that egosurg record/status/shell use
+
+    def require_keys(self) -> None:
+        super().require_keys()
+        if not self.insecure and not self.operator_keys:
+            raise ConfigError(
+                f"[security]: 'operator_keys' must list the operators' public keys; {NO_KEYS}"
+            )
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not self.public_key and self.secret_key.endswith(SECRET_SUFFIX):
+            object.__setattr__(self, "public_key", self.secret_key[: -len("_secret")])
+
+    @property
+    def peer_keys(self) -> tuple[str, ...]:
+        return self.operator_keys

@@ -10,7 +10,9 @@ Conventions (OpenCV throughout):
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import cast
 
 import numpy as np
 
@@ -109,14 +111,7 @@ class Intrinsics:
 
     def undistorted(self) -> Intrinsics:
         """The same pinhole without distortion."""
-        return Intrinsics(
-            width_px=self.width_px,
-            height_px=self.height_px,
-            fx_px=self.fx_px,
-            fy_px=self.fy_px,
-            cx_px=self.cx_px,
-            cy_px=self.cy_px,
-        )
+        return replace(self, dist=(0.0, 0.0, 0.0, 0.0, 0.0))
 
     def shrunk(self, factor: int) -> Intrinsics:
         """The same pinhole, undistorted, for an image ``factor`` times smaller (integer sizes,
@@ -242,8 +237,13 @@ def undistort_to_normalized(pixels: np.ndarray, intr: Intrinsics) -> np.ndarray:
         out[:, 1] = (pts[:, 0, 1] - intr.cy_px) / intr.fy_px
         return out
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-14)
+    # R = P = identity is what OpenCV uses when they are not given: normalized coordinates out
+    identity = np.eye(3)
     if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x
-        und = cv2.undistortPointsIter(pts, intr.K, intr.dist_array, None, None, criteria)
-    else:  # OpenCV 5 folds the criteria into undistortPoints
-        und = cv2.undistortPoints(pts, intr.K, intr.dist_array, criteria=criteria)
-    return und.reshape(-1, 2)
+        und = cv2.undistortPointsIter(pts, intr.K, intr.dist_array, identity, identity, criteria)
+    else:
+        # OpenCV 5 folds the criteria into undistortPoints; the stubs installed with 4.x do not
+        # know that signature, so it is typed here as what it returns.
+        undistort_points = cast(Callable[..., np.ndarray], cv2.undistortPoints)
+        und = undistort_points(pts, intr.K, intr.dist_array, criteria=criteria)
+    return np.asarray(und).reshape(-1, 2)

@@ -1,7 +1,7 @@
 """One way to write an ``egosurg`` command: its parser, its subcommands and its argument error.
 
 A command module builds its parser with :func:`command_parser`, whose ``--help`` shows the module
-docstring verbatim (it carries the runnable example, see STYLE.md), and registers each subcommand
+docstring verbatim (it carries the runnable example), and registers each subcommand
 with :func:`add_subcommand` and its one-line summary. A usage mistake (a missing or unknown
 option, a bad choice or number) raises :class:`CommandArgumentError` instead of argparse's usage
 dump and ``SystemExit``: the ``egosurg`` dispatcher prints any ``UserError`` as one line and exits
@@ -55,6 +55,9 @@ def add_subcommand(
     it); ``func`` runs it (``args.func(args)``). The subparser is a :class:`CommandParser` too,
     since argparse makes subparsers of the parent's class."""
     p = sub.add_parser(name, help=summary)
+    # A missing subcommand is then reported by its choices ("required: {info,verify}"), not by
+    # the namespace field it fills; --help prints the same braces either way.
+    sub.metavar = "{" + ",".join(sub.choices or ()) + "}"
     if func is not None:
         p.set_defaults(func=func)
     return p

@@ -45,18 +45,14 @@ import numpy as np
 import torch
 
 from protocol.camera import Camera, Intrinsics, Pose
+from protocol.command import CommandArgumentError, command_parser
 from protocol.errors import UserError
 from protocol.formats.rig_calibration import RigCalibration
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import load_timestamp
 from reconstructor.data.views import EYE_NEAR_M
-from reconstructor.errors import ReconstructError
 from reconstructor.raster.device import add_device_option, for_device
 from reconstructor.splats.train import StepStats
-
-
-class ReconstructArgumentError(ReconstructError, ValueError):
-    pass
 
 
 def find_calibration(session: Path, given: str | None) -> tuple[RigCalibration, Path]:
@@ -66,13 +62,13 @@ def find_calibration(session: Path, given: str | None) -> tuple[RigCalibration, 
     else:
         path = session.parent / "calibration.toml"
         if not path.exists():
-            raise ReconstructArgumentError(
+            raise CommandArgumentError(
                 f"no calibration for {session}: pass --calibration FILE, or calibrate the rig "
                 "first with 'egosurg calibrate WAND_SESSION.h5 --wand wand.toml --out "
                 f"{path}'"
             )
     if not path.exists():
-        raise ReconstructArgumentError(
+        raise CommandArgumentError(
             f"the calibration {path} does not exist; run 'egosurg calibrate' on a wand session "
             "recorded with this rig"
         )
@@ -90,11 +86,7 @@ def _progress(stage: str, k: int, n: int, stats: StepStats) -> None:
 
 
 def reconstruct_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="egosurg reconstruct",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = command_parser("egosurg reconstruct", __doc__)
     parser.add_argument("session", help="a session recorded by 'egosurg record'")
     parser.add_argument("--calibration", help="calibration.toml (default: beside the session)")
     parser.add_argument("--at", action="append", help="time in s, or set:N (repeatable)")
@@ -158,19 +150,19 @@ def main_reconstruct(argv: list[str]) -> int:
 
     session = Path(args.session)
     if not session.exists():
-        raise ReconstructArgumentError(f"the session {session} does not exist")
+        raise CommandArgumentError(f"the session {session} does not exist")
     calibration, cal_path = find_calibration(session, args.calibration)
     config = ReconstructConfig.read(args.config) if args.config else ReconstructConfig()
     config = _with_options(config, args)
     config = dataclasses.replace(config, raster=for_device(config.raster, args.device))
     if bool(args.at) == bool(args.every):
-        raise ReconstructArgumentError(
+        raise CommandArgumentError(
             "give --at TIME (single timestamps) or --every INTERVAL (a whole case), not both"
             if args.at
             else "give --at TIME for single timestamps or --every INTERVAL for a whole case"
         )
     if args.cold and (args.warm_steps or args.keyframe_every):
-        raise ReconstructArgumentError(
+        raise CommandArgumentError(
             "--warm-steps and --keyframe-every set up warm start, which --cold turns off: "
             "drop one or the other"
         )
@@ -220,7 +212,7 @@ def _with_options(config: ReconstructConfig, args: argparse.Namespace) -> Recons
     changes: dict[str, object] = {}
     if args.steps is not None:
         if args.steps < 1:
-            raise ReconstructArgumentError(f"--steps must be at least 1, got {args.steps}")
+            raise CommandArgumentError(f"--steps must be at least 1, got {args.steps}")
         warm = min(config.train.warmup_steps, args.steps)
         changes["train"] = dataclasses.replace(
             config.train, warmup_steps=warm, refine_steps=args.steps - warm
@@ -236,7 +228,7 @@ def _with_options(config: ReconstructConfig, args: argparse.Namespace) -> Recons
     aux: dict[str, object] = {}
     if args.no_refinement:
         if args.refiner or args.refiner_weights:
-            raise ReconstructArgumentError(
+            raise CommandArgumentError(
                 "--no-refinement turns the auxiliary views off; drop --refiner/--refiner-weights "
                 "or --no-refinement"
             )
@@ -267,13 +259,13 @@ def parse_camera(
                 raise ValueError
             pose = Pose.look_at(eye, target)
         except (KeyError, ValueError):
-            raise ReconstructArgumentError(
+            raise CommandArgumentError(
                 f'--camera {spec!r}: write it as "eye=X,Y,Z target=X,Y,Z" (metres)'
             ) from None
         intr = Intrinsics.from_fov(size[0], size[1], hfov_deg)
         return Camera(name="virtual", intrinsics=intr, pose=pose)
     if calibration is None:
-        raise ReconstructArgumentError(
+        raise CommandArgumentError(
             f"--camera {spec!r} names a sensor, but no calibration was found beside the model; "
             'pass --calibration FILE or give "eye=X,Y,Z target=X,Y,Z"'
         )
@@ -281,7 +273,7 @@ def parse_camera(
         if s.name == text:
             return Camera(name=s.name, intrinsics=s.intrinsics.undistorted(), pose=s.pose)
     names = ", ".join(s.name for s in calibration.sensors)
-    raise ReconstructArgumentError(f"--camera {spec!r} is not a sensor of the calibration: {names}")
+    raise CommandArgumentError(f"--camera {spec!r} is not a sensor of the calibration: {names}")
 
 
 def _parse_size(text: str) -> tuple[int, int]:
@@ -290,7 +282,7 @@ def _parse_size(text: str) -> tuple[int, int]:
         if w < 8 or h < 8:
             raise ValueError
     except ValueError:
-        raise ReconstructArgumentError(f"--size {text!r}: write it as WxH, e.g. 960x600") from None
+        raise CommandArgumentError(f"--size {text!r}: write it as WxH, e.g. 960x600") from None
     return w, h
 
 
@@ -327,11 +319,7 @@ def _raster_config(model_path: Path):
 
 
 def main_render(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(
-        prog="egosurg render",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = command_parser("egosurg render", __doc__)
     parser.add_argument("model", help="a splat PLY written by 'egosurg reconstruct'")
     parser.add_argument("--camera", required=True, help='sensor name or "eye=.. target=.."')
     parser.add_argument("--out", required=True, help="PNG to write")
@@ -349,13 +337,13 @@ def main_render(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     model = Path(args.model)
     if not model.exists():
-        raise ReconstructArgumentError(f"the model {model} does not exist")
+        raise CommandArgumentError(f"the model {model} does not exist")
     cal_path = Path(args.calibration) if args.calibration else model.parent / "calibration.toml"
     calibration = RigCalibration.read(cal_path) if cal_path.exists() else None
     if not 1.0 < args.hfov < 179.0:
-        raise ReconstructArgumentError(f"--hfov {args.hfov}: must be between 1 and 179 degrees")
+        raise CommandArgumentError(f"--hfov {args.hfov}: must be between 1 and 179 degrees")
     if not (math.isfinite(args.near_m) and 0.0 <= args.near_m < 10.0):
-        raise ReconstructArgumentError(
+        raise CommandArgumentError(
             f"--near-m {args.near_m}: give a distance in metres from 0 to 10 (0.2 from an eye)"
         )
     camera = parse_camera(args.camera, calibration, args.hfov, _parse_size(args.size))
@@ -364,6 +352,6 @@ def main_render(argv: list[str]) -> int:
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(out), rgb[:, :, ::-1]):
-        raise ReconstructArgumentError(f"cannot write {out}; use a .png or .jpg path")
+        raise CommandArgumentError(f"cannot write {out}; use a .png or .jpg path")
     print(f"{out}: {camera.name} {rgb.shape[1]}x{rgb.shape[0]}, {time.perf_counter() - t0:.2f} s")
     return 0

@@ -25,8 +25,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
-import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +32,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from protocol.toml_config import dumps, parse_toml, read_table
 from reconstructor.depth.fill import FillConfig
 from reconstructor.depth.fusion import FusionConfig
 from reconstructor.depth.stereo_config import StereoConfig
@@ -115,12 +114,12 @@ class ReconstructConfig:
         return dataclasses.replace(self, stereo=StereoConfig.for_resolution(width_px))
 
     def to_toml(self) -> str:
-        head = (
-            f"# EgoSurg reconstruction config, format {CONFIG_FORMAT_VERSION}: the resolved "
-            "settings of this run\n"
-            f"format_version = {CONFIG_FORMAT_VERSION}\n"
+        return dumps(
+            self,
+            comment=f"EgoSurg reconstruction config, format {CONFIG_FORMAT_VERSION}: the resolved "
+            "settings of this run",
+            head={"format_version": CONFIG_FORMAT_VERSION},
         )
-        return head + dataclass_to_toml(self)
 
     @classmethod
     def read(cls, path: Path | str) -> ReconstructConfig:
@@ -133,86 +132,11 @@ class ReconstructConfig:
 
     @classmethod
     def from_toml(cls, text: str, source: str = "<config>") -> ReconstructConfig:
-        try:
-            table = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise ReconstructConfigError(f"{source} is not valid TOML: {exc}") from None
+        table = parse_toml(text, source, error=ReconstructConfigError)
         table.pop("format_version", None)
-        return apply_overrides(cls(), table, source)
+        return cls().overridden(table, source)
 
-
-def dataclass_to_toml(obj: Any, prefix: str = "") -> str:
-    """Scalars first, then one ``[table]`` per nested dataclass (None values are left out)."""
-    scalars, tables = [], []
-    for f in dataclasses.fields(obj):
-        value = getattr(obj, f.name)
-        if dataclasses.is_dataclass(value):
-            tables.append((f.name, value))
-        elif value is not None:
-            scalars.append(f"{f.name} = {_toml_value(value)}")
-    out = "\n".join(scalars) + ("\n" if scalars else "")
-    for name, value in tables:
-        full = f"{prefix}{name}"
-        out += f"\n[{full}]\n" + dataclass_to_toml(value, prefix=f"{full}.")
-    return out
-
-
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int | float):
-        return repr(v)
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, tuple | list):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
-def apply_overrides(obj: Any, table: dict[str, Any], source: str, prefix: str = "") -> Any:
-    """A copy of the dataclass ``obj`` with ``table``'s values, validated by its constructor."""
-    hints = typing.get_type_hints(type(obj))
-    fields = {f.name: f for f in dataclasses.fields(obj)}
-    changes: dict[str, Any] = {}
-    for key, value in table.items():
-        name = f"{prefix}{key}"
-        if key not in fields:
-            known = ", ".join(sorted(fields))
-            raise ReconstructConfigError(f"{source}: unknown key {name!r}; known keys: {known}")
-        current = getattr(obj, key)
-        nested = current if dataclasses.is_dataclass(current) else _dataclass_type(hints[key])
-        if nested is not None:
-            if not isinstance(value, dict):
-                raise ReconstructConfigError(f"{source}: {name} must be a table [{name}]")
-            base = current if dataclasses.is_dataclass(current) else nested()  # type: ignore[operator]
-            changes[key] = apply_overrides(base, value, source, prefix=f"{name}.")
-        else:
-            changes[key] = _coerce(value, current, name, source)
-    try:
-        return dataclasses.replace(obj, **changes)
-    except ReconstructConfigError as exc:
-        raise ReconstructConfigError(f"{source}: {exc}") from None
-    except (TypeError, ValueError) as exc:
-        raise ReconstructConfigError(f"{source}: {prefix or 'config'}: {exc}") from None
-
-
-def _dataclass_type(hint: Any) -> Any:
-    args = typing.get_args(hint) if isinstance(hint, types.UnionType) else (hint,)
-    for a in args:
-        if dataclasses.is_dataclass(a):
-            return a
-    return None
-
-
-def _coerce(value: Any, current: Any, name: str, source: str) -> Any:
-    if isinstance(current, bool) and not isinstance(value, bool):
-        raise ReconstructConfigError(f"{source}: {name} must be true or false, got {value!r}")
-    if isinstance(current, float) and isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
-    if isinstance(current, tuple) and isinstance(value, list):
-        return tuple(value)
-    if current is not None and not isinstance(value, type(current)):
-        raise ReconstructConfigError(
-            f"{source}: {name} must be a {type(current).__name__}, got {value!r}"
-        )
-    return value
+    def overridden(self, table: dict[str, Any], source: str) -> ReconstructConfig:
+        """A copy with ``table``'s values (a config file or any part of it); unknown keys and bad
+        values are refused naming ``source`` and the key's dotted name."""
+        return read_table(ReconstructConfig, table, source, base=self, error=ReconstructConfigError)

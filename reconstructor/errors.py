@@ -45,3 +45,71 @@ class RefinerWeightsError(ReconstructError, FileNotFoundError):
 
 class DepthCacheError(ReconstructError, OSError):
     """A depth cache folder that cannot be used (a file, not writable)."""
+
+
+class TimestampError(ReconstructError):
+    """A ``--at`` value that does not name a set of the session."""
+
+
+class CalibrationMismatchError(ReconstructError):
+    """A calibration that does not describe the session's cameras."""
+
+
+class GpuUnavailableError(ReconstructError, RuntimeError):
+    """The CUDA backend was asked for where it cannot run (no GPU, no CUDA torch, no gsplat)."""
+
+
+class RefinerOutputError(ReconstructError, ValueError):
+    """A refiner returned an image or mask of the wrong shape."""
+
+
+class LpipsWeightsError(ReconstructError, FileNotFoundError):
+    """A backbone weights file that is missing or is not AlexNet/VGG16 in torchvision's layout."""
+
+
+class LpipsNotInstalledError(ReconstructError, ModuleNotFoundError):
+    """The ``lpips`` package (for its linear heads) is not installed."""
+
+
+class CaseFolderError(ReconstructError, ValueError):
+    """A case folder that cannot be used: foreign, unwritable, another session or config."""
+
+
+class CaseStorageError(CaseFolderError):
+    """A stored model that is missing, damaged or of an unknown format."""
+
+
+class CasePlanError(ReconstructError, ValueError):
+    """A case range or interval the session cannot serve."""
+
+
+class RayUnavailableError(ReconstructError, ConnectionError):
+    """Ray is not installed, or its cluster does not answer."""
+
+
+class TrajectoryTimeError(UserError, ValueError):
+    """A time outside the trajectory's or the case's span."""
+
+
+class CaseReplayError(ReconstructError, ValueError):
+    """A case that cannot be replayed over the asked span; the message says what to do."""
+
+
+class ObservedError(ReconstructError, ValueError):
+    """A model whose input cameras cannot be found; the message says what to do."""
+
+
+class SightlineError(ReconstructError, ValueError):
+    """A line of sight that cannot be aimed (the eye inside the box) or a bad setting or offset."""
+
+
+class SterileError(ReconstructError, ValueError):
+    """A sterile field or its settings that cannot be checked; the message names which."""
+
+
+class VideoOutputError(ReconstructError, OSError):
+    """A replay video that cannot be written (no encoder, an unwritable path)."""
+
+
+class ViewerError(ReconstructError, ValueError):
+    """The viewer cannot start: the message says what to do."""

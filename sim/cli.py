@@ -24,23 +24,21 @@ import cv2
 import numpy as np
 
 from protocol.camera import Intrinsics, Pose, Resolution
-from protocol.errors import UserError
+from protocol.command import CommandArgumentError, add_subcommand, command_parser
 from sim.phases import PHASES
 
 log = logging.getLogger(__name__)
-
-
-class SimArgumentError(UserError, ValueError):
-    pass
 
 
 def _vector(text: str, what: str) -> np.ndarray:
     try:
         vals = [float(v) for v in text.split(",")]
     except ValueError:
-        raise SimArgumentError(f"{what} {text!r} must be three numbers like 1.5,0,1.7") from None
+        raise CommandArgumentError(
+            f"{what} {text!r} must be three numbers like 1.5,0,1.7"
+        ) from None
     if len(vals) != 3:
-        raise SimArgumentError(f"{what} {text!r} must have three comma-separated numbers")
+        raise CommandArgumentError(f"{what} {text!r} must have three comma-separated numbers")
     return np.asarray(vals)
 
 
@@ -48,9 +46,9 @@ def _size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise SimArgumentError(f"size {text!r} must look like 960x600") from None
+        raise CommandArgumentError(f"size {text!r} must look like 960x600") from None
     if not (16 <= w <= 8192 and 16 <= h <= 8192):
-        raise SimArgumentError(f"size {text!r} is out of range (16 to 8192 px a side)")
+        raise CommandArgumentError(f"size {text!r} is out of range (16 to 8192 px a side)")
     return w, h
 
 
@@ -63,7 +61,7 @@ def _world(args: argparse.Namespace):
     from sim.world import World
 
     if args.seed < 0:
-        raise SimArgumentError(f"--seed {args.seed} must be >= 0")
+        raise CommandArgumentError(f"--seed {args.seed} must be >= 0")
     return World.from_seed(args.seed, phase=args.phase)
 
 
@@ -166,12 +164,12 @@ def cmd_view(args: argparse.Namespace) -> int:
         heads = world.head_poses(args.t)
         if args.person not in heads:
             names = ", ".join(sorted(heads)) or "nobody (this phase has no people)"
-            raise SimArgumentError(f"no person {args.person!r} at t={args.t}; present: {names}")
+            raise CommandArgumentError(f"no person {args.person!r} at t={args.t}; present: {names}")
         pose = heads[args.person]
     elif args.eye is not None and args.look_at is not None:
         pose = Pose.look_at(_vector(args.eye, "--eye"), _vector(args.look_at, "--look-at"))
     else:
-        raise SimArgumentError("say where the camera is: --person NAME, or --eye and --look-at")
+        raise CommandArgumentError("say where the camera is: --person NAME, or --eye and --look-at")
     intr = Intrinsics.from_fov(w, h, args.hfov)
     cam = world.virtual_camera(pose, intr, name=args.person or "virtual")
     r = world.render(cam, args.t)
@@ -243,19 +241,14 @@ def cmd_eval_set(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="egosurg sim",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = command_parser("egosurg sim", __doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("info", help="print the rig, the people and the wand at a time")
+    p = add_subcommand(sub, "info", "print the rig, the people and the wand at a time", cmd_info)
     _world_args(p)
     p.add_argument("--t", type=float, default=0.0, help="sim time in seconds")
-    p.set_defaults(func=cmd_info)
 
-    p = sub.add_parser("frames", help="write the rig's frames for a time range to PNG")
+    p = add_subcommand(sub, "frames", "write the rig's frames for a time range to PNG", cmd_frames)
     _world_args(p)
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--t-start", type=float, default=0.0, help="seconds (default 0)")
@@ -263,18 +256,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", default="SVGA", help="HD1200, HD1080 or SVGA (default SVGA)")
     p.add_argument("--cameras", default="", help="camera indices, e.g. 0,2 (default: all four)")
     p.add_argument("--depth", action="store_true", help="also write true depth (16-bit PNG, mm)")
-    p.set_defaults(func=cmd_frames)
 
-    p = sub.add_parser("factory", help="write each camera's SN<serial>.conf")
+    p = add_subcommand(sub, "factory", "write each camera's SN<serial>.conf", cmd_factory)
     _world_args(p)
     p.add_argument("--out", required=True, help="output folder")
-    p.set_defaults(func=cmd_factory)
 
-    p = sub.add_parser("wand-file", help="write the simulated wand's wand.toml")
+    p = add_subcommand(sub, "wand-file", "write the simulated wand's wand.toml", cmd_wand_file)
     p.add_argument("--out", required=True, help="output file, e.g. wand.toml")
-    p.set_defaults(func=cmd_wand_file)
 
-    p = sub.add_parser("view", help="render a virtual pinhole camera (ground truth)")
+    p = add_subcommand(sub, "view", "render a virtual pinhole camera (ground truth)", cmd_view)
     _world_args(p)
     p.add_argument("--out", required=True, help="output PNG")
     p.add_argument("--t", type=float, required=True, help="sim time in seconds")
@@ -284,17 +274,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hfov", type=float, default=90.0, help="horizontal field of view, degrees")
     p.add_argument("--size", default="960x600", help="image size WxH (default 960x600)")
     p.add_argument("--depth-out", help="also write true depth here (16-bit PNG, mm)")
-    p.set_defaults(func=cmd_view)
 
-    p = sub.add_parser("pictures", help="rig views, top-down map and a ground-truth video")
+    p = add_subcommand(
+        sub, "pictures", "rig views, top-down map and a ground-truth video", cmd_pictures
+    )
     _world_args(p)
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--t", type=float, default=4.0, help="sim time of the pictures")
     p.add_argument("--video-s", type=float, default=3.0, help="video length in seconds")
-    p.set_defaults(func=cmd_pictures)
 
-    p = sub.add_parser(
-        "eval-set", help="scenes of each workflow phase plus egocentric truth, for evaluation"
+    p = add_subcommand(
+        sub,
+        "eval-set",
+        "scenes of each workflow phase plus egocentric truth, for evaluation",
+        cmd_eval_set,
     )
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--seed", type=int, default=3, help="world seed (default 3)")
@@ -325,7 +318,6 @@ def build_parser() -> argparse.ArgumentParser:
         help="the first instants that are near-field instants too (default 3)",
     )
     p.add_argument("--contact", action="store_true", help="script a drape contact (sim/contact.py)")
-    p.set_defaults(func=cmd_eval_set)
 
     from sim.roles import add_parser as add_roles_parser  # egosurg sim roles (issue 21)
 

@@ -11,36 +11,28 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from protocol.errors import UserError
+from protocol.command import CommandArgumentError, add_subcommand
 from protocol.formats.site import site_toml
-from sim.contact import DRAPE_FIELD, true_field_intervals, write_truth_csv
-
-
-class ContactArgumentError(UserError, ValueError):
-    pass
+from sim.contact import DRAPE_FIELD
+from sim.contact_truth import true_field_intervals, write_truth_csv
 
 
 def cmd_contact(args: argparse.Namespace) -> int:
-    from protocol.session import SessionReader
-    from sim.timing import SIM_EPOCH_UNIX_NS
+    from sim.timing import read_session_clock
     from sim.world import World
 
     path = Path(args.session)
-    if not path.is_file():
-        raise ContactArgumentError(f"the session {path} does not exist")
-    with SessionReader(path) as reader:
-        meta, start = reader.info.case_metadata, reader.info.started_unix_ns
-        set_ns = reader.sets().set_unix_ns
+    clock = read_session_clock(path)
+    meta, set_s = clock.case_metadata, clock.set_times_s
     if meta.get("contact") != "1" or "seed" not in meta or "phase" not in meta:
-        raise ContactArgumentError(
+        raise CommandArgumentError(
             f"{path} is not a sim session with the scripted contact; make one with "
             "'egosurg sim eval-set --contact --phases intraoperative ...'"
         )
-    if len(set_ns) == 0:
-        raise ContactArgumentError(f"the session {path} holds no synchronised sets")
+    if len(set_s) == 0:
+        raise CommandArgumentError(f"the session {path} holds no synchronised sets")
     world = World.from_seed(int(meta["seed"]), phase=meta["phase"], contact=True)
-    offset_s = (start - SIM_EPOCH_UNIX_NS) / 1e9
-    t0, t1 = (set_ns[0] - start) / 1e9, (set_ns[-1] - start) / 1e9
+    offset_s, t0, t1 = clock.sim_offset_s, set_s[0], set_s[-1]
     rows = true_field_intervals(world, DRAPE_FIELD, t0 + offset_s, t1 + offset_s)
     rows = [(n, a - offset_s, b - offset_s) for n, a, b in rows]  # back to case time
     Path(args.field_out).parent.mkdir(parents=True, exist_ok=True)
@@ -53,8 +45,9 @@ def cmd_contact(args: argparse.Namespace) -> int:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register ``egosurg sim contact`` on the ``egosurg sim`` subparsers."""
-    p = sub.add_parser("contact", help="the drape's field box and the true contact intervals")
+    p = add_subcommand(
+        sub, "contact", "the drape's field box and the true contact intervals", cmd_contact
+    )
     p.add_argument("session", help="a sim session made with 'egosurg sim eval-set --contact'")
     p.add_argument("--field-out", required=True, help="the field box as a site file (TOML)")
     p.add_argument("--truth-out", required=True, help="CSV of true in-field intervals")
-    p.set_defaults(func=cmd_contact)

@@ -26,7 +26,6 @@ Each stage runs through the ``egosurg`` command as a user would run it.
 
 from __future__ import annotations
 
-import argparse
 import shutil
 import subprocess
 import sys
@@ -38,6 +37,7 @@ import cv2
 import numpy as np
 
 from protocol.camera import Pose
+from protocol.command import command_parser
 from protocol.formats.eval_set import EvalScene, EvalSet, ReferenceView
 from protocol.formats.rig_calibration import RigCalibration
 from protocol.formats.wand import WandSpec
@@ -365,11 +365,7 @@ def stage_review(out: Path, seed: int, phase: str, stamp: DemoTimestamp) -> None
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(
-        prog="egosurg demo",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = command_parser("egosurg demo", __doc__)
     parser.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     parser.add_argument("--seed", type=int, default=0, help="scene seed")
     parser.add_argument("--record-s", type=float, default=10.0, help="length of the recording")

@@ -27,10 +27,17 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from protocol.errors import UserError
+from protocol.toml_config import dumps_table
 from sim.world import World
+
+if TYPE_CHECKING:
+    from sim.rig import ZedUnit
+
+# the first lines of every file written here; key paths in them are relative to the file
+_WRITTEN = "the simulated %s: written by sim.deploy (key paths are relative to this file)"
 
 
 class SimRigError(UserError, RuntimeError):
@@ -130,23 +137,8 @@ def free_ports(n: int) -> list[int]:
     return ports
 
 
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, dict):
-        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
-    if isinstance(v, list | tuple):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    return repr(v)
-
-
-def write_sim_rig(directory: Path | str, spec: SimRigSpec | None = None) -> SimRigFiles:
-    """Write node and rig configs for the simulated rig, on free loopback ports."""
-    spec = spec or SimRigSpec()
-    out = Path(directory)
-    out.mkdir(parents=True, exist_ok=True)
+def _camera_units(spec: SimRigSpec) -> tuple[World, list[tuple[int, ZedUnit]]]:
+    """The first world, and camera k of the rig as (its world's seed, its unit in that world)."""
     world = World.from_seed(spec.seed, phase=spec.phase)
     per_world = len(world.rig)
     worlds = {spec.seed: world}
@@ -154,14 +146,88 @@ def write_sim_rig(directory: Path | str, spec: SimRigSpec | None = None) -> SimR
         s = spec.seed + k // per_world
         if s not in worlds:
             worlds[s] = World.from_seed(s, phase=spec.phase)
-    # camera k of the rig: (its world's seed, its unit in that world)
     units = [
         (spec.seed + k // per_world, worlds[spec.seed + k // per_world].rig[k % per_world])
         for k in range(spec.cameras)
     ]
-    all_serials = [u.serial for _, u in units]
-    if len(set(all_serials)) != len(all_serials):
-        raise SimRigError(f"two simulated cameras share a serial: {all_serials}; pick another seed")
+    serials = [u.serial for _, u in units]
+    if len(set(serials)) != len(serials):
+        raise SimRigError(f"two simulated cameras share a serial: {serials}; pick another seed")
+    return world, units
+
+
+def _camera(spec: SimRigSpec, k: int, seed: int, unit: ZedUnit, epoch: int) -> dict[str, Any]:
+    """Camera ``k``'s ``[[cameras]]`` table (capture_agent's SimSourceConfig reads it)."""
+    table: dict[str, Any] = {
+        "source": "sim",
+        "seed": seed,
+        "phase": spec.phase,
+        "camera_index": unit.index,
+        "resolution": spec.resolution,
+        "fps": spec.fps,
+        "epoch_unix_ns": epoch,
+        "content_fps": spec.content_fps,
+        "prerender_s": spec.prerender_s,
+        "drop_probability": spec.drop_probability,
+        "jitter_ns_std": spec.jitter_ns_std,
+    }
+    if spec.pre_encode and spec.encoding == "jpeg":
+        table |= {"pre_encode": "jpeg", "jpeg_quality": spec.jpeg_quality}
+    if spec.faults.get(k):
+        table["faults"] = list(spec.faults[k])
+    return table
+
+
+def _node_table(
+    spec: SimRigSpec, node: str, binds: tuple[str, str], cameras: list[dict[str, Any]]
+) -> dict[str, Any]:
+    """A node.toml (capture_agent's NodeConfig reads it)."""
+    keys = {
+        "secret_key": f"keys/{node}.key_secret",
+        "allowed_keys": ["keys/recorder.key", "keys/operator.key"],
+    }
+    return {
+        "node_id": node,
+        "frames_bind": binds[0],
+        "control_bind": binds[1],
+        "encoding": spec.encoding,
+        "jpeg_quality": spec.jpeg_quality,
+        "ptp": dict(spec.ptp_table),
+        "security": {"insecure": True} if spec.insecure else keys,
+        "cameras": cameras,
+    }
+
+
+def _rig_table(
+    spec: SimRigSpec, agents: list[dict[str, Any]], control_bind: str, sessions: Path
+) -> dict[str, Any]:
+    """The rig.toml (capture_agent's RigConfig reads it)."""
+    keys = {
+        "secret_key": "keys/recorder.key_secret",
+        "operator_keys": ["keys/operator.key"],
+        "operator_key": "keys/operator.key_secret",
+    }
+    return {
+        "rig_name": "sim-or",
+        "fps": spec.fps,
+        "control_bind": control_bind,
+        "output_dir": str(sessions),
+        "require_ptp_lock": spec.require_ptp_lock,
+        "flush_interval_s": spec.flush_interval_s,
+        "max_wait_ms": spec.max_wait_ms,
+        "disk_reserve_gb": spec.disk_reserve_gb,
+        "planned_duration_min": spec.planned_duration_min,
+        "security": {"insecure": True} if spec.insecure else keys,
+        "agents": agents,
+    }
+
+
+def write_sim_rig(directory: Path | str, spec: SimRigSpec | None = None) -> SimRigFiles:
+    """Write node and rig configs for the simulated rig, on free loopback ports."""
+    spec = spec or SimRigSpec()
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    world, units = _camera_units(spec)
     # sim time 0 a moment ago: every agent shares this epoch, as PTP clocks share one timeline
     epoch = (time.time_ns() // 1_000_000_000) * 1_000_000_000
     nodes: dict[str, list[int]] = {}
@@ -171,100 +237,33 @@ def write_sim_rig(directory: Path | str, spec: SimRigSpec | None = None) -> SimR
     if not spec.insecure:
         write_keys(out / "keys", ["recorder", "operator", *sorted(nodes)])
     node_paths: dict[str, Path] = {}
-    agents_toml = []
     serials_by_node: dict[str, tuple[int, ...]] = {}
-    for k, (node, indices) in enumerate(sorted(nodes.items())):
-        fport, cport = ports[2 * k], ports[2 * k + 1]
-        lines = [
-            f"# simulated Jetson node {node}: written by sim.deploy",
-            f'node_id = "{node}"',
-            f'frames_bind = "tcp://127.0.0.1:{fport}"',
-            f'control_bind = "tcp://127.0.0.1:{cport}"',
-            f'encoding = "{spec.encoding}"',
-            f"jpeg_quality = {spec.jpeg_quality}",
-            "",
-            "[ptp]",
-            *[f"{key} = {_toml_value(v)}" for key, v in spec.ptp_table.items()],
-            "",
-            "[security]  # paths relative to this file",
-            *(
-                ["insecure = true"]
-                if spec.insecure
-                else [
-                    f'secret_key = "keys/{node}.key_secret"',
-                    'allowed_keys = ["keys/recorder.key", "keys/operator.key"]',
-                ]
-            ),
-        ]
-        for k in indices:
-            seed, unit = units[k]
-            table: dict[str, Any] = {
-                "source": "sim",
-                "seed": seed,
-                "phase": spec.phase,
-                "camera_index": unit.index,
-                "resolution": spec.resolution,
-                "fps": spec.fps,
-                "epoch_unix_ns": epoch,
-                "content_fps": spec.content_fps,
-                "prerender_s": spec.prerender_s,
-                "drop_probability": spec.drop_probability,
-                "jitter_ns_std": spec.jitter_ns_std,
+    agents: list[dict[str, Any]] = []
+    for n, (node, indices) in enumerate(sorted(nodes.items())):
+        binds = (f"tcp://127.0.0.1:{ports[2 * n]}", f"tcp://127.0.0.1:{ports[2 * n + 1]}")
+        cameras = [_camera(spec, k, *units[k], epoch) for k in indices]
+        node_paths[node] = out / f"{node}.toml"
+        table = _node_table(spec, node, binds, cameras)
+        node_paths[node].write_text(dumps_table(table, comment=_WRITTEN % f"node {node}"))
+        serials_by_node[node] = tuple(units[k][1].serial for k in indices)
+        agents.append(
+            {
+                "node_id": node,
+                "frames": binds[0],
+                "control": binds[1],
+                "cameras": list(serials_by_node[node]),
             }
-            if spec.pre_encode and spec.encoding == "jpeg":
-                table["pre_encode"] = "jpeg"
-                table["jpeg_quality"] = spec.jpeg_quality
-            if spec.faults.get(k):
-                table["faults"] = spec.faults[k]
-            lines += ["", "[[cameras]]", *[f"{key} = {_toml_value(v)}" for key, v in table.items()]]
-        path = out / f"{node}.toml"
-        path.write_text("\n".join(lines) + "\n")
-        node_paths[node] = path
-        serials = tuple(units[k][1].serial for k in indices)
-        serials_by_node[node] = serials
-        agents_toml += [
-            "",
-            "[[agents]]",
-            f'node_id = "{node}"',
-            f'frames = "tcp://127.0.0.1:{fport}"',
-            f'control = "tcp://127.0.0.1:{cport}"',
-            f"cameras = [{', '.join(str(s) for s in serials)}]",
-            *([] if spec.insecure else [f'public_key = "keys/{node}.key"']),
-        ]
-    control_port = ports[-1]
-    session_dir = out / "sessions"
-    rig = [
-        "# the simulated rig's recorder: written by sim.deploy",
-        'rig_name = "sim-or"',
-        f"fps = {spec.fps}",
-        f'control_bind = "tcp://127.0.0.1:{control_port}"',
-        f'output_dir = "{session_dir}"',
-        f"require_ptp_lock = {_toml_value(spec.require_ptp_lock)}",
-        f"flush_interval_s = {spec.flush_interval_s}",
-        f"max_wait_ms = {spec.max_wait_ms}",
-        f"disk_reserve_gb = {spec.disk_reserve_gb}",
-        f"planned_duration_min = {spec.planned_duration_min}",
-        "",
-        "[security]  # paths relative to this file",
-        *(
-            ["insecure = true"]
-            if spec.insecure
-            else [
-                'secret_key = "keys/recorder.key_secret"',
-                'operator_keys = ["keys/operator.key"]',
-                'operator_key = "keys/operator.key_secret"',
-            ]
-        ),
-        *agents_toml,
-    ]
-    rig_path = out / "rig.toml"
-    rig_path.write_text("\n".join(rig) + "\n")
+            | ({} if spec.insecure else {"public_key": f"keys/{node}.key"})
+        )
+    control_bind = f"tcp://127.0.0.1:{ports[-1]}"
+    rig = _rig_table(spec, agents, control_bind, out / "sessions")
+    (out / "rig.toml").write_text(dumps_table(rig, comment=_WRITTEN % "rig's recorder"))
     return SimRigFiles(
         directory=out,
         node_configs=node_paths,
-        rig_config=rig_path,
-        session_dir=session_dir,
-        recorder_url=f"tcp://127.0.0.1:{control_port}",
+        rig_config=out / "rig.toml",
+        session_dir=out / "sessions",
+        recorder_url=control_bind,
         epoch_unix_ns=epoch,
         serials_by_node=serials_by_node,
         camera_index_by_serial={u.serial: u.index for _, u in units},

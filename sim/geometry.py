@@ -96,13 +96,7 @@ def cylinder(
     length = float(np.linalg.norm(axis))
     if length < 1e-9:
         raise ValueError("cylinder needs two distinct end points")
-    z = axis / length
-    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = np.cross(helper, z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    ang = np.linspace(0, 2 * np.pi, segments, endpoint=False)
-    ring = np.cos(ang)[:, None] * x + np.sin(ang)[:, None] * y
+    ring = unit_circle(axis / length, segments)
     verts = np.concatenate([a + radius * ring, b + radius * ring, [a, b]])
     n = segments
     tris = []
@@ -135,16 +129,7 @@ def ellipsoid(
         axis=-1,
     ).reshape(-1, 3)
     pts = pts * np.asarray(radii, dtype=np.float64)
-    tris = []
-    for r in range(rings):
-        for s in range(segments):
-            a = r * segments + s
-            b = r * segments + (s + 1) % segments
-            c = (r + 1) * segments + (s + 1) % segments
-            d = (r + 1) * segments + s
-            tris += [(a, b, c), (a, c, d)]
-    mesh = Mesh(pts.astype(np.float32), np.array(tris, dtype=np.int32))
-    return mesh.transformed(np.eye(3) if R is None else R, np.asarray(centre, dtype=np.float64))
+    return _closed_grid_mesh(pts, rings, segments, centre, R)
 
 
 def torus_arc(
@@ -166,13 +151,36 @@ def torus_arc(
     z = (major_m + minor_m * cv) * su
     y = np.broadcast_to(minor_m * sv, x.shape)
     pts = np.stack([x, y, z], axis=-1).reshape(-1, 3)
+    return _closed_grid_mesh(pts, segments, sides, centre, R)
+
+
+def unit_circle(axis_unit: np.ndarray, n: int) -> np.ndarray:
+    """(n, 3): ``n`` points, evenly spaced from angle 0, on the unit circle about the unit
+    vector ``axis_unit``. Angle 0 lies along ``helper x axis_unit``, where ``helper`` is the world
+    x axis unless ``axis_unit`` is close to it (then y), so the frame never degenerates."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(axis_unit[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, axis_unit)
+    x /= np.linalg.norm(x)
+    y = np.cross(axis_unit, x)
+    ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return np.cos(ang)[:, None] * x + np.sin(ang)[:, None] * y
+
+
+def _closed_grid_mesh(
+    pts: np.ndarray,
+    rows: int,
+    cols: int,
+    centre: np.ndarray | tuple[float, ...],
+    R: np.ndarray | None,
+) -> Mesh:
+    """A surface from ``(rows + 1) * cols`` local points laid out row by row, each row closed
+    on itself (column ``cols - 1`` joins column 0), moved by ``R`` and ``centre``."""
     tris = []
-    for i in range(segments):
-        for j in range(sides):
-            a = i * sides + j
-            b = i * sides + (j + 1) % sides
-            c = (i + 1) * sides + (j + 1) % sides
-            d = (i + 1) * sides + j
-            tris += [(a, b, c), (a, c, d)]
+    for r in range(rows):
+        for c in range(cols):
+            a = r * cols + c
+            b = r * cols + (c + 1) % cols
+            d = (r + 1) * cols + c
+            tris += [(a, b, b + cols), (a, b + cols, d)]
     mesh = Mesh(pts.astype(np.float32), np.array(tris, dtype=np.int32))
     return mesh.transformed(np.eye(3) if R is None else R, np.asarray(centre, dtype=np.float64))

@@ -89,6 +89,28 @@ class FrameScene:
         self.light_pos = np.asarray([lt.position_m for lt in lights], np.float32).reshape(-1, 3)
         self.light_power = np.asarray([lt.power for lt in lights], np.float32)
 
+    def shade(
+        self, rays: np.ndarray, t_hit: np.ndarray, objects: np.ndarray, normals: np.ndarray
+    ) -> np.ndarray:
+        """(N, 3) float32 radiance where ``rays`` hit this scene (``cast_rays``' outputs):
+        ``kernels.shade_pixels`` with the scene's objects, textures and lights."""
+        return kernels.shade_pixels(
+            rays,
+            t_hit,
+            objects,
+            normals,
+            self.obj_R,
+            self.obj_t,
+            self.obj_tex,
+            self.obj_tint,
+            self.obj_emission,
+            self.texture_stack,
+            self.texel_m,
+            self.light_pos,
+            self.light_power,
+            AMBIENT,
+        )
+
     def cast_rays(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(N, 6) float32 rays -> t (N,), object index (N,, -1 for none), normal (N, 3)."""
         out = self._raycaster.cast_rays(_tensor(rays, np.float32))
@@ -219,22 +241,7 @@ def render_view(
     H, W = intr.height_px, intr.width_px
     rays = camera_rays(camera, region)
     t, objects, normals = scene.cast_rays(rays)
-    radiance = kernels.shade_pixels(
-        rays,
-        t,
-        objects,
-        normals,
-        scene.obj_R,
-        scene.obj_t,
-        scene.obj_tex,
-        scene.obj_tint,
-        scene.obj_emission,
-        scene.texture_stack,
-        scene.texel_m,
-        scene.light_pos,
-        scene.light_power,
-        AMBIENT,
-    )
+    radiance = scene.shade(rays, t, objects, normals)
     if region is not None and background is not None:
         full_rad = background.radiance.reshape(-1, 3).copy()
         full_t = background.depth_m.reshape(-1).copy()
@@ -280,22 +287,12 @@ def render_over_background(
         near = np.flatnonzero((obj >= 0) & (t < room_t))
         pixels = near if region is None else region[near]
         radiance[pixels] = kernels.on_one_thread_if_small(
-            kernels.shade_pixels,
+            moving.shade,
             len(near),
             np.ascontiguousarray(rays[near]),
             t[near],
             obj[near],
             np.ascontiguousarray(normals[near]),
-            moving.obj_R,
-            moving.obj_t,
-            moving.obj_tex,
-            moving.obj_tint,
-            moving.obj_emission,
-            moving.texture_stack,
-            moving.texel_m,
-            moving.light_pos,
-            moving.light_power,
-            AMBIENT,
         )
         depth[pixels] = t[near]
         objects[pixels] = obj[near] + object_offset

@@ -19,21 +19,17 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol.errors import UserError
+from protocol.command import CommandArgumentError, add_subcommand
 from protocol.formats.site import SiteBox, site_toml, surface_points
 from protocol.formats.trajectory import Keyframe, Trajectory, write_trajectories
 from sim.phases import PHASES
-from sim.timing import SIM_EPOCH_UNIX_NS
+from sim.timing import read_session_clock
 from sim.world import World
 
 log = logging.getLogger(__name__)
 
 # Screens a reviewer asks about, by the sim's object name -> the site box's name stem.
 _SCREENS = {"monitor_screen": "monitor", "anaesthesia_screen": "anaesthesia-screen"}
-
-
-class RolesArgumentError(UserError, ValueError):
-    pass
 
 
 def role_trajectories(
@@ -109,9 +105,9 @@ def _times(args: argparse.Namespace, first_s: float, last_s: float) -> np.ndarra
     t0 = first_s if args.t_from is None else args.t_from
     t1 = last_s if args.t_to is None else args.t_to
     if not (args.every > 0 and np.isfinite(args.every)):
-        raise RolesArgumentError(f"--every {args.every}: give a positive number of seconds")
+        raise CommandArgumentError(f"--every {args.every}: give a positive number of seconds")
     if not (np.isfinite(t0) and np.isfinite(t1) and 0 <= t0 <= t1):
-        raise RolesArgumentError(f"--from {t0} --to {t1}: need 0 <= from <= to (seconds)")
+        raise CommandArgumentError(f"--from {t0} --to {t1}: need 0 <= from <= to (seconds)")
     n = int(np.floor((t1 - t0) / args.every + 1e-9)) + 1
     return t0 + args.every * np.arange(n)
 
@@ -120,37 +116,32 @@ def cmd_roles(args: argparse.Namespace) -> int:
     offset_s, seed, phase = 0.0, args.seed, args.phase
     first_s = last_s = float("nan")
     if args.session:
-        from protocol.session import SessionReader
-
         path = Path(args.session)
-        if not path.is_file():
-            raise RolesArgumentError(f"the session {path} does not exist")
-        with SessionReader(path) as reader:
-            meta, start = reader.info.case_metadata, reader.info.started_unix_ns
-            set_ns = reader.sets().set_unix_ns
-        if len(set_ns) == 0:
-            raise RolesArgumentError(f"the session {path} holds no synchronised sets")
-        first_s, last_s = (set_ns[0] - start) / 1e9, (set_ns[-1] - start) / 1e9
-        offset_s = (start - SIM_EPOCH_UNIX_NS) / 1e9
+        clock = read_session_clock(path)
+        meta, set_s = clock.case_metadata, clock.set_times_s
+        if len(set_s) == 0:
+            raise CommandArgumentError(f"the session {path} holds no synchronised sets")
+        first_s, last_s = set_s[0], set_s[-1]
+        offset_s = clock.sim_offset_s
         if seed is None:
             if "seed" not in meta:
-                raise RolesArgumentError(f"{path} does not say its sim seed: pass --seed")
+                raise CommandArgumentError(f"{path} does not say its sim seed: pass --seed")
             seed = int(meta["seed"])
         phase = phase or meta.get("phase")
         if phase is None:
-            raise RolesArgumentError(f"{path} does not say its sim phase: pass --phase")
+            raise CommandArgumentError(f"{path} does not say its sim phase: pass --phase")
     elif args.t_from is None or args.t_to is None:
-        raise RolesArgumentError("without a session, give --from and --to (seconds)")
+        raise CommandArgumentError("without a session, give --from and --to (seconds)")
     if phase not in PHASES:
-        raise RolesArgumentError(f"--phase {phase!r}: choose one of {', '.join(PHASES)}")
+        raise CommandArgumentError(f"--phase {phase!r}: choose one of {', '.join(PHASES)}")
     contact = bool(args.session) and meta.get("contact") == "1"  # sim/contact.py
     world = World.from_seed(0 if seed is None else int(seed), phase=phase, contact=contact)
     times = _times(args, first_s, last_s)
     if times[0] + offset_s < 0:
-        raise RolesArgumentError(f"--from {times[0]} lies before the simulation starts")
+        raise CommandArgumentError(f"--from {times[0]} lies before the simulation starts")
     roles = role_trajectories(world, times, sim_offset_s=offset_s, fov_deg=args.fov)
     if not roles:
-        raise RolesArgumentError(f"the {phase} phase has no people: no roles to write")
+        raise CommandArgumentError(f"the {phase} phase has no people: no roles to write")
     write_trajectories(args.out, roles)
     print(f"{args.out}: {len(roles)} roles ({', '.join(r.name for r in roles)}), "
           f"{len(times)} keyframes each, {times[0]:.3f} s to {times[-1]:.3f} s")  # fmt: skip
@@ -164,7 +155,9 @@ def cmd_roles(args: argparse.Namespace) -> int:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register ``egosurg sim roles`` on the ``egosurg sim`` subparsers."""
-    p = sub.add_parser("roles", help="each person's true eye over time (a roles file) and boxes")
+    p = add_subcommand(
+        sub, "roles", "each person's true eye over time (a roles file) and boxes", cmd_roles
+    )
     p.add_argument("session", nargs="?", help="a sim session (eval-set); its seed, phase, times")
     p.add_argument("--seed", type=int, default=None, help="world seed (default: the session's)")
     p.add_argument("--phase", default=None, help="phase (default: the session's)")
@@ -174,4 +167,3 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fov", type=float, default=90.0, help="horizontal field of view, degrees")
     p.add_argument("--out", required=True, help="roles TOML to write")
     p.add_argument("--site-out", help="also write the room's screens as a site file")
-    p.set_defaults(func=cmd_roles)

@@ -88,21 +88,42 @@ TABLE_TOP_Z_M = 0.92  # top of the mattress
 TABLE_CENTRE_XY_M = (0.0, 0.0)
 
 
+_Add = Callable[..., None]  # add(texture, mesh, tint=white): one more mesh of that material
+
+
 def build_room(
     room: RoomSpec, *, with_patient: bool, with_mobile_equipment: bool = True
 ) -> tuple[list[SceneObject], list[Light]]:
     """The static objects (grouped one material per mesh) and the lights."""
-    x0, x1 = room.x_range_m
-    y0, y1 = room.y_range_m
     H = room.height_z_m
     parts: dict[tuple[str, tuple[float, float, float]], list[Mesh]] = {}
 
     def add(texture: str, mesh: Mesh, tint: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> None:
         parts.setdefault((texture, tint), []).append(mesh)
 
-    objects: list[SceneObject] = []
-    shell = room_box((x0, x1), (y0, y1), (0.0, H))
-    # split the shell by material: floor (-z face), ceiling (+z) and walls
+    objects = _shell_objects(room)
+    _add_walls_and_table(add, room)
+    if with_patient:
+        _add_patient(add)
+    if with_mobile_equipment:
+        _add_mobile_equipment(add)
+    objects += _add_monitors(add, H)
+    objects += _add_back_table_and_anaesthesia(add)
+    panels = [(-2.0, -1.5), (-2.0, 1.5), (2.0, -1.5), (2.0, 1.5)]
+    objects += _add_lamps(add, H, panels)
+
+    for (texture, tint), meshes in parts.items():
+        objects.append(SceneObject(f"{texture}", Mesh.merge(meshes), texture, tint))
+
+    lights = [Light(np.array([px, py, H - 0.1]), 1.9) for px, py in panels]
+    lights.append(Light(np.array([0.15, 0.0, 2.2]), 0.6))
+    return objects, lights
+
+
+def _shell_objects(room: RoomSpec) -> list[SceneObject]:
+    """The room's box split by material: floor (-z face), ceiling (+z) and walls."""
+    H = room.height_z_m
+    shell = room_box(room.x_range_m, room.y_range_m, (0.0, H))
     tri = shell.triangles
     v = shell.vertices[tri]
     zc = v[:, :, 2].mean(axis=1)
@@ -110,10 +131,16 @@ def build_room(
     is_floor = (spread_z < 1e-6) & (zc < H / 2)
     is_ceiling = (spread_z < 1e-6) & (zc > H / 2)
     is_wall = ~(is_floor | is_ceiling)
-    objects.append(SceneObject("floor", Mesh(shell.vertices, tri[is_floor]), "floor"))
-    objects.append(SceneObject("ceiling", Mesh(shell.vertices, tri[is_ceiling]), "ceiling"))
-    objects.append(SceneObject("walls", Mesh(shell.vertices, tri[is_wall]), "wall"))
+    return [
+        SceneObject("floor", Mesh(shell.vertices, tri[is_floor]), "floor"),
+        SceneObject("ceiling", Mesh(shell.vertices, tri[is_ceiling]), "ceiling"),
+        SceneObject("walls", Mesh(shell.vertices, tri[is_wall]), "wall"),
+    ]
 
+
+def _add_walls_and_table(add: _Add, room: RoomSpec) -> None:
+    """A door, a wall of cabinets (a few features on the walls) and the OR table."""
+    x0, x1 = room.x_range_m
     # A door (a slightly different panel) and a wall of cabinets give the walls a few features.
     add("plastic", box((x1 - 0.015, -1.2, 1.05), (0.03, 1.4, 2.1)), (0.75, 0.8, 0.85))
     for i in range(4):
@@ -124,83 +151,85 @@ def build_room(
     add("steel", box((0.0, 0.0, 0.03), (0.9, 0.6, 0.06)))
     add("steel", box((0.0, 0.0, 0.8), (2.05, 0.56, 0.08)))
     add("padding", box((0.0, 0.0, 0.88), (2.0, 0.54, 0.08)))
-    if with_patient:
-        drape_tint = (0.35, 0.55, 0.75)
-        add(
-            "fabric",
-            ellipsoid((0.1, 0.0, TABLE_TOP_Z_M), (0.85, 0.27, 0.16), z_min_frac=0.0),
-            drape_tint,
-        )
-        add("fabric", box((0.1, 0.0, 0.7), (1.9, 0.9, 0.02)), drape_tint)  # drape hanging down
-        add(
-            "skin",
-            ellipsoid((-0.88, 0.0, TABLE_TOP_Z_M + 0.07), (0.11, 0.09, 0.09)),
-            (0.86, 0.66, 0.55),
-        )
-        add(
-            "fabric",
-            ellipsoid((-0.88, 0.0, TABLE_TOP_Z_M + 0.13), (0.1, 0.1, 0.05)),
-            (0.3, 0.5, 0.8),
-        )
-        # anaesthesia screen: a drape frame across the table at the patient's neck
-        add("fabric", box((-0.72, 0.0, 1.3), (0.02, 0.9, 0.5)), drape_tint)
 
-    if with_mobile_equipment:
-        _add_mobile_equipment(add)
 
-    # Monitors on ceiling booms, facing the table.
+def _add_patient(add: _Add) -> None:
+    """The draped patient on the table, and the anaesthesia screen at the neck."""
+    drape_tint = (0.35, 0.55, 0.75)
+    add(
+        "fabric",
+        ellipsoid((0.1, 0.0, TABLE_TOP_Z_M), (0.85, 0.27, 0.16), z_min_frac=0.0),
+        drape_tint,
+    )
+    add("fabric", box((0.1, 0.0, 0.7), (1.9, 0.9, 0.02)), drape_tint)  # drape hanging down
+    add(
+        "skin",
+        ellipsoid((-0.88, 0.0, TABLE_TOP_Z_M + 0.07), (0.11, 0.09, 0.09)),
+        (0.86, 0.66, 0.55),
+    )
+    add(
+        "fabric",
+        ellipsoid((-0.88, 0.0, TABLE_TOP_Z_M + 0.13), (0.1, 0.1, 0.05)),
+        (0.3, 0.5, 0.8),
+    )
+    # anaesthesia screen: a drape frame across the table at the patient's neck
+    add("fabric", box((-0.72, 0.0, 1.3), (0.02, 0.9, 0.5)), drape_tint)
+
+
+def _add_monitors(add: _Add, H: float) -> list[SceneObject]:
+    """Monitors on ceiling booms, facing the table; returns their (emissive) screens."""
+    screens = []
     for mx, my, yaw in ((1.7, -1.35, 2.5), (-1.5, 1.5, -0.9)):
         Rm = rot_z(yaw)
         centre = np.array([mx, my, 1.75])
         add("rubber", box(centre, (0.06, 0.62, 0.4), Rm))
         front = centre + Rm @ np.array([0.035, 0.0, 0.0])
-        objects.append(
+        screens.append(
             SceneObject(
                 "monitor_screen", box(front, (0.008, 0.58, 0.36), Rm), "screen", emission=1.0
             )
         )
         add("steel", cylinder(centre - Rm @ np.array([0.05, 0, 0]), (mx, my, H), 0.035))
+    return screens
 
-    # Back table with an instrument tray, and an anaesthesia machine at the head end.
+
+def _add_back_table_and_anaesthesia(add: _Add) -> list[SceneObject]:
+    """The back table with an instrument tray, and an anaesthesia machine at the head end;
+    returns the machine's (emissive) screen."""
     add("steel", box((-1.3, 1.95, 0.88), (1.3, 0.65, 0.03)))
     for lx in (-1.9, -0.7):
         for ly in (1.68, 2.22):
             add("steel", cylinder((lx, ly, 0.0), (lx, ly, 0.87), 0.02, segments=10))
     add("tray", box((-1.3, 1.95, 0.91), (1.2, 0.55, 0.03)))
     add("plastic", box((-2.0, -0.75, 0.75), (0.6, 0.7, 1.5)), (0.75, 0.78, 0.72))
-    objects.append(
+    return [
         SceneObject(
             "anaesthesia_screen", box((-1.69, -0.75, 1.3), (0.01, 0.4, 0.3)), "screen", emission=1.0
         )
-    )
+    ]
 
-    # Surgical light on its boom, and recessed ceiling panels.
+
+def _add_lamps(add: _Add, H: float, panels: list[tuple[float, float]]) -> list[SceneObject]:
+    """The surgical light on its boom and the recessed ceiling panels (emissive objects)."""
     add("steel", cylinder((0.15, 0.0, H), (0.15, 0.0, 2.35), 0.04))
-    objects.append(
+    lamps = [
         SceneObject(
             "surgical_light",
             cylinder((0.15, 0.0, 2.35), (0.15, 0.0, 2.25), 0.38, segments=32),
             "lamp",
             emission=1.6,
         )
-    )
-    panels = [(-2.0, -1.5), (-2.0, 1.5), (2.0, -1.5), (2.0, 1.5)]
+    ]
     for px, py in panels:
-        objects.append(
+        lamps.append(
             SceneObject(
                 "ceiling_panel", box((px, py, H - 0.01), (1.2, 0.6, 0.01)), "lamp", emission=1.3
             )
         )
-
-    for (texture, tint), meshes in parts.items():
-        objects.append(SceneObject(f"{texture}", Mesh.merge(meshes), texture, tint))
-
-    lights = [Light(np.array([px, py, H - 0.1]), 1.9) for px, py in panels]
-    lights.append(Light(np.array([0.15, 0.0, 2.2]), 0.6))
-    return objects, lights
+    return lamps
 
 
-def _add_mobile_equipment(add: Callable[..., None]) -> None:
+def _add_mobile_equipment(add: _Add) -> None:
     """The robot cart beside the table, with its arm over the patient, and the C-arm."""
     add("plastic", box((0.9, 1.15, 0.55), (0.75, 0.6, 1.1)), (0.93, 0.93, 0.95))
     add("rubber", box((0.9, 1.15, 0.05), (0.8, 0.65, 0.1)))

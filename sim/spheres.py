@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from protocol.camera import Camera
+from sim.geometry import unit_circle
 from sim.lighting import irradiance
 from sim.rays import directions_for_pixels, ray_directions
 from sim.room import Light
@@ -149,12 +150,6 @@ def _shade_sphere(
 
 def _silhouette_points(c_cam: np.ndarray, r: float, n: int = 24) -> np.ndarray:
     """Points (camera frame) on the sphere's silhouette circle, pushed out slightly."""
-    d = np.linalg.norm(c_cam)
-    axis = c_cam / d
-    helper = np.array([1.0, 0, 0]) if abs(axis[0]) < 0.9 else np.array([0, 1.0, 0])
-    x = np.cross(axis, helper)
-    x /= np.linalg.norm(x)
-    y = np.cross(axis, x)
-    ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    rr = r * 1.3
-    return c_cam + rr * (np.cos(ang)[:, None] * x + np.sin(ang)[:, None] * y)
+    # the circle negated starts half a turn round: the points (and their order) this function
+    # has always drawn, bit for bit, so the pixel boxes do not move
+    return c_cam - r * 1.3 * unit_circle(c_cam / np.linalg.norm(c_cam), n)

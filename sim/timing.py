@@ -16,9 +16,11 @@ order and gives the same frames.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from protocol.command import CommandArgumentError
 from protocol.errors import UserError
 
 SIM_EPOCH_UNIX_NS = 1_767_225_600_000_000_000  # 2026-01-01T00:00:00Z: sim time 0
@@ -26,6 +28,32 @@ SIM_EPOCH_UNIX_NS = 1_767_225_600_000_000_000  # 2026-01-01T00:00:00Z: sim time 
 
 class SimTimeError(UserError, ValueError):
     """A time that the simulation cannot show."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class SessionClock:
+    """A recorded session on the sim clock: ``t_sim = sim_offset_s + t_case``."""
+
+    case_metadata: dict[str, str]
+    sim_offset_s: float  # the session's start on the sim clock
+    set_times_s: np.ndarray  # (N,) case time of each synchronised set; may be empty
+
+
+def read_session_clock(path: Path) -> SessionClock:
+    """The case metadata and set times of the session file ``path``, on the sim clock (what
+    ``egosurg sim roles`` and ``egosurg sim contact`` line their worlds up with)."""
+    from protocol.session import SessionReader  # h5py: only when a session is read
+
+    if not path.is_file():
+        raise CommandArgumentError(f"the session {path} does not exist")
+    with SessionReader(path) as reader:
+        meta, start = reader.info.case_metadata, reader.info.started_unix_ns
+        set_ns = reader.sets().set_unix_ns
+    return SessionClock(
+        case_metadata=meta,
+        sim_offset_s=(start - SIM_EPOCH_UNIX_NS) / 1e9,
+        set_times_s=(set_ns - start) / 1e9,
+    )
 
 
 def require_time(t_s: float) -> float:

@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -116,7 +117,8 @@ def loopback_rig_config(
 ):
     """A recorder's config on free loopback ports: one agent ``n0`` with ``cameras``, plaintext
     links (CURVE is tests/capture_agent/test_security.py's), no PTP or disk-reserve checks."""
-    from capture_agent.config import AgentEndpoint, RigConfig, SecurityConfig
+    from capture_agent.config import AgentEndpoint, RigConfig
+    from capture_agent.security_config import RigSecurityConfig
     from sim.deploy import free_ports
 
     control, frames_port, agent_control = free_ports(3)
@@ -135,5 +137,94 @@ def loopback_rig_config(
         ),
         require_ptp_lock=False,
         disk_reserve_gb=0.0,
-        security=SecurityConfig(insecure=True),
+        security=RigSecurityConfig(insecure=True),
     )
+
+
+def frame_message(
+    node: str,
+    serial: int,
+    index: int,
+    seq: int,
+    capture_unix_ns: int,
+    image: bytes,
+    *,
+    encoding: str = "jpeg",
+    size_px: tuple[int, int] = (8, 4),
+):
+    """A frame message as a PTP-locked agent publishes it: received the instant it was captured,
+    ``image`` as both sensors' picture, ``size_px`` its (width, height)."""
+    from protocol.wire import FrameMessage
+
+    width, height = size_px
+    return FrameMessage(
+        node_id=node,
+        camera_serial=serial,
+        frame_index=index,
+        seq=seq,
+        capture_unix_ns=capture_unix_ns,
+        host_receive_unix_ns=capture_unix_ns,
+        ptp_offset_ns=0,
+        ptp_locked=True,
+        encoding=encoding,
+        width=width,
+        height=height,
+        left=image,
+        right=image,
+    )
+
+
+def heavy_modules_after(imports: str, heavy: tuple[str, ...]) -> list[str]:
+    """Which of the modules ``heavy`` a fresh interpreter has loaded once it has run the import
+    lines ``imports``: in this process they may be loaded already by other tests."""
+    snippet = f"import sys\n{imports}\nprint(','.join(m for m in {heavy!r} if m in sys.modules))\n"
+    out = subprocess.run(
+        [sys.executable, "-c", snippet], capture_output=True, text=True, check=True, cwd=REPO
+    )
+    return [m for m in out.stdout.strip().split(",") if m]
+
+
+def loopback_sim_node(
+    node_id: str,
+    *,
+    fps: float,
+    seed: int,
+    cameras: Sequence[dict] = ({},),
+    where: str = "test node.toml",
+    **options: object,
+):
+    """An agent's config on free loopback ports, read from its table as node.toml's is: one
+    simulated camera per entry of ``cameras`` (each entry adds options to that camera's table),
+    streaming pre-rendered JPEG content with no random drops, the cameras' clocks starting at the
+    last whole second; no PTP, plaintext links (CURVE is tests/capture_agent/test_security.py's).
+    ``options`` add node options (``status_interval_s``, ``watchdog_timeout_s``, ...)."""
+    from capture_agent.config import NodeConfig
+    from sim.deploy import free_ports
+
+    frames_port, control_port = free_ports(2)
+    epoch_unix_ns = (time.time_ns() // 10**9 - 1) * 10**9
+    camera_tables = [
+        {
+            "source": "sim",
+            "seed": seed,
+            "camera_index": i,
+            "fps": fps,
+            "epoch_unix_ns": epoch_unix_ns,
+            "content_fps": 0.5,  # one picture per camera, rendered before streaming, repeated
+            "prerender_s": 2.0,
+            "pre_encode": "jpeg",
+            "drop_probability": 0.0,
+            **extra,
+        }
+        for i, extra in enumerate(cameras)
+    ]
+    table = {
+        "node_id": node_id,
+        "frames_bind": f"tcp://127.0.0.1:{frames_port}",
+        "control_bind": f"tcp://127.0.0.1:{control_port}",
+        "ptp": {"source": "none", "require_lock": False},
+        "cameras": camera_tables,
+        "security": {"insecure": True},
+        **options,
+    }
+    return NodeConfig.from_table(table, where)

@@ -1,6 +1,8 @@
-"""The architecture as a test (docs/architecture.md), checked on the source: which package may
-import which, which reconstructor stage may import which, no import cycle anywhere in the five
-packages, and every module the ``egosurg`` dispatcher names imports and has its function."""
+"""The architecture as a test (docs/architecture.md), checked on the source: the five packages the
+design fixes stay the top level, which package may import which, which wing of capture_agent/,
+protocol/ and calibration/ and which reconstructor stage may import which, no import cycle
+anywhere in the five packages (imports only a type checker reads included), the edge imports no
+heavy library, and every module the ``egosurg`` dispatcher names imports and has its function."""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ import ast
 import importlib
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -50,6 +53,27 @@ RECONSTRUCTOR_PARTS: dict[str, set[str]] = {
 }
 
 
+# Inside capture_agent/, protocol/ and calibration/: each wing (a folder, or "top" for the
+# package's own modules) and the other wings it may import. The top holds what every wing shares
+# (configs, security, errors, the camera model), so it imports no wing; the wings never import
+# each other but as listed.
+WINGS: dict[str, dict[str, set[str]]] = {
+    "capture_agent": {
+        "top": set(),  # config, security, the daemon loop, the control server
+        "sources": {"top"},  # the camera seam and its backends
+        "agent": {"top", "sources"},  # the edge daemon drives a source
+        "recorder": {"top"},
+        "operator": {"top"},  # talks to the recorder over its socket, never imports it
+    },
+    "protocol": {
+        "top": set(),  # errors, the camera model, images, the TOML idiom, the command helper
+        "session": {"top"},
+        "formats": {"top"},
+        "wire": {"top", "session"},  # an agent's status reply names the session's camera info
+    },
+}
+
+
 def _module_name(path: Path) -> str:
     parts = list(path.relative_to(REPO).with_suffix("").parts)
     if parts[-1] == "__init__":
@@ -66,22 +90,17 @@ def _imported(path: Path, modules: dict[str, Path]) -> set[str]:
     (a lazy import still closes a cycle at run time); ``from a import b`` counts as ``a.b``
     where that is a module, else as ``a`` (a package's own ``__init__`` runs before its
     submodules, so the package a submodule sits in is not an edge). Imports under
-    ``if TYPE_CHECKING:`` never run, so they close no cycle: they are how a helper module names
-    the class it serves (a helper module that takes the class it serves) without importing it."""
+    ``if TYPE_CHECKING:`` count too: they never run, but a module that names another's types
+    depends on it, and a circle of them is a circle a reader must follow."""
     name = _module_name(path)
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    return _imported_by(name, package, path.read_text(), modules)
+
+
+def _imported_by(name: str, package: str, source: str, modules: dict[str, Path]) -> set[str]:
     found: set[str] = set()
-    tree = ast.parse(path.read_text())
-    type_only = {
-        id(inner)
-        for node in ast.walk(tree)
-        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test)
-        for stmt in node.body
-        for inner in ast.walk(stmt)
-    }
+    tree = ast.parse(source)
     for node in ast.walk(tree):
-        if id(node) in type_only:
-            continue
         if isinstance(node, ast.Import):
             found |= {a.name for a in node.names}
         elif isinstance(node, ast.ImportFrom):
@@ -195,16 +214,73 @@ def test_every_module_the_dispatcher_names_imports_and_has_its_function(command)
     assert callable(getattr(module, func_name, None)), f"{module_name} has no {func_name}()"
 
 
-def test_protocol_and_the_command_import_without_heavy_libraries():
-    """The agent runs on a Jetson: protocol/ and the egosurg dispatcher stay light."""
+# The edge (protocol/ and capture_agent/) runs on a Jetson node, installed without the
+# reconstruction's libraries: none of its modules may import one. The one exception is the
+# simulator's camera source, which is the simulator (it is never used on a node).
+HEAVY = ("torch", "open3d", "numba", "scipy", "matplotlib", "av", "tqdm")
+EDGE_EXCEPTIONS = {"capture_agent.sources.sim_source"}
+
+
+def test_the_edge_imports_without_heavy_libraries():
+    """protocol/__init__'s promise, checked for every module of protocol/ and capture_agent/."""
+    edge = sorted(
+        m
+        for m in _all_modules()
+        if m.split(".")[0] in ("protocol", "capture_agent") and m not in EDGE_EXCEPTIONS
+    )
     snippet = (
-        "import sys, protocol.cli, protocol.formats.zed_conf, protocol.camera\n"
-        "import protocol.formats.wand\n"
-        "import capture_agent\n"
-        "heavy = [m for m in ('torch', 'open3d', 'matplotlib', 'numba') if m in sys.modules]\n"
-        "print(','.join(heavy))\n"
+        "import importlib, sys\n"
+        f"for m in {edge!r}:\n"
+        "    importlib.import_module(m)\n"
+        f"print(','.join(m for m in {HEAVY!r} if m in sys.modules))\n"
     )
     out = subprocess.run(
         [sys.executable, "-c", snippet], capture_output=True, text=True, check=True, cwd=REPO
     )
-    assert out.stdout.strip() == ""
+    assert out.stdout.strip() == "", f"the edge's modules load {out.stdout.strip()}"
+
+
+def _wing(module: str) -> str:
+    parts = module.split(".")
+    wings = WINGS[parts[0]]
+    return parts[1] if len(parts) > 1 and parts[1] in wings else "top"
+
+
+@pytest.mark.parametrize("package", sorted(WINGS))
+def test_each_wing_imports_only_the_wings_the_design_allows(package):
+    rules = WINGS[package]
+    for name, imports in _graph().items():
+        if name.split(".")[0] != package:
+            continue
+        wing = _wing(name)
+        inner = {_wing(m) for m in imports if m.split(".")[0] == package} - {wing}
+        bad = inner - rules[wing]
+        assert not bad, f"{name} (wing {wing!r}) imports the wings {sorted(bad)}"
+
+
+@pytest.mark.parametrize("package", sorted(WINGS))
+def test_every_folder_of_a_winged_package_is_a_wing_the_rules_know(package):
+    folders = {d.name for d in (REPO / package).iterdir() if (d / "__init__.py").is_file()}
+    unknown = folders - set(WINGS[package])
+    assert not unknown, (
+        f"{package}/ has folders the rules do not know: {sorted(unknown)}; add each to WINGS "
+        "here (with what it may import) and to docs/architecture.md"
+    )
+
+
+def test_the_five_packages_the_design_fixes_stay_the_top_level():
+    top = {d.name for d in REPO.iterdir() if (d / "__init__.py").is_file()} - {"tests"}
+    assert top == PACKAGES, f"top-level packages {sorted(top)}, the design fixes {sorted(PACKAGES)}"
+    include = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"][
+        "packages"
+    ]["find"]["include"]
+    assert {i.rstrip("*") for i in include} == PACKAGES
+
+
+def test_the_rules_see_imports_only_a_type_checker_reads():
+    """A circle of ``if TYPE_CHECKING:`` imports is a circle too: the finder must see it."""
+    source = (
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from protocol.camera import X\n"
+    )
+    found = _imported_by("protocol.probe", "protocol", source, _all_modules())
+    assert found == {"protocol.camera"}

@@ -32,18 +32,37 @@ def _header(seq: int, left: bytes, right: bytes) -> bytes:
     ).header()
 
 
+def _zmq_end(ctx, kind: str, endpoint: str, *, sending: bool):
+    """The sending or receiving end of a ``kind`` link ("push": PUSH/PULL, else PUB/SUB), timing
+    out after 200 ms a send or 100 ms a receive. The PULL and the PUB end bind, the other
+    connects, as the recorder's and the agents' sockets do."""
+    import zmq
+
+    push = kind == "push"
+    if sending:
+        sock = ctx.socket(zmq.PUSH if push else zmq.PUB)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.SNDTIMEO, 200)
+    else:
+        sock = ctx.socket(zmq.PULL if push else zmq.SUB)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.RCVTIMEO, 100)
+        if not push:
+            sock.setsockopt(zmq.RCVHWM, 10_000)  # deep: this measures transport, not a policy
+            sock.setsockopt(zmq.SUBSCRIBE, b"")
+    if push != sending:
+        sock.bind(endpoint)
+    else:
+        sock.connect(endpoint)
+    return sock
+
+
 def _zmq_sender(endpoint: str, kind: str, pairs: list, stop_at: float) -> None:
     """Sends [header, left, right] with copy=False until ``stop_at`` (time.monotonic)."""
     import zmq
 
     ctx = zmq.Context()
-    sock = ctx.socket(zmq.PUSH if kind == "push" else zmq.PUB)
-    sock.setsockopt(zmq.LINGER, 0)
-    sock.setsockopt(zmq.SNDTIMEO, 200)
-    if kind == "push":
-        sock.connect(endpoint)
-    else:
-        sock.bind(endpoint)
+    sock = _zmq_end(ctx, kind, endpoint, sending=True)
     headers = [bytearray(_header(0, lft, rgt)) for lft, rgt in pairs]
     seq = 0
     try:
@@ -65,15 +84,7 @@ def _zmq_receiver(endpoint: str, kind: str, start_at: float, end_at: float, q) -
     import zmq
 
     ctx = zmq.Context()
-    sock = ctx.socket(zmq.PULL if kind == "push" else zmq.SUB)
-    sock.setsockopt(zmq.LINGER, 0)
-    sock.setsockopt(zmq.RCVTIMEO, 100)
-    if kind == "push":
-        sock.bind(endpoint)
-    else:
-        sock.setsockopt(zmq.RCVHWM, 10_000)  # deep: this measures transport, not a queue policy
-        sock.setsockopt(zmq.SUBSCRIBE, b"")
-        sock.connect(endpoint)
+    sock = _zmq_end(ctx, kind, endpoint, sending=False)
     count = nbytes = lost = 0
     last_seq = None
     t_first = t_last = None
@@ -113,15 +124,22 @@ def zmq_limit(kind: str, pairs: list, seconds: float) -> dict[str, float]:
     recv.start()
     time.sleep(0.3)
     send.start()
+    return _measured(q, [send, recv], seconds + 60, "msgs_s")
+
+
+def _measured(q, procs: list, timeout_s: float, rate_key: str) -> dict:
+    """What the measuring process put on ``q``, with its rate (``rate_key``: messages or images
+    a second) and MB/s, once every process of the run has ended (terminated if it has not 10 s
+    after)."""
     try:
-        r = q.get(timeout=seconds + 60)
+        r = q.get(timeout=timeout_s)
     finally:
-        for p in (send, recv):
+        for p in procs:
             p.join(timeout=10)
             if p.is_alive():
                 p.terminate()
                 p.join(timeout=5)
-    r["msgs_s"] = r["count"] / r["span"]
+    r[rate_key] = r["count"] / r["span"]
     r["mb_s"] = r["bytes"] / r["span"] / 1e6
     return r
 
@@ -194,17 +212,7 @@ def imagezmq_limit(jpgs: list, seconds: float, senders: int) -> dict[str, float]
     ]
     for p in procs:
         p.start()
-    try:
-        r = q.get(timeout=seconds + 60)
-    finally:
-        for p in [*procs, hub]:
-            p.join(timeout=10)
-            if p.is_alive():
-                p.terminate()
-                p.join(timeout=5)
-    r["images_s"] = r["count"] / r["span"]
-    r["mb_s"] = r["bytes"] / r["span"] / 1e6
-    return r
+    return _measured(q, [*procs, hub], seconds + 60, "images_s")
 
 
 def hdf5_limit(

@@ -157,6 +157,11 @@ def _spread(r: dict, scale: float) -> str:
     return f"{lo * scale:.0f}-{hi * scale:.0f} stereo/s"
 
 
+def _raw_row(path: str, r: dict, stereo_s: float, note: str) -> list[str]:
+    """A row of the raw table: ``stereo_s`` stereo frames a second, each two images."""
+    return [path, fmt(stereo_s), fmt(2 * stereo_s), fmt(r["mb_s"]), note]
+
+
 def raw_table(raw: Limits, n_pairs: int, image_kb: float, raw_s: float, repeats: int) -> str:
     """Part 2: the raw limits, medians with their range."""
     push, pub, h5, h5c = raw["push"], raw["pub"], raw["h5"], raw["h5c"]
@@ -169,63 +174,55 @@ def raw_table(raw: Limits, n_pairs: int, image_kb: float, raw_s: float, repeats:
     body = table(
         ["path", "stereo frames/s", "images/s", "MB/s", "note"],
         [
-            [
+            _raw_row(
                 "ZeroMQ PUSH/PULL, copy=False, 1 sender -> 1 receiver process",
-                fmt(push["msgs_s"]),
-                fmt(2 * push["msgs_s"]),
-                fmt(push["mb_s"]),
+                push,
+                push["msgs_s"],
                 f"{_spread(push, 1)}; blocks, no loss",
-            ],
-            [
+            ),
+            _raw_row(
                 "ZeroMQ PUB/SUB, copy=False, 1 publisher -> 1 subscriber process",
-                fmt(pub["msgs_s"]),
-                fmt(2 * pub["msgs_s"]),
-                fmt(pub["mb_s"]),
+                pub,
+                pub["msgs_s"],
                 f"{_spread(pub, 1)}; {pub['lost']} dropped at the HWM",
-            ],
-            [
+            ),
+            _raw_row(
                 "HDF5: SessionWriter.append_frame, 4 cameras, flush every 0.5 s",
-                fmt(h5["frames_s"]),
-                fmt(2 * h5["frames_s"]),
-                fmt(h5["mb_s"]),
+                h5,
+                h5["frames_s"],
                 f"{_spread(h5, 1)}; one process, frames only; direct I/O, writer thread; "
                 f"{h5['cpu_us_per_image']:.0f} us CPU per image",
-            ],
-            [
+            ),
+            _raw_row(
                 "HDF5: the same through the page cache (direct_io=False)",
-                fmt(h5c["frames_s"]),
-                fmt(2 * h5c["frames_s"]),
-                fmt(h5c["mb_s"]),
+                h5c,
+                h5c["frames_s"],
                 f"{_spread(h5c, 1)}; {h5c['cpu_us_per_image']:.0f} us CPU per image",
-            ],
-            [
+            ),
+            _raw_row(
                 "plain file: the same bytes in 1 MiB os.pwrite calls (no HDF5)",
-                fmt(plain["frames_s"]),
-                fmt(2 * plain["frames_s"]),
-                fmt(plain["mb_s"]),
+                plain,
+                plain["frames_s"],
                 f"{_spread(plain, 1)}; the page-cache floor under a buffered writer",
-            ],
-            [
+            ),
+            _raw_row(
                 "plain file, the same 1 MiB writes with O_DIRECT (no HDF5): the disk",
-                fmt(disk["frames_s"]),
-                fmt(2 * disk["frames_s"]),
-                fmt(disk["mb_s"]),
+                disk,
+                disk["frames_s"],
                 f"{_spread(disk, 1)}; what the disk takes, the ceiling of a durable writer",
-            ],
-            [
+            ),
+            _raw_row(
                 "imagezmq REQ/REP send_jpg -> bare hub, 1 sender process",
-                fmt(iz1["images_s"] / 2),
-                fmt(iz1["images_s"]),
-                fmt(iz1["mb_s"]),
+                iz1,
+                iz1["images_s"] / 2,
                 f"{_spread(iz1, 0.5)}; the reference",
-            ],
-            [
+            ),
+            _raw_row(
                 "imagezmq REQ/REP send_jpg -> bare hub, 2 sender processes",
-                fmt(iz2["images_s"] / 2),
-                fmt(iz2["images_s"]),
-                fmt(iz2["mb_s"]),
+                iz2,
+                iz2["images_s"] / 2,
                 _spread(iz2, 0.5),
-            ],
+            ),
         ],
         right={1, 2, 3},
     )

@@ -135,15 +135,30 @@ def feeder(
     ``key_file`` its sockets are CURVE servers of that key, as an agent's are (without a ZAP
     allow-list: the cost measured is the encryption, which is per message; ZAP is per
     connection)."""
-    import heapq
-    import random
+    import zmq
 
+    ctx = zmq.Context()
+    pub, rep = _feeder_sockets(ctx, frames_ep, control_ep, key_file)
+    control = _FeederControl(rep, node_id, _cameras_info(serials, fps))
+    sent = 0
+    max_lag_ns = 0
+    try:
+        sent, max_lag_ns = _publish(
+            pub, control, _frame_templates(node_id, serials, pairs), serials, fps,
+            stop_at=stop_at, stop_event=stop_event, rng_seed=hash(node_id) & 0xFFFF,
+        )  # fmt: skip
+    finally:
+        pub.close(linger=0)
+        rep.close(linger=0)
+        ctx.term()
+    q.put({"node": node_id, "sent": sent, "max_lag_ms": max_lag_ns / 1e6})
+
+
+def _feeder_sockets(ctx, frames_ep: str, control_ep: str, key_file: str | None) -> tuple:
+    """The feeder's PUB (frames) and REP (control) sockets, bound; CURVE servers with a key."""
     import zmq
     import zmq.auth
 
-    from protocol.wire import ControlReply, ControlRequest, FrameMessage
-
-    ctx = zmq.Context()
     pub = ctx.socket(zmq.PUB)
     pub.setsockopt(zmq.LINGER, 0)
     pub.setsockopt(zmq.SNDHWM, 480)  # the agent's: max(100, 4 * queue_frames)
@@ -156,6 +171,13 @@ def feeder(
             sock.curve_server = True
     pub.bind(frames_ep)
     rep.bind(control_ep)
+    return pub, rep
+
+
+def _frame_templates(node_id: str, serials: list, pairs: list) -> list:
+    """Per camera: (its frame header to stamp, left JPEG, right JPEG)."""
+    from protocol.wire import FrameMessage
+
     templates = []
     for c, serial in enumerate(serials):
         left, right = pairs[c % len(pairs)]
@@ -175,7 +197,12 @@ def feeder(
             right=right,
         ).header()
         templates.append((bytearray(h), left, right))
-    info = [
+    return templates
+
+
+def _cameras_info(serials: list, fps: float) -> list[dict]:
+    """The cameras' info an agent's ``status`` reply carries."""
+    return [
         {
             "camera_serial": s,
             "resolution": RESOLUTION,
@@ -187,48 +214,74 @@ def feeder(
         }
         for s in serials
     ]
+
+
+class _FeederControl:
+    """Answers the recorder's control requests; remembers when the first came (the start), from
+    which on the feeder's lag is measured."""
+
+    def __init__(self, rep, node_id: str, info: list[dict]) -> None:
+        self._rep, self._node_id, self._info = rep, node_id, info
+        self.measure_from: int | None = None  # unix ns
+
+    def answer(self) -> None:
+        from protocol.wire import ControlReply, ControlRequest
+
+        while self._rep.poll(0):
+            req = ControlRequest.from_bytes(self._rep.recv())
+            result = (
+                {"cameras_info": self._info} if req.verb == "status" else {"node_id": self._node_id}
+            )
+            reply = ControlReply(ok=True, result=result, request_id=req.request_id)
+            self._rep.send(reply.to_bytes())
+            if self.measure_from is None:
+                self.measure_from = time.time_ns()
+
+
+def _publish(
+    pub,
+    control: _FeederControl,
+    templates: list,
+    serials: list,
+    fps: float,
+    *,
+    stop_at: float,
+    stop_event,
+    rng_seed: int,
+) -> tuple[int, int]:
+    """Publish every camera's frames on its schedule until ``stop_at`` (monotonic s) or the
+    stop event; answer control requests between frames. Returns (frames sent, max lag ns)."""
+    import heapq
+    import random
+
+    import zmq
+
     period = 1e9 / fps
-    rng = random.Random(hash(node_id) & 0xFFFF)
+    rng = random.Random(rng_seed)
     t0 = time.time_ns() + 200_000_000
     heap = [(t0 + rng.uniform(0, period), c, 0) for c in range(len(serials))]
     heapq.heapify(heap)
     seq = sent = 0
     max_lag_ns = 0
-    measure_from = None  # lag is reported from the first control request on (the start)
     pack = struct.Struct("<QQQqq")  # seq, serial, frame_index, capture, host_receive at 8..48
-
-    def control() -> None:
-        nonlocal measure_from
-        while rep.poll(0):
-            req = ControlRequest.from_bytes(rep.recv())
-            result = {"cameras_info": info} if req.verb == "status" else {"node_id": node_id}
-            rep.send(ControlReply(ok=True, result=result, request_id=req.request_id).to_bytes())
-            if measure_from is None:
-                measure_from = time.time_ns()
-
-    try:
-        while time.monotonic() < stop_at and not stop_event.is_set():
-            due, c, idx = heap[0]
-            now = time.time_ns()
-            if due > now:
-                control()
-                time.sleep(min((due - now) / 1e9, 0.005))
-                continue
-            heapq.heapreplace(heap, (due + period, c, idx + 1))
-            h, left, right = templates[c]
-            pack.pack_into(h, 8, seq, serials[c], idx, int(due), now)
-            try:
-                pub.send_multipart([bytes(h), left, right], copy=False)
-            except zmq.Again:
-                pass
-            seq += 1
-            sent += 1
-            if measure_from is not None and due >= measure_from:
-                max_lag_ns = max(max_lag_ns, now - int(due))
-            if sent % 64 == 0:
-                control()
-    finally:
-        pub.close(linger=0)
-        rep.close(linger=0)
-        ctx.term()
-    q.put({"node": node_id, "sent": sent, "max_lag_ms": max_lag_ns / 1e6})
+    while time.monotonic() < stop_at and not stop_event.is_set():
+        due, c, idx = heap[0]
+        now = time.time_ns()
+        if due > now:
+            control.answer()
+            time.sleep(min((due - now) / 1e9, 0.005))
+            continue
+        heapq.heapreplace(heap, (due + period, c, idx + 1))
+        h, left, right = templates[c]
+        pack.pack_into(h, 8, seq, serials[c], idx, int(due), now)
+        try:
+            pub.send_multipart([bytes(h), left, right], copy=False)
+        except zmq.Again:
+            pass
+        seq += 1
+        sent += 1
+        if control.measure_from is not None and due >= control.measure_from:
+            max_lag_ns = max(max_lag_ns, now - int(due))
+        if sent % 64 == 0:
+            control.answer()
+    return sent, max_lag_ns

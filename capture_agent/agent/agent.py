@@ -19,7 +19,6 @@ would stamp wrong times for minutes.
 
 from __future__ import annotations
 
-import argparse
 import collections
 import logging
 import queue
@@ -29,14 +28,16 @@ from dataclasses import dataclass, field
 
 import zmq
 
-from capture_agent.agent.ptp import PtpConfig, PtpMonitor, PtpStatus
-from capture_agent.config import CameraEntry, NodeConfig
+from capture_agent.agent.ptp import PtpMonitor, PtpStatus
+from capture_agent.camera_config import CameraConfig
+from capture_agent.config import NodeConfig
 from capture_agent.control_server import ControlServer, Refused
 from capture_agent.daemon import Progress, run_until_signal
 from capture_agent.security import CONTROL_MAX_BYTES, SUBSCRIPTION_MAX_BYTES, LinkGuard, harden
 from capture_agent.sources import make_source
 from capture_agent.sources.base import CameraSource, CameraUnavailableError, GrabbedFrame
 from protocol import __version__
+from protocol.command import command_parser
 from protocol.images import EncodedPair, encode_pair
 from protocol.os_thread import NamedThread
 from protocol.wire import (
@@ -86,14 +87,14 @@ class _Outgoing:
 class CameraWorker:
     """Grabs one camera in its own thread; the watchdog may replace the thread."""
 
-    def __init__(self, entry: CameraEntry, node: NodeConfig, out: queue.Queue, ptp: PtpMonitor):
+    def __init__(self, entry: CameraConfig, node: NodeConfig, out: queue.Queue, ptp: PtpMonitor):
         self.entry = entry
         self.node = node
         self.out = out
         self.ptp = ptp
         self.lock = threading.Lock()
         self.counters = _Counters()
-        self.source: CameraSource = make_source(entry.source, entry.table, entry.where)
+        self.source: CameraSource = make_source(entry)
         self.serial = self.source.serial
         self.last_progress = time.monotonic()
         self.grab_started: float | None = None  # set while inside source.grab()
@@ -130,7 +131,7 @@ class CameraWorker:
         with self.lock:
             self.counters.state = "stalled"
             self.counters.reopen_count += 1
-        self.source = make_source(self.entry.source, self.entry.table, self.entry.where)
+        self.source = make_source(self.entry)
         self.start()
 
     def factory_conf_text(self) -> str:
@@ -276,7 +277,7 @@ class CameraWorker:
 class Agent:
     def __init__(self, config: NodeConfig) -> None:
         self.config = config
-        self.ptp = PtpMonitor(PtpConfig.from_table(config.ptp, f"{config.source_path} [ptp]"))
+        self.ptp = PtpMonitor(config.ptp)
         self.out: queue.Queue[_Outgoing] = queue.Queue(maxsize=config.queue_frames)
         self.workers = [CameraWorker(e, config, self.out, self.ptp) for e in config.cameras]
         serials = [w.serial for w in self.workers]

@@ -32,7 +32,7 @@ How the state is read, step by step:
 ``master_offset`` is the last measured offset of the NIC clock from the grandmaster in ns; the
 system clock's own offset (phc2sys) is not in this answer.
 
-Example ``node.toml`` table::
+Example ``node.toml`` table (``capture_agent.config.PtpConfig``)::
 
     [ptp]
     source = "pmc"
@@ -51,16 +51,12 @@ import threading
 import time
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Any, Literal, get_args
 
-from capture_agent.toml_table import TableReader, require
-from protocol.errors import ConfigError
+from capture_agent.config import PtpConfig
 
 log = logging.getLogger(__name__)
 
 PTP_STATES = ("locked", "unlocked", "no_ptp4l", "no_pmc", "disabled")
-PtpSource = Literal["pmc", "none"]  # "none": no PTP (simulation)
-PTP_SOURCES: tuple[PtpSource, ...] = get_args(PtpSource)
 PMC_QUERY = "GET TIME_STATUS_NP"
 _RESPONSE = re.compile(r"\sseq\s+\d+\s+RESPONSE\s+(MANAGE?MENT\S*)\s+(\S+)")
 
@@ -80,51 +76,6 @@ class PtpStatus:
     @property
     def locked(self) -> bool:
         return self.state == "locked"
-
-
-@dataclass(frozen=True, kw_only=True)
-class PtpConfig:
-    source: PtpSource = "pmc"
-    pmc_path: str = "pmc"
-    lock_threshold_ns: int = 1000
-    require_lock: bool = True
-    poll_interval_s: float = 1.0
-    timeout_s: float = 2.0
-
-    def __post_init__(self) -> None:
-        sources = ", ".join(repr(s) for s in PTP_SOURCES)
-        require(self.source in PTP_SOURCES, "source", self.source, f"choose one of {sources}")
-        require(bool(self.pmc_path), "pmc_path", self.pmc_path, "must name the pmc program")
-        require(
-            self.lock_threshold_ns > 0,
-            "lock_threshold_ns",
-            self.lock_threshold_ns,
-            "must be > 0 ns (1000 suits hardware timestamping)",
-        )
-        require(
-            0.05 <= self.poll_interval_s <= 60,
-            "poll_interval_s",
-            self.poll_interval_s,
-            "must be from 0.05 to 60 seconds",
-        )
-        require(0 < self.timeout_s <= 30, "timeout_s", self.timeout_s, "must be > 0 and <= 30 s")
-
-    @classmethod
-    def from_table(cls, table: dict[str, Any], where: str) -> PtpConfig:
-        r = TableReader(table, where)
-        kw = {
-            "source": r.choice("source", PTP_SOURCES, "pmc"),
-            "pmc_path": r.text("pmc_path", "pmc", hint="the pmc program (name or path)"),
-            "lock_threshold_ns": r.integer("lock_threshold_ns", 1000, hint="an integer (ns)"),
-            "require_lock": r.boolean("require_lock", True),
-            "poll_interval_s": r.number("poll_interval_s", 1.0),
-            "timeout_s": r.number("timeout_s", 2.0),
-        }
-        r.finish()
-        try:
-            return cls(**kw)
-        except ConfigError as exc:
-            raise ConfigError(f"{where}: {exc}") from None
 
 
 def parse_time_status(text: str) -> dict[str, str] | None:

@@ -1,6 +1,6 @@
 """Per-camera drop and gap accounting, done by the recorder from the frames it receives.
 
-The SDK's own drop counter is unreliable (REFERENCES.md, "Grouping by time"), so the recorder counts
+The SDK's own drop counter is not to be trusted, so the recorder counts
 from what it sees: the per-camera ``frame_index``, the per-publisher ``seq`` and the capture stamps.
 
 What each gap kind means
@@ -40,39 +40,36 @@ Totals per camera (``CameraTotals``): ``frames_missing`` = the sum of index gaps
 
 from __future__ import annotations
 
-import enum
 import logging
 from bisect import bisect_left, insort
 from collections import deque
 from dataclasses import dataclass
 
+from protocol.session import GapKind, GapRecord
+
 log = logging.getLogger(__name__)
 
 NO_FRAME_INDEX = -1  # first_missing_frame_index of a SEQ_GAP, or of a RECONNECT that reset
-TIME_GAP_FACTOR = 1.5  # REFERENCES.md: a gap is an interval above 1.5x the median interval
+TIME_GAP_FACTOR = 1.5  # a gap is an interval above 1.5x the median (docs/session.md, Gap kinds)
 MEDIAN_WINDOW = 31  # per-frame intervals in the running median
 MEDIAN_MIN_SAMPLES = 3  # no time gap is judged before this many intervals
 MAX_LOST_RANGES = 1024  # per node; older ranges become unattributed
 
 
-class GapKind(enum.IntEnum):
-    FRAME_INDEX_GAP = 1
-    SEQ_GAP = 2
-    TIME_GAP = 3
-    RECONNECT = 4
-
-
-@dataclass(frozen=True, slots=True)
-class GapRecord:
-    """One gap. ``start_unix_ns``/``end_unix_ns`` are the capture stamps of the frames received
-    just before and just after it (for ``SEQ_GAP``, the node's frames around the gap)."""
-
-    camera_serial: int
-    kind: GapKind
-    first_missing_frame_index: int
-    missing_count: int
-    start_unix_ns: int
-    end_unix_ns: int
+def gap_record(
+    serial: int, kind: GapKind, first_missing: int, missing: int, start_ns: int, end_ns: int
+) -> GapRecord:
+    """The session file's gap record (``/gaps``): ``start_ns``/``end_ns`` are the capture stamps
+    of the frames received just before and just after the gap (for ``SEQ_GAP``, the node's
+    frames around it)."""
+    return GapRecord(
+        camera_serial=serial,
+        kind=kind,
+        first_missing_frame_index=first_missing,
+        missing_count=missing,
+        start_unix_ns=start_ns,
+        end_unix_ns=end_ns,
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -173,7 +170,7 @@ class StreamAccounting:
                 while len(node.ranges) > MAX_LOST_RANGES:
                     node.ranges.popleft()
                 out.append(
-                    GapRecord(
+                    gap_record(
                         serial, GapKind.SEQ_GAP, NO_FRAME_INDEX, lost, node.last_capture_ns, cap
                     )
                 )
@@ -194,7 +191,7 @@ class StreamAccounting:
         if cam.node_id != node_id or cam.epoch != node.epoch or idx <= cam.index:
             skipped = idx - cam.index - 1
             out.append(
-                GapRecord(
+                gap_record(
                     serial,
                     GapKind.RECONNECT,
                     cam.index + 1 if skipped >= 0 else NO_FRAME_INDEX,
@@ -219,7 +216,7 @@ class StreamAccounting:
             cam.transport += by_transport
             cam.dropped += n - by_transport
             out.append(
-                GapRecord(
+                gap_record(
                     serial, GapKind.FRAME_INDEX_GAP, cam.index + 1, n, cam.last_capture_ns, cap
                 )
             )
@@ -229,7 +226,7 @@ class StreamAccounting:
             cam.time_gaps += 1
             slots = max(round(interval / median) - 1, 0)
             out.append(
-                GapRecord(serial, GapKind.TIME_GAP, cam.index + 1, slots, cam.last_capture_ns, cap)
+                gap_record(serial, GapKind.TIME_GAP, cam.index + 1, slots, cam.last_capture_ns, cap)
             )
         if interval > 0:
             cam.push_interval(interval / step)

@@ -1,10 +1,9 @@
 """A recording's start (``capture_agent/recorder/recorder.py``'s ``start`` verb, on its I/O
-thread): the checks of the start's arguments (``start_args``), of the cameras, PTP and the disk,
-the agents'
-camera infos stored in the session (``camera_infos``, each reply checked against the contract,
-``protocol/wire/agent_info.py``), and the creation of the session file and its ``Recording``. A
-start
-that cannot go ahead raises ``StartRefused`` with the reason and what to do."""
+thread): the checks of the start's arguments (``start_args``), of the cameras, PTP and the disk
+(each reading the part it checks), the agents' camera infos stored in the session
+(``camera_infos``, each reply checked against the contract, ``protocol/wire/agent_info.py``), and
+the creation of the session file and its ``Recording``, handed to the take state. A start that
+cannot go ahead raises ``StartRefused`` with the reason and what to do."""
 
 from __future__ import annotations
 
@@ -13,25 +12,22 @@ import math
 import re
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-import zmq
-
+from capture_agent.config import RigConfig
 from capture_agent.control_server import Refused
 from capture_agent.recorder.accounting import StreamAccounting
+from capture_agent.recorder.disk import DiskBudget
+from capture_agent.recorder.intake import CameraTable
+from capture_agent.recorder.links import AgentLinks
 from capture_agent.recorder.recording import Recording
 from capture_agent.recorder.sync import SyncConfig, Synchroniser
-from capture_agent.recorder.take import take_started
+from capture_agent.recorder.take import TakeState
 from capture_agent.recorder.write_queue import open_writer
-from capture_agent.security import CONTROL_MAX_BYTES, harden, make_client
 from protocol import __version__
 from protocol.safe_text import brief, unsafe_character
 from protocol.session import CameraInfo, SessionWriter
-from protocol.wire import ControlReply, ControlRequest, MalformedMessageError
 from protocol.wire.agent_info import AgentReplyError, AgentStatusReply
-
-if TYPE_CHECKING:
-    from capture_agent.recorder.recorder import Recorder
 
 log = logging.getLogger(__name__)
 
@@ -47,21 +43,6 @@ class StartRefused(Refused):
 
 
 CONTRACT_DOC = "docs/capture.md#the-status-reply"
-
-
-def checked_reply(raw: bytes, request: ControlRequest) -> ControlReply:
-    """An agent's answer to ``request``; ``AgentReplyError`` names what is wrong with it."""
-    try:
-        reply = ControlReply.from_bytes(raw)
-    except MalformedMessageError as exc:
-        raise AgentReplyError("reply", f"is not a valid EgoSurg reply ({exc})") from None
-    if reply.request_id != request.request_id:
-        raise AgentReplyError(
-            "request_id",
-            f"answers request_id {reply.request_id[:40]!r}, not the request's "
-            f"{request.request_id!r}; a reply must echo its request's request_id",
-        )
-    return reply
 
 
 def start_args(
@@ -114,75 +95,33 @@ def start_args(
     return case, meta, float(planned)
 
 
-def start_recording(recorder: Recorder, args: dict[str, Any]) -> dict[str, Any]:
-    case, meta, planned_min = start_args(args, recorder.config.planned_duration_min)
+def start_take(
+    args: dict[str, Any],
+    *,
+    config: RigConfig,
+    table: CameraTable,
+    disk: DiskBudget,
+    links: AgentLinks,
+    take: TakeState,
+) -> dict[str, Any]:
+    """Check a start and begin its take in ``take``; the start's reply. Reads the camera table,
+    the disk and the agents (over ``links``); a start that cannot go ahead is refused."""
+    case, meta, planned_min = start_args(args, config.planned_duration_min)
     # (first: a bad start says what is bad)
-    if recorder.recording is not None:
+    if take.recording is not None:
         raise StartRefused(
-            f"already recording case '{recorder.recording.case}' to "
-            f"{recorder.recording.writer.path}; stop it first (egosurg record stop)"
+            f"already recording case '{take.recording.case}' to "
+            f"{take.recording.writer.path}; stop it first (egosurg record stop)"
         )
-    expected = recorder.config.expected_cameras or tuple(sorted(recorder.cameras))
-    if not expected:
-        raise StartRefused(
-            "no camera is streaming yet; check that the agents run "
-            "(systemctl status egosurg-agent) and that rig.toml points at them"
-        )
-    missing = [
-        s for s in expected if s not in recorder.cameras or not recorder.cameras[s].streaming()
-    ]
-    if missing:
-        details = []
-        for s in missing:
-            cam = recorder.cameras.get(s)
-            node = next(
-                (a.node_id for a in recorder.config.agents if s in a.cameras),
-                cam.node_id if cam else "?",
-            )
-            ago = (
-                "never seen"
-                if cam is None
-                else f"last frame {time.monotonic() - cam.last_rx_monotonic:.1f} s ago"
-            )
-            details.append(f"SN{s} on {node} ({ago})")
-        raise StartRefused(
-            "camera(s) not streaming: "
-            + "; ".join(details)
-            + ". Check the agent and its cameras (egosurg status), then start again"
-        )
-    if recorder.config.require_ptp_lock:
-        for a in recorder.config.agents:
-            st = recorder.agent_status.get(a.node_id)
-            if st is None or time.monotonic() - st[1] > recorder.config.agent_timeout_s:
-                raise StartRefused(
-                    f"no status from agent {a.node_id} for {recorder.config.agent_timeout_s:g} s;"
-                    " is it running?"
-                )
-            if st[0].ptp.state != "locked":
-                raise StartRefused(
-                    f"PTP on {a.node_id} is '{st[0].ptp.state}', not locked: frames would "
-                    "not share one clock. Check ptp4l/phc2sys on that node (pmc -u -b 0 "
-                    "'GET TIME_STATUS_NP'), or set require_ptp_lock = false in rig.toml"
-                )
-    rate = sum(recorder.cameras[s].byte_rate() for s in expected)
-    need = recorder._reserve_bytes() + rate * planned_min * 60.0
-    free = recorder._free_bytes()
-    if free < need:
-        raise StartRefused(
-            f"not enough disk: {free / 1e9:.1f} GB free in {recorder.config.output_dir}, but a "
-            f"{planned_min:g} min recording at {rate / 1e6:.1f} MB/s needs "
-            f"{(need - recorder._reserve_bytes()) / 1e9:.1f} GB plus the "
-            f"{recorder.config.disk_reserve_gb:g} GB reserve. Free space or plan a shorter case"
-        )
-    infos = camera_infos(recorder, expected)
+    expected = streaming_cameras(table)
+    if config.require_ptp_lock:
+        check_ptp(table, config)
+    rate = table.byte_rate(expected)
+    check_disk(disk, rate, planned_min)
+    infos = camera_infos(table, links, expected)
     started_ns = time.time_ns()
-    stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime(started_ns / 1e9))
-    path = Path(recorder.config.output_dir) / f"{case}_{stamp}.h5"
-    n = 1
-    while path.exists():
-        n += 1
-        path = path.with_name(f"{case}_{stamp}_{n}.h5")
-    previous, part = recorder._resume.link(case) if recorder._resume else ("", 1)  # a resumed take
+    path = session_path(Path(config.output_dir), case, started_ns)
+    previous, part = take.link(case)  # a resumed take
 
     def create() -> SessionWriter:
         return SessionWriter(
@@ -192,8 +131,8 @@ def start_recording(recorder: Recorder, args: dict[str, Any]) -> dict[str, Any]:
             session_name=case,
             case_metadata={str(k): v for k, v in meta.items()},
             cameras=infos,
-            tolerance_ns=int(0.5e9 / recorder.config.fps),
-            rig_config_text=recorder.config.toml_text,
+            tolerance_ns=int(0.5e9 / config.fps),
+            rig_config_text=config.toml_text,
             software_version=__version__,
             started_unix_ns=started_ns,
         )
@@ -202,28 +141,12 @@ def start_recording(recorder: Recorder, args: dict[str, Any]) -> dict[str, Any]:
         writer = open_writer(create, OPEN_WAIT_S)  # a stalled disk must not hold the loop
     except TimeoutError:
         raise StartRefused(
-            f"the disk holding {recorder.config.output_dir} did not create the session file "
+            f"the disk holding {config.output_dir} did not create the session file "
             f"within {OPEN_WAIT_S:g} s (writing stalls); check the disk, then start again"
         ) from None
-    recorder.recording = Recording(
-        writer=writer,
-        sync=Synchroniser(
-            SyncConfig(
-                camera_serials=tuple(expected),
-                fps=recorder.config.fps,
-                max_wait_ns=int(recorder.config.max_wait_ms * 1e6),
-            )
-        ),
-        accounting=StreamAccounting(),
-        case=case,
-        started_unix_ns=started_ns,
-        started_monotonic=time.monotonic(),
-        serials=tuple(expected),
-        last_flush=time.monotonic(),
-        write_queue_bytes=int(recorder.config.write_queue_mb * 1e6),
-    )
+    rec = new_recording(writer, config, case=case, serials=expected, started_ns=started_ns)
     log.info("recording case %s to %s (%d cameras)", case, path, len(expected))
-    take_started(recorder, case, meta, planned_min, path, previous, part)
+    take.started(rec, meta=meta, planned_min=planned_min, path=path, previous=previous, part=part)
     return {
         "case": case,
         "file": str(path),
@@ -232,19 +155,119 @@ def start_recording(recorder: Recorder, args: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def camera_infos(recorder: Recorder, serials: tuple[int, ...]) -> list[CameraInfo]:
+def streaming_cameras(table: CameraTable) -> tuple[int, ...]:
+    """The cameras a take records, each streaming now; refused otherwise, naming each
+    missing one, its node and when it was last heard."""
+    expected = table.expected()
+    if not expected:
+        raise StartRefused(
+            "no camera is streaming yet; check that the agents run "
+            "(systemctl status egosurg-agent) and that rig.toml points at them"
+        )
+    missing = [s for s in expected if not table.is_streaming(s)]
+    if not missing:
+        return expected
+    details = []
+    for s in missing:
+        cam = table.cameras.get(s)
+        listed = table.listed_owner(s)
+        node = listed if listed is not None else (cam.node_id if cam else "?")
+        ago = (
+            "never seen"
+            if cam is None
+            else f"last frame {time.monotonic() - cam.last_rx_monotonic:.1f} s ago"
+        )
+        details.append(f"SN{s} on {node} ({ago})")
+    raise StartRefused(
+        "camera(s) not streaming: "
+        + "; ".join(details)
+        + ". Check the agent and its cameras (egosurg status), then start again"
+    )
+
+
+def check_ptp(table: CameraTable, config: RigConfig) -> None:
+    """Refuse a start while an agent is silent or its PTP is not locked."""
+    for a in config.agents:
+        st = table.agent_status.get(a.node_id)
+        if st is None or time.monotonic() - st[1] > config.agent_timeout_s:
+            raise StartRefused(
+                f"no status from agent {a.node_id} for {config.agent_timeout_s:g} s; is it running?"
+            )
+        if st[0].ptp.state != "locked":
+            raise StartRefused(
+                f"PTP on {a.node_id} is '{st[0].ptp.state}', not locked: frames would "
+                "not share one clock. Check ptp4l/phc2sys on that node (pmc -u -b 0 "
+                "'GET TIME_STATUS_NP'), or set require_ptp_lock = false in rig.toml"
+            )
+
+
+def check_disk(disk: DiskBudget, rate_bytes_per_s: float, planned_min: float) -> None:
+    """Refuse a start whose planned length at the streams' rate would eat into the reserve."""
+    take_bytes = rate_bytes_per_s * planned_min * 60.0
+    free = disk.measure()
+    if free < disk.reserve_bytes + take_bytes:
+        raise StartRefused(
+            f"not enough disk: {free / 1e9:.1f} GB free in {disk.output_dir}, but a "
+            f"{planned_min:g} min recording at {rate_bytes_per_s / 1e6:.1f} MB/s needs "
+            f"{take_bytes / 1e9:.1f} GB plus the "
+            f"{disk.reserve_gb:g} GB reserve. Free space or plan a shorter case"
+        )
+
+
+def session_path(output_dir: Path, case: str, started_ns: int) -> Path:
+    """A new file for the take: the case and its start time, numbered if that exists."""
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime(started_ns / 1e9))
+    path = output_dir / f"{case}_{stamp}.h5"
+    n = 1
+    while path.exists():
+        n += 1
+        path = path.with_name(f"{case}_{stamp}_{n}.h5")
+    return path
+
+
+def new_recording(
+    writer: SessionWriter,
+    config: RigConfig,
+    *,
+    case: str,
+    serials: tuple[int, ...],
+    started_ns: int,
+) -> Recording:
+    """The take's recording over its open session file: synchroniser, drop accounting and
+    write queue as rig.toml sets them."""
+    return Recording(
+        writer=writer,
+        sync=Synchroniser(
+            SyncConfig(
+                camera_serials=serials,
+                fps=config.fps,
+                max_wait_ns=int(config.max_wait_ms * 1e6),
+            )
+        ),
+        accounting=StreamAccounting(),
+        case=case,
+        started_unix_ns=started_ns,
+        started_monotonic=time.monotonic(),
+        serials=serials,
+        last_flush=time.monotonic(),
+        write_queue_bytes=int(config.write_queue_mb * 1e6),
+    )
+
+
+def camera_infos(
+    table: CameraTable, links: AgentLinks, serials: tuple[int, ...]
+) -> list[CameraInfo]:
     """Ask each agent for its cameras' modes and factory files (stored in the session).
 
     The reply is checked field by field (``protocol/wire/agent_info.py``): an agent that does
     not answer, answers ``ok: false`` or breaks the contract is refused with that reason.
     """
     infos: dict[int, CameraInfo] = {}
-    for a in recorder.config.agents:
+    for a in table.config.agents:
         needed = bool(a.cameras) or any(
-            recorder.cameras.get(s) is not None and recorder.cameras[s].node_id == a.node_id
-            for s in serials
+            s in table.cameras and table.cameras[s].node_id == a.node_id for s in serials
         )
-        reply = agent_status_reply(recorder, a.node_id, a.control, needed)
+        reply = agent_status_reply(links, a.node_id, a.control, needed)
         if reply is None:
             continue
         for s in a.cameras:
@@ -255,7 +278,7 @@ def camera_infos(recorder: Recorder, serials: tuple[int, ...]) -> list[CameraInf
                     f"(see {CONTRACT_DOC})"
                 )
         for ci in reply.cameras_info:
-            owner = camera_owner(recorder, ci.camera_serial)
+            owner = table.owner(ci.camera_serial)
             if ci.camera_serial in serials and owner in (None, a.node_id):
                 infos[ci.camera_serial] = ci.to_session(a.node_id)
     missing = [s for s in serials if s not in infos]
@@ -264,29 +287,20 @@ def camera_infos(recorder: Recorder, serials: tuple[int, ...]) -> list[CameraInf
     return [infos[s] for s in serials]
 
 
-def camera_owner(recorder: Recorder, serial: int) -> str | None:
-    """The node a camera belongs to: rig.toml's listing, else the node its frames name."""
-    for a in recorder.config.agents:
-        if serial in a.cameras:
-            return a.node_id
-    cam = recorder.cameras.get(serial)
-    return cam.node_id if cam is not None else None
-
-
 def agent_status_reply(
-    recorder: Recorder, node_id: str, endpoint: str, needed: bool
+    links: AgentLinks, node_id: str, endpoint: str, needed: bool
 ) -> AgentStatusReply | None:
     """An agent's checked ``status`` reply; None for an agent whose cameras the take does
     not need and that cannot give one (logged); a refusal naming the problem otherwise."""
     try:
-        reply = request_agent(recorder, endpoint, "status")
+        reply = links.request(endpoint, "status")
         if reply is None:
             problem = (
                 f"agent {node_id} does not answer on {endpoint}; is it running "
                 "(systemctl status egosurg-agent on that node)?"
                 + (
                     ""
-                    if recorder.config.security.insecure
+                    if links.security.insecure
                     else " If it runs, check that its public_key in rig.toml is current and "
                     "that its allowed_keys list the recorder's key"
                 )
@@ -301,25 +315,3 @@ def agent_status_reply(
         raise StartRefused(problem)
     log.warning("%s (none of its cameras is recorded)", problem)
     return None
-
-
-def request_agent(
-    recorder: Recorder, endpoint: str, verb: str, timeout_ms: int = 1500
-) -> ControlReply | None:
-    """One request to an agent: its reply (``ok`` or not), or None when none came in time.
-    A reply that is not a valid EgoSurg reply to this request raises ``AgentReplyError``."""
-    sock = recorder.ctx.socket(zmq.REQ)
-    harden(sock, CONTROL_MAX_BYTES)
-    sock.setsockopt(zmq.RCVTIMEO, timeout_ms)
-    sock.setsockopt(zmq.SNDTIMEO, timeout_ms)
-    request = ControlRequest(verb=verb)
-    try:
-        make_client(sock, recorder.links, recorder._server_keys.get(endpoint))
-        sock.connect(endpoint)
-        sock.send(request.to_bytes())
-        raw = sock.recv()
-    except zmq.Again:
-        return None
-    finally:
-        sock.close(linger=0)
-    return checked_reply(raw, request)

@@ -1,6 +1,6 @@
 """Group the frames of N free-running cameras into synchronised sets, online.
 
-Contract (DESIGN.md, "Synchronised sets"): frames are grouped by capture timestamp, never by
+Contract (docs/session.md, "Synchronised sets"): frames are grouped by capture timestamp, never by
 arrival; a set's tolerance is half a frame period; a camera with no frame in a set is an explicit
 missing marker (``None`` here, ``MISSING = -1`` in the session table), never a silent shift; every
 set records its spread. As in ROS message_filters' ApproximateTime, each frame is used at most once.

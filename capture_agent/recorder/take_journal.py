@@ -8,13 +8,14 @@ journal found at start means the recorder died in the middle of a take (SIGKILL,
 watchdog's SIGABRT, power), and the file it names holds everything up to its last flush.
 
 ``TakeResume`` is what the recorder keeps of such a journal. Once every expected camera streams
-again, the recorder starts the same case again (``_resume_take_if_due``, from its I/O loop, never
-waiting in it); the new file's ``previous_session_file`` names the earlier part and its
-``take_part`` is one more. A start of the same case by an operator does the same. It is not
-resumed when the earlier part's file is missing, when that file was last written more than
-``RESUME_WITHIN_S`` ago (a recorder down for long is not put back into a case that has surely
-ended), or when another case is started first; each is logged. A refused start (PTP unlocked, a
-full disk) is retried every ``RETRY_S`` and its reason shown in ``status``.
+again, the recorder starts the same case again (``take.TakeState.resume_now`` says when and with
+what, asked from its I/O loop, never waiting in it); the new file's ``previous_session_file``
+names the earlier part and its ``take_part`` is one more. A start of the same case by an
+operator does the same. It is not resumed when the earlier part's file is missing, when that
+file was last written more than ``RESUME_WITHIN_S`` ago (a recorder down for long is not put
+back into a case that has surely ended), or when another case is started first; each is
+logged. A refused start (PTP unlocked, a full disk) is retried every ``RETRY_S`` and its reason
+shown in ``status``.
 """
 
 from __future__ import annotations

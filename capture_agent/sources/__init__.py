@@ -8,30 +8,28 @@
 libraries runs ``zed``, and a laptop without the ZED SDK runs ``sim``; a missing SDK fails with
 a message that names what to install.
 
+A source takes its checked config (``capture_agent/camera_config.py``: one dataclass per backend,
+read from node.toml's ``[[cameras]]`` tables when the node config loads).
+
 Example::
 
+    from capture_agent.camera_config import SimSourceConfig
     from capture_agent.sources import make_source
-    cam = make_source("sim", {"camera_index": 1, "resolution": "SVGA"}, "node.toml [[cameras]] #2")
-    with cam:
+    with make_source(SimSourceConfig(camera_index=1)) as cam:
         frame = cam.grab(timeout_s=1.0)
 """
 
 from __future__ import annotations
 
-from typing import Any
-
+from capture_agent.camera_config import CameraConfig
 from capture_agent.sources.base import (
     CameraSource,
     CameraUnavailableError,
     EndOfRecordingError,
     GrabbedFrame,
 )
-from protocol.errors import ConfigError
-
-SOURCE_KINDS = ("sim", "zed", "video")
 
 __all__ = [
-    "SOURCE_KINDS",
     "CameraSource",
     "CameraUnavailableError",
     "EndOfRecordingError",
@@ -40,23 +38,20 @@ __all__ = [
 ]
 
 
-def make_source(kind: str, table: dict[str, Any], where: str) -> CameraSource:
-    """Build the ``kind`` source from its TOML table; ``where`` names the file and table in errors.
+def make_source(config: CameraConfig) -> CameraSource:
+    """The source that ``config`` (a ``[[cameras]]`` table, read and checked) describes.
 
-    Raises ``ConfigError`` for an unknown kind or a bad option, and ``zed_source.SdkMissingError``
-    (a ``UserError``) when ``kind = "zed"`` and pyzed is not installed.
+    Raises ``zed_source.SdkMissingError`` (a ``UserError``) for a ZED camera where pyzed is not
+    installed.
     """
-    if kind == "sim":
-        from capture_agent.sources.sim_source import SimSource, SimSourceConfig
+    if config.source == "sim":
+        from capture_agent.sources.sim_source import SimSource
 
-        return SimSource(SimSourceConfig.from_table(table, where))
-    if kind == "zed":
-        from capture_agent.sources.zed_source import ZedSource, ZedSourceConfig
+        return SimSource(config)
+    if config.source == "zed":
+        from capture_agent.sources.zed_source import ZedSource
 
-        return ZedSource(ZedSourceConfig.from_table(table, where))
-    if kind == "video":
-        from capture_agent.sources.video_source import VideoSource, VideoSourceConfig
+        return ZedSource(config)
+    from capture_agent.sources.video_source import VideoSource
 
-        return VideoSource(VideoSourceConfig.from_table(table, where))
-    kinds = ", ".join(repr(k) for k in SOURCE_KINDS)
-    raise ConfigError(f"{where}: unknown camera source {kind!r}; choose one of {kinds}")
+    return VideoSource(config)

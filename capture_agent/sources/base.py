@@ -14,7 +14,7 @@ lost makes the index jump, so gaps are visible downstream.
 
 Example::
 
-    with make_source("sim", {"camera_index": 0}, "node.toml [[cameras]] #1") as cam:
+    with make_source(SimSourceConfig(camera_index=0)) as cam:
         frame = cam.grab(timeout_s=1.0)      # None on timeout
         if frame is not None:
             frame.left_bgr.shape             # (600, 960, 3) uint8
@@ -30,9 +30,6 @@ import numpy as np
 
 from protocol.camera import Resolution
 from protocol.images import EncodedPair
-
-# Keys of a [[cameras]] table that pick the backend; the backend's own reader ignores them.
-SELECTOR_KEYS = ("source", "kind")
 
 
 class CameraUnavailableError(RuntimeError):

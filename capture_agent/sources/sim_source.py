@@ -52,20 +52,19 @@ import math
 import threading
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal, get_args
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
+from capture_agent.camera_config import FaultSpec, SimSourceConfig
 from capture_agent.sources.base import (
-    SELECTOR_KEYS,
     CameraSource,
     CameraUnavailableError,
     GrabbedFrame,
     require_timeout,
 )
-from capture_agent.toml_table import TableReader, require
-from protocol.camera import Resolution, ResolutionError
+from protocol.camera import Resolution
 from protocol.errors import ConfigError
 from protocol.images import EncodedPair, encode_pair
 
@@ -75,10 +74,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-FaultKind = Literal["hang", "vanish"]
-FAULT_KINDS: tuple[FaultKind, ...] = get_args(FaultKind)
-PreEncoding = Literal["jpeg"]
-PRE_ENCODINGS: tuple[PreEncoding, ...] = get_args(PreEncoding)
 BUFFER_S = 0.5  # frames older than this when grab() is called are lost (a camera's buffer)
 DAY_NS = 86_400 * 1_000_000_000
 _CONTENT_CACHE = 4  # lazily rendered content frames kept (current, next, and a little slack)
@@ -106,162 +101,23 @@ def start_of_utc_day(unix_ns: int) -> int:
     return unix_ns - unix_ns % DAY_NS
 
 
-@dataclass(frozen=True, kw_only=True)
-class FaultSpec:
-    """``kind`` ("hang" or "vanish") from ``at_s`` to ``at_s + duration_s`` after the first open."""
+def clock_spec(config: SimSourceConfig) -> ClockSpec:
+    """The free-running clock of a sim camera with ``config``."""
+    from sim.timing import ClockSpec
 
-    kind: FaultKind
-    at_s: float
-    duration_s: float
-
-    def __post_init__(self) -> None:
-        kinds = ", ".join(repr(k) for k in FAULT_KINDS)
-        require(self.kind in FAULT_KINDS, "kind", self.kind, f"choose one of {kinds}")
-        require(self.at_s >= 0, "at_s", self.at_s, "must be >= 0 (seconds after open)")
-        require(self.duration_s > 0, "duration_s", self.duration_s, "must be > 0 seconds")
-
-
-@dataclass(frozen=True, kw_only=True)
-class SimSourceConfig:
-    """Options of the ``sim`` source; clock defaults match ``sim.timing.ClockSpec``."""
-
-    seed: int = 0
-    phase: str = "intraoperative"
-    camera_index: int = 0
-    resolution: Resolution = Resolution.SVGA
-    fps: float = 30.0
-    free_running: bool = True
-    jitter_ns_std: float = 150_000.0
-    drop_probability: float = 0.002
-    epoch_unix_ns: int | None = None
-    content_fps: float = 2.0
-    pre_encode: PreEncoding | None = None
-    jpeg_quality: int = 90
-    prerender_s: float = 0.0
-    realtime: bool = True
-    faults: tuple[FaultSpec, ...] = ()
-
-    def __post_init__(self) -> None:
-        from sim.phases import PHASES
-        from sim.rig import MOUNTS_M
-
-        require(
-            isinstance(self.seed, int) and self.seed >= 0, "seed", self.seed, "must be an int >= 0"
-        )
-        require(self.phase in PHASES, "phase", self.phase, f"choose one of {', '.join(PHASES)}")
-        n = len(MOUNTS_M)
-        require(
-            0 <= self.camera_index < n,
-            "camera_index",
-            self.camera_index,
-            f"the simulated rig has {n} cameras: choose 0 to {n - 1}",
-        )
-        try:
-            object.__setattr__(self, "resolution", Resolution.parse(self.resolution))
-        except ResolutionError as exc:
-            raise ConfigError(f"resolution = {self.resolution!r}: {exc}") from None
-        res = self.resolution
-        require(
-            0 < self.fps <= res.max_fps,
-            "fps",
-            self.fps,
-            f"must be > 0 and at most {res.max_fps} at {res.value} (ZED X: 15, 30, 60"
-            + (", 120)" if res.max_fps > 60 else ")"),
-        )
-        require(self.jitter_ns_std >= 0, "jitter_ns_std", self.jitter_ns_std, "must be >= 0")
-        require(
-            0 <= self.drop_probability < 0.5,
-            "drop_probability",
-            self.drop_probability,
-            "must be in [0, 0.5)",
-        )
-        require(
-            self.epoch_unix_ns is None or self.epoch_unix_ns >= 0,
-            "epoch_unix_ns",
-            self.epoch_unix_ns,
-            "must be a Unix time in ns (>= 0), shared by every agent of the rig",
-        )
-        require(
-            0 < self.content_fps <= self.fps,
-            "content_fps",
-            self.content_fps,
-            f"must be > 0 and at most fps ({self.fps})",
-        )
-        choices = ", ".join(repr(e) for e in PRE_ENCODINGS)
-        require(
-            self.pre_encode is None or self.pre_encode in PRE_ENCODINGS,
-            "pre_encode",
-            self.pre_encode,
-            f"choose one of {choices} or leave it out",
-        )
-        require(
-            isinstance(self.jpeg_quality, int) and 1 <= self.jpeg_quality <= 100,
-            "jpeg_quality",
-            self.jpeg_quality,
-            "must be an integer from 1 to 100",
-        )
-        require(self.prerender_s >= 0, "prerender_s", self.prerender_s, "must be >= 0 seconds")
-        object.__setattr__(self, "faults", tuple(self.faults))
-
-    @classmethod
-    def from_table(cls, table: dict[str, Any], where: str) -> SimSourceConfig:
-        r = TableReader(table, where, ignore=SELECTOR_KEYS)
-        kw: dict[str, Any] = {
-            "seed": r.integer("seed", 0, hint="an integer >= 0"),
-            "phase": r.text("phase", "intraoperative"),
-            "camera_index": r.integer("camera_index", 0, hint="an integer from 0 to 3"),
-            "resolution": r.text("resolution", "SVGA", hint="'HD1200', 'HD1080' or 'SVGA'"),
-            "fps": r.number("fps", 30.0),
-            "free_running": r.boolean("free_running", True),
-            "jitter_ns_std": r.number("jitter_ns_std", 150_000.0),
-            "drop_probability": r.number("drop_probability", 0.002),
-            "epoch_unix_ns": r.integer("epoch_unix_ns", None, hint="an integer (Unix ns)"),
-            "content_fps": r.number("content_fps", 2.0),
-            "pre_encode": r.choice("pre_encode", ("jpeg", "none"), None),
-            "jpeg_quality": r.integer("jpeg_quality", 90, hint="an integer from 1 to 100"),
-            "prerender_s": r.number("prerender_s", 0.0),
-            "realtime": r.boolean("realtime", True),
-        }
-        if kw["pre_encode"] == "none":
-            kw["pre_encode"] = None
-        faults = []
-        for i, ft in enumerate(r.tables("faults", hint="a list of {kind, at_s, duration_s}")):
-            fr = TableReader(ft, f"{where} faults[{i}]")
-            try:
-                faults.append(
-                    FaultSpec(
-                        kind=fr.choice("kind", FAULT_KINDS),
-                        at_s=fr.number("at_s"),
-                        duration_s=fr.number("duration_s"),
-                    )
-                )
-            except ConfigError as exc:
-                if str(exc).startswith(f"{where} faults[{i}]"):
-                    raise
-                raise ConfigError(f"{where} faults[{i}]: {exc}") from None
-            fr.finish()
-        r.finish()
-        try:
-            return cls(**kw, faults=tuple(faults))
-        except ConfigError as exc:
-            raise ConfigError(f"{where}: {exc}") from None
-
-    def clock_spec(self) -> ClockSpec:
-        from sim.timing import ClockSpec
-
-        # Looped, frame-exact content repeats exactly only if every camera's period divides
-        # the loop; with a clock drift of p ppm, loop n would show content n * N * p seconds
-        # away from the frame's stamp, different for each camera (12 ms after 300 s at 40 ppm
-        # apart: 5 mm of a waved wand). Such cameras keep their random phase, jitter and drops,
-        # but run at the nominal rate.
-        looped_exact = self.prerender_s > 0 and self.content_fps >= self.fps
-        return ClockSpec(
-            fps=self.fps,
-            free_running=self.free_running,
-            jitter_ns_std=self.jitter_ns_std,
-            drop_probability=self.drop_probability,
-            max_abs_ppm=0.0 if looped_exact else 20.0,
-        )
+    # Looped, frame-exact content repeats exactly only if every camera's period divides
+    # the loop; with a clock drift of p ppm, loop n would show content n * N * p seconds
+    # away from the frame's stamp, different for each camera (12 ms after 300 s at 40 ppm
+    # apart: 5 mm of a waved wand). Such cameras keep their random phase, jitter and drops,
+    # but run at the nominal rate.
+    looped_exact = config.prerender_s > 0 and config.content_fps >= config.fps
+    return ClockSpec(
+        fps=config.fps,
+        free_running=config.free_running,
+        jitter_ns_std=config.jitter_ns_std,
+        drop_probability=config.drop_probability,
+        max_abs_ppm=0.0 if looped_exact else 20.0,
+    )
 
 
 @dataclass(frozen=True)
@@ -339,7 +195,7 @@ class SimSource(CameraSource):
         """The camera's frame clock (the truth behind every stamp)."""
         if self._clock is None:
             self._clock = self.world.clock(
-                self.config.camera_index, self.config.clock_spec(), self.epoch_unix_ns
+                self.config.camera_index, clock_spec(self.config), self.epoch_unix_ns
             )
         return self._clock
 

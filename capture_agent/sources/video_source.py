@@ -30,86 +30,22 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
 
+from capture_agent.camera_config import VideoSourceConfig
 from capture_agent.sources.base import (
-    SELECTOR_KEYS,
     CameraSource,
     EndOfRecordingError,
     GrabbedFrame,
     require_timeout,
 )
-from capture_agent.toml_table import TableReader, require
-from protocol.camera import Resolution, ResolutionError
+from protocol.camera import Resolution
 from protocol.errors import ConfigError
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True, kw_only=True)
-class VideoSourceConfig:
-    path: str | None = None
-    left_path: str | None = None
-    right_path: str | None = None
-    fps: float | None = None
-    loop: bool = False
-    realtime: bool = True
-    resolution: Resolution | None = None
-    serial: int = 0
-    conf_path: str | None = None
-
-    def __post_init__(self) -> None:
-        two = self.left_path is not None or self.right_path is not None
-        if (self.path is None) == (not two) or (two and None in (self.left_path, self.right_path)):
-            raise ConfigError(
-                "give either 'path' (one side-by-side video) or both 'left_path' and "
-                f"'right_path' (two videos); got path={self.path!r}, "
-                f"left_path={self.left_path!r}, right_path={self.right_path!r}"
-            )
-        require(
-            self.fps is None or (math.isfinite(self.fps) and self.fps > 0),
-            "fps",
-            self.fps,
-            "must be > 0, or left out to use the file's rate",
-        )
-        if self.resolution is not None:
-            try:
-                object.__setattr__(self, "resolution", Resolution.parse(self.resolution))
-            except ResolutionError as exc:
-                raise ConfigError(f"resolution = {self.resolution!r}: {exc}") from None
-        require(self.serial >= 0, "serial", self.serial, "must be >= 0 (0: unknown)")
-
-    @property
-    def paths(self) -> tuple[str, ...]:
-        if self.path is not None:
-            return (self.path,)
-        assert self.left_path is not None and self.right_path is not None
-        return (self.left_path, self.right_path)
-
-    @classmethod
-    def from_table(cls, table: dict[str, Any], where: str) -> VideoSourceConfig:
-        r = TableReader(table, where, ignore=SELECTOR_KEYS)
-        kw = {
-            "path": r.text("path", None, hint="a video file path"),
-            "left_path": r.text("left_path", None, hint="a video file path"),
-            "right_path": r.text("right_path", None, hint="a video file path"),
-            "fps": r.number("fps", None),
-            "loop": r.boolean("loop", False),
-            "realtime": r.boolean("realtime", True),
-            "resolution": r.text("resolution", None, hint="'HD1200', 'HD1080' or 'SVGA'"),
-            "serial": r.integer("serial", 0),
-            "conf_path": r.text("conf_path", None, hint="the SN<serial>.conf file path"),
-        }
-        r.finish()
-        try:
-            return cls(**kw)
-        except ConfigError as exc:
-            raise ConfigError(f"{where}: {exc}") from None
 
 
 class VideoSource(CameraSource):

@@ -41,27 +41,24 @@ import logging
 import queue
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
 import cv2
 
+from capture_agent.camera_config import ZedSourceConfig
 from capture_agent.sources.base import (
-    SELECTOR_KEYS,
     CameraSource,
     CameraUnavailableError,
     GrabbedFrame,
     require_timeout,
 )
-from capture_agent.toml_table import TableReader, require
-from protocol.camera import Resolution, ResolutionError
-from protocol.errors import ConfigError, UserError
+from protocol.camera import Resolution
+from protocol.errors import UserError
 
 log = logging.getLogger(__name__)
 
-DEFAULT_SETTINGS_DIR = "/usr/local/zed/settings"
 INSTALL_HINT = (
     "install the ZED SDK for this machine (ZED X on a Jetson: the SDK for its JetPack, from "
     "https://www.stereolabs.com/developers/release), then install its Python API into this "
@@ -87,59 +84,6 @@ def import_pyzed() -> ModuleType:
             f"or do not match it: {INSTALL_HINT}"
         ) from None
     return sl
-
-
-def zed_fps_modes(resolution: Resolution) -> tuple[int, ...]:
-    return (15, 30, 60, 120) if resolution is Resolution.SVGA else (15, 30, 60)
-
-
-@dataclass(frozen=True, kw_only=True)
-class ZedSourceConfig:
-    """``serial = None`` opens the first camera found (a single-camera bench)."""
-
-    serial: int | None = None
-    resolution: Resolution = Resolution.HD1200
-    fps: int = 30
-    settings_dir: str = DEFAULT_SETTINGS_DIR
-    buffer_frames: int = 2
-
-    def __post_init__(self) -> None:
-        require(
-            self.serial is None or self.serial > 0,
-            "serial",
-            self.serial,
-            "must be the camera's serial number (see ZED_Explorer --all)",
-        )
-        try:
-            object.__setattr__(self, "resolution", Resolution.parse(self.resolution))
-        except ResolutionError as exc:
-            raise ConfigError(f"resolution = {self.resolution!r}: {exc}") from None
-        modes = zed_fps_modes(self.resolution)
-        require(
-            self.fps in modes,
-            "fps",
-            self.fps,
-            f"the ZED X at {self.resolution.value} runs at {', '.join(map(str, modes))} fps",
-        )
-        require(
-            1 <= self.buffer_frames <= 16, "buffer_frames", self.buffer_frames, "must be 1 to 16"
-        )
-
-    @classmethod
-    def from_table(cls, table: dict[str, Any], where: str) -> ZedSourceConfig:
-        r = TableReader(table, where, ignore=SELECTOR_KEYS)
-        kw = {
-            "serial": r.integer("serial", None, hint="the camera's serial number"),
-            "resolution": r.text("resolution", "HD1200", hint="'HD1200', 'HD1080' or 'SVGA'"),
-            "fps": r.integer("fps", 30, hint="an integer: 15, 30, 60 (or 120 at SVGA)"),
-            "settings_dir": r.text("settings_dir", DEFAULT_SETTINGS_DIR),
-            "buffer_frames": r.integer("buffer_frames", 2),
-        }
-        r.finish()
-        try:
-            return cls(**kw)
-        except ConfigError as exc:
-            raise ConfigError(f"{where}: {exc}") from None
 
 
 class ZedSource(CameraSource):

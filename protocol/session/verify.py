@@ -8,6 +8,7 @@ from the reader instead. Images are read once, in blocks of ``_CHECK_BLOCK`` byt
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import Any
 
 import h5py
@@ -60,16 +61,10 @@ def verify_session(r: SessionReader, *, check_images: bool = True) -> list[str]:
 
 
 def _verify_camera(r: SessionReader, serial: int, tail: str, check_images: bool) -> list[str]:
-    out = []
     g = r._group(serial)
     info = r.info.camera(serial)
-    lengths = [g[name].shape[0] for name in r.columns]
+    out = _ragged_columns(tail, f"camera {serial}: frame table", g, r.columns)
     t = r.frame_table(serial)
-    if len(set(lengths)) > 1:
-        out.append(
-            f"{tail}: camera {serial}: frame table columns have {min(lengths)} to "
-            f"{max(lengths)} rows; using the first {min(lengths)}"
-        )
     cap = t["capture_unix_ns"]
     bad = np.flatnonzero(np.diff(cap) <= 0) + 1
     if bad.size:
@@ -125,14 +120,8 @@ def _verify_camera(r: SessionReader, serial: int, tail: str, check_images: bool)
 
 
 def _verify_sets(r: SessionReader, tail: str) -> list[str]:
-    out = []
     s = r._f["sets"]
-    lengths = [s[name].shape[0] for name in ("set_unix_ns", "members", "spread_ns")]
-    if len(set(lengths)) > 1:
-        out.append(
-            f"{tail}: sets: columns have {min(lengths)} to {max(lengths)} rows; "
-            f"using the first {min(lengths)}"
-        )
+    out = _ragged_columns(tail, "sets:", s, ("set_unix_ns", "members", "spread_ns"))
     n_cams = len(r.info.camera_serials)
     if s["members"].ndim != 2 or s["members"].shape[1] != n_cams:
         return [*out, f"error: sets/members has shape {s['members'].shape}, not (N, {n_cams})"]
@@ -182,14 +171,7 @@ def _verify_sets(r: SessionReader, tail: str) -> list[str]:
 
 
 def _verify_gaps(r: SessionReader, tail: str) -> list[str]:
-    out = []
-    g = r._f["gaps"]
-    lengths = [g[name].shape[0] for name in GAP_COLUMNS]
-    if len(set(lengths)) > 1:
-        out.append(
-            f"{tail}: gaps: columns have {min(lengths)} to {max(lengths)} rows; "
-            f"using the first {min(lengths)}"
-        )
+    out = _ragged_columns(tail, "gaps:", r._f["gaps"], GAP_COLUMNS)
     cols = r._gaps_raw()
     unknown = np.flatnonzero(~np.isin(cols["kind"], [int(k) for k in GapKind]))
     if unknown.size:
@@ -201,6 +183,18 @@ def _verify_gaps(r: SessionReader, tail: str) -> list[str]:
     if backwards.size:
         out.append(f"error: gap records {_rows(backwards)} end before they start")
     return out
+
+
+def _ragged_columns(tail: str, table: str, group: h5py.Group, names: Iterable[str]) -> list[str]:
+    """The one warning for a table whose columns differ in length (a writer stopped between
+    appending to them); the reader uses the common rows."""
+    lengths = [group[name].shape[0] for name in names]
+    if len(set(lengths)) <= 1:
+        return []
+    return [
+        f"{tail}: {table} columns have {min(lengths)} to {max(lengths)} rows; "
+        f"using the first {min(lengths)}"
+    ]
 
 
 def _verify_summary(r: SessionReader) -> list[str]:

@@ -85,40 +85,21 @@ class SessionWriter:
         """``direct_io``: write the image chunks past the page cache (``O_DIRECT``); None does
         where the file system allows it (see ``protocol.session.chunk_sink``).
         ``previous_session_file`` and ``take_part``: a take resumed after the recorder was killed
-        links its new file to the
-        previous part (its file name, same folder). ``rig_config_text`` is stored without any key
-        material (``protocol.session.privacy``); the file is created with mode 0600."""
+        links its new file to the previous part (its file name, same folder).
+        ``rig_config_text`` is stored without any key material (``protocol.session.privacy``);
+        the file is created with mode 0600."""
         self._path = Path(path)
         serials = [c.camera_serial for c in cameras]
-        if not serials:
-            raise ValueError("a session needs at least one camera")
-        if len(set(serials)) != len(serials):
-            raise ValueError(f"camera serials must be unique, got {serials}")
-        if not session_name:
-            raise ValueError("session_name must not be empty")
-        if tolerance_ns <= 0:
-            raise ValueError(f"tolerance_ns must be > 0, got {tolerance_ns}")
-        if take_part < 1 or (take_part > 1) != bool(previous_session_file):
-            raise ValueError(
-                f"take_part {take_part} with previous_session_file {previous_session_file!r}: "
-                "a take's first part (1) has no previous file, a later part names one"
-            )
-        if not 1 <= blob_chunk_bytes <= _MAX_BLOB_CHUNK:
-            raise ValueError(
-                f"blob_chunk_bytes must be 1 to {_MAX_BLOB_CHUNK}, got {blob_chunk_bytes}"
-            )
-        bad = {k: v for k, v in case_metadata.items() if not isinstance(v, str)}
-        if bad or not all(isinstance(k, str) for k in case_metadata):
-            raise ValueError(f"case_metadata must map str to str; bad entries: {bad}")
-        if self._path.exists():
-            raise SessionWriteError(
-                f"{self._path}: already exists; a session file is never overwritten. "
-                "Choose another session name or move the old file away."
-            )
-        if not self._path.parent.is_dir():
-            raise SessionWriteError(
-                f"{self._path}: directory {self._path.parent} does not exist; create it first"
-            )
+        _check_arguments(
+            serials,
+            session_name=session_name,
+            case_metadata=case_metadata,
+            tolerance_ns=tolerance_ns,
+            blob_chunk_bytes=blob_chunk_bytes,
+            previous_session_file=previous_session_file,
+            take_part=take_part,
+        )
+        _check_new_file(self._path)
         self._serials = tuple(serials)
         self._closed = False
         self._write_error: OSError | None = None  # of the last flush, until one succeeds
@@ -126,32 +107,7 @@ class SessionWriter:
         self._sets_rows = 0
         self._gaps_pending: list[tuple[int, ...]] = []
         self._gaps_rows = 0
-        try:
-            create_private_file(self._path)  # 0600 whatever the umask; HDF5 keeps the mode
-        except FileExistsError:
-            raise SessionWriteError(
-                f"{self._path}: already exists; a session file is never overwritten."
-            ) from None
-        except OSError as exc:
-            raise SessionWriteError(f"{self._path}: cannot create the session file: {exc}") from exc
-        try:
-            # Bounds v110..v110: SWMR needs the 1.10 file format, and pinning the upper bound
-            # keeps the file readable by the HDF5 1.10 tools (h5dump) of Debian and JetPack.
-            # No chunk cache: image chunks are written whole, past it, and the tables' chunks
-            # are only appended to, so a cache would only add a copy (and slow flushes).
-            # Allocations of a whole image chunk start on a disk block, as direct I/O needs.
-            aligned = blob_chunk_bytes % DIRECT_ALIGN_BYTES == 0
-            self._f = h5py.File(
-                self._path,
-                "w",  # the empty file created above, exclusively
-                libver=("v110", "v110"),
-                rdcc_nbytes=0,
-                alignment_threshold=blob_chunk_bytes if aligned else 1,
-                alignment_interval=DIRECT_ALIGN_BYTES if aligned else 1,
-            )
-        except OSError as exc:
-            self._path.unlink(missing_ok=True)
-            raise SessionWriteError(f"{self._path}: cannot create the session file: {exc}") from exc
+        self._f = _create_file(self._path, blob_chunk_bytes)
         try:
             self._sink = ChunkSink(
                 self._path, blob_chunk_bytes, direct_io=direct_io, buffers_held=2 * len(serials)
@@ -510,3 +466,75 @@ class SessionWriter:
             raise ValueError(
                 f"camera {serial} is not in this session; cameras are {list(self._serials)}"
             ) from None
+
+
+def _check_arguments(
+    serials: Sequence[int],
+    *,
+    session_name: str,
+    case_metadata: Mapping[str, str],
+    tolerance_ns: int,
+    blob_chunk_bytes: int,
+    previous_session_file: str,
+    take_part: int,
+) -> None:
+    """``SessionWriter``'s arguments, checked before anything touches the disk."""
+    if not serials:
+        raise ValueError("a session needs at least one camera")
+    if len(set(serials)) != len(serials):
+        raise ValueError(f"camera serials must be unique, got {list(serials)}")
+    if not session_name:
+        raise ValueError("session_name must not be empty")
+    if tolerance_ns <= 0:
+        raise ValueError(f"tolerance_ns must be > 0, got {tolerance_ns}")
+    if take_part < 1 or (take_part > 1) != bool(previous_session_file):
+        raise ValueError(
+            f"take_part {take_part} with previous_session_file {previous_session_file!r}: "
+            "a take's first part (1) has no previous file, a later part names one"
+        )
+    if not 1 <= blob_chunk_bytes <= _MAX_BLOB_CHUNK:
+        raise ValueError(f"blob_chunk_bytes must be 1 to {_MAX_BLOB_CHUNK}, got {blob_chunk_bytes}")
+    bad = {k: v for k, v in case_metadata.items() if not isinstance(v, str)}
+    if bad or not all(isinstance(k, str) for k in case_metadata):
+        raise ValueError(f"case_metadata must map str to str; bad entries: {bad}")
+
+
+def _check_new_file(path: Path) -> None:
+    """A session file is only ever new, in a folder that exists."""
+    if path.exists():
+        raise SessionWriteError(
+            f"{path}: already exists; a session file is never overwritten. "
+            "Choose another session name or move the old file away."
+        )
+    if not path.parent.is_dir():
+        raise SessionWriteError(f"{path}: directory {path.parent} does not exist; create it first")
+
+
+def _create_file(path: Path, blob_chunk_bytes: int) -> h5py.File:
+    """The new session file (mode 0600), open for writing; nothing is left behind on failure."""
+    try:
+        create_private_file(path)  # 0600 whatever the umask; HDF5 keeps the mode
+    except FileExistsError:
+        raise SessionWriteError(
+            f"{path}: already exists; a session file is never overwritten."
+        ) from None
+    except OSError as exc:
+        raise SessionWriteError(f"{path}: cannot create the session file: {exc}") from exc
+    try:
+        # Bounds v110..v110: SWMR needs the 1.10 file format, and pinning the upper bound
+        # keeps the file readable by the HDF5 1.10 tools (h5dump) of Debian and JetPack.
+        # No chunk cache: image chunks are written whole, past it, and the tables' chunks
+        # are only appended to, so a cache would only add a copy (and slow flushes).
+        # Allocations of a whole image chunk start on a disk block, as direct I/O needs.
+        aligned = blob_chunk_bytes % DIRECT_ALIGN_BYTES == 0
+        return h5py.File(
+            path,
+            "w",  # the empty file created above, exclusively
+            libver=("v110", "v110"),
+            rdcc_nbytes=0,
+            alignment_threshold=blob_chunk_bytes if aligned else 1,
+            alignment_interval=DIRECT_ALIGN_BYTES if aligned else 1,
+        )
+    except OSError as exc:
+        path.unlink(missing_ok=True)
+        raise SessionWriteError(f"{path}: cannot create the session file: {exc}") from exc

@@ -43,6 +43,7 @@ from protocol.wire import (
     MalformedMessageError,
     PtpState,
 )
+from protocol.wire.checks import fields_json
 
 MAX_CAMERAS_PER_AGENT = 16
 MAX_FACTORY_CONF_BYTES = 64 * 1024  # a ZED SN<serial>.conf is about 3 KB
@@ -161,15 +162,7 @@ class AgentCameraInfo:
         return cls(**kwargs, factory_conf=_require(obj, "factory_conf", where), where=where)
 
     def to_json(self) -> dict[str, Any]:
-        return {
-            "camera_serial": self.camera_serial,
-            "resolution": self.resolution,
-            "width": self.width,
-            "height": self.height,
-            "fps": self.fps,
-            "encoding": self.encoding,
-            "factory_conf": self.factory_conf,
-        }
+        return fields_json(self)  # ``where`` is an InitVar, not a field: it stays off the wire
 
     def to_session(self, node_id: str) -> CameraInfo:
         """The session's description of this camera, on the agent ``node_id``."""

@@ -4,6 +4,7 @@ docstring; each message kind has its own module beside this one."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import struct
 from collections.abc import Mapping
@@ -185,10 +186,22 @@ def json_field(
     return value
 
 
+def check_nullable(value: object, kind: type, what: str, expected: str) -> None:
+    """Raise unless ``value`` is None or a ``kind``; ``expected`` says both in words."""
+    if value is not None and not isinstance(value, kind):
+        raise MalformedMessageError(f"{what}={_brief(value)} must be {expected}")
+
+
 def require_object(obj: object, where: str) -> dict[str, Any]:
     if not isinstance(obj, dict):
         raise MalformedMessageError(f"{where} must be a JSON object, got {type(obj).__name__}")
     return obj
+
+
+def fields_json(record: Any) -> dict[str, Any]:
+    """A flat record's JSON object: each dataclass field by its name, in declaration order (the
+    order the spec lists them in), so a field added to the record is also on the wire."""
+    return {f.name: getattr(record, f.name) for f in dataclasses.fields(record)}
 
 
 def dump_json(obj: dict[str, Any], what: str) -> bytes:

@@ -45,25 +45,11 @@ class ControlRequest:
         _check_request_id(self.request_id, "control request")
 
     def to_bytes(self) -> bytes:
-        return dump_json(
-            {
-                "egosurg": "control",
-                "version": CONTROL_WIRE_VERSION,
-                "verb": self.verb,
-                "args": self.args,
-                "request_id": self.request_id,
-            },
-            "control request",
-        )
+        return _encode(self, "control", _REQUEST_FIELDS, "control request")
 
     @classmethod
     def from_bytes(cls, data: WirePart) -> ControlRequest:
-        d = _load_envelope(data, "control", "control request")
-        return cls(
-            verb=json_field(d, "verb", str, "control request"),
-            args=json_field(d, "args", dict, "control request"),
-            request_id=json_field(d, "request_id", str, "control request"),
-        )
+        return cls(**_decode(data, "control", _REQUEST_FIELDS, "control request"))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -92,27 +78,38 @@ class ControlReply:
         _check_request_id(self.request_id, "control reply", allow_empty=not self.ok)
 
     def to_bytes(self) -> bytes:
-        return dump_json(
-            {
-                "egosurg": "reply",
-                "version": CONTROL_WIRE_VERSION,
-                "ok": self.ok,
-                "result": self.result,
-                "error": self.error,
-                "request_id": self.request_id,
-            },
-            "control reply",
-        )
+        return _encode(self, "reply", _REPLY_FIELDS, "control reply")
 
     @classmethod
     def from_bytes(cls, data: WirePart) -> ControlReply:
-        d = _load_envelope(data, "reply", "control reply")
-        return cls(
-            ok=json_field(d, "ok", bool, "control reply"),
-            result=json_field(d, "result", dict, "control reply"),
-            error=json_field(d, "error", str, "control reply", nullable=True),
-            request_id=json_field(d, "request_id", str, "control reply"),
-        )
+        return cls(**_decode(data, "reply", _REPLY_FIELDS, "control reply"))
+
+
+# Each message's JSON fields after the envelope, in wire order: (name, JSON type, nullable).
+_Fields = tuple[tuple[str, type, bool], ...]
+_REQUEST_FIELDS: _Fields = (("verb", str, False), ("args", dict, False), ("request_id", str, False))
+_REPLY_FIELDS: _Fields = (
+    ("ok", bool, False),
+    ("result", dict, False),
+    ("error", str, True),
+    ("request_id", str, False),
+)
+
+
+def _encode(message: ControlRequest | ControlReply, kind: str, fields: _Fields, what: str) -> bytes:
+    """The message ``kind`` ("control" or "reply"): the envelope's two fields, then its own."""
+    body = {name: getattr(message, name) for name, _, _ in fields}
+    return dump_json({"egosurg": kind, "version": CONTROL_WIRE_VERSION, **body}, what)
+
+
+def _decode(data: WirePart, kind: str, fields: _Fields, what: str) -> dict[str, Any]:
+    """The fields of a ``kind`` message, each checked against its JSON type (in wire order, so
+    the first bad one is the one named)."""
+    d = _load_envelope(data, kind, what)
+    return {
+        name: json_field(d, name, json_type, what, nullable=nullable)
+        for name, json_type, nullable in fields
+    }
 
 
 def _load_envelope(data: WirePart, kind: str, what: str) -> dict[str, Any]:

@@ -37,11 +37,20 @@ _FRAME_HEADER = struct.Struct("<4sHHQQQqqqQQHHBBBB32s")
 FRAME_HEADER_BYTES = _FRAME_HEADER.size  # 112
 
 
-class Encoding(enum.StrEnum):
-    """How each image of a frame message is encoded. The value is the name used in files."""
+class Encoding(str, enum.Enum):  # noqa: UP042 (StrEnum is 3.11; the edge runs 3.10)
+    """How each image of a frame message is encoded. The value is the name used in files.
+
+    A str whose ``str()`` and format are its value, as an ``enum.StrEnum``'s are; StrEnum itself
+    is Python 3.11, and the edge also runs on 3.10 (JetPack)."""
 
     JPEG = "jpeg"
     RAW_BGR8 = "raw_bgr8"  # height * width * 3 bytes, BGR, row-major
+
+    def __str__(self) -> str:
+        return str.__str__(self)
+
+    def __format__(self, format_spec: str) -> str:
+        return str.__format__(self, format_spec)
 
 
 _ENCODING_CODE = {Encoding.JPEG: 1, Encoding.RAW_BGR8: 2}

@@ -25,8 +25,10 @@ from protocol.wire.checks import (
     check_choice,
     check_int,
     check_node_id,
+    check_nullable,
     check_prefix,
     dump_json,
+    fields_json,
     json_field,
     load_json_object,
     require_object,
@@ -51,17 +53,10 @@ class PtpState:
         if self.master_offset_ns is not None:
             offset = check_int(self.master_offset_ns, "ptp master_offset_ns", I64_MIN, I64_MAX)
             object.__setattr__(self, "master_offset_ns", offset)
-        if self.gm_present is not None and not isinstance(self.gm_present, bool):
-            raise MalformedMessageError(
-                f"ptp gm_present={_brief(self.gm_present)} must be true, false or null"
-            )
+        check_nullable(self.gm_present, bool, "ptp gm_present", "true, false or null")
 
     def to_json(self) -> dict[str, Any]:
-        return {
-            "state": self.state,
-            "master_offset_ns": self.master_offset_ns,
-            "gm_present": self.gm_present,
-        }
+        return fields_json(self)
 
     @classmethod
     def from_json(cls, obj: object) -> PtpState:
@@ -117,24 +112,10 @@ class CameraStatus:
         if self.last_capture_unix_ns is not None:
             last = check_int(self.last_capture_unix_ns, f"{where} last_capture_unix_ns", 0, I64_MAX)
             object.__setattr__(self, "last_capture_unix_ns", last)
-        if self.error is not None and not isinstance(self.error, str):
-            raise MalformedMessageError(
-                f"{where} error={_brief(self.error)} must be a string or null"
-            )
+        check_nullable(self.error, str, f"{where} error", "a string or null")
 
     def to_json(self) -> dict[str, Any]:
-        return {
-            "camera_serial": self.camera_serial,
-            "state": self.state,
-            "fps_measured": self.fps_measured,
-            "frames_captured": self.frames_captured,
-            "frames_dropped": self.frames_dropped,
-            "frames_published": self.frames_published,
-            "queue_depth": self.queue_depth,
-            "reopen_count": self.reopen_count,
-            "last_capture_unix_ns": self.last_capture_unix_ns,
-            "error": self.error,
-        }
+        return fields_json(self)
 
     @classmethod
     def from_json(cls, obj: object, where: str = "agent status camera") -> CameraStatus:

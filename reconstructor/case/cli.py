@@ -21,7 +21,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from reconstructor.case.index import INDEX_NAME, CaseFolderError, CaseIndex
+from protocol.command import add_subcommand, command_parser
+from reconstructor.case.index import INDEX_NAME, CaseIndex
 from reconstructor.case.plan import (
     config_hash,
     parse_duration_s,
@@ -31,6 +32,7 @@ from reconstructor.case.plan import (
 from reconstructor.case.runner import CaseRequest, run_case
 from reconstructor.case.warm import WarmStartConfig, warm_config
 from reconstructor.config import ReconstructConfig
+from reconstructor.errors import CaseFolderError
 
 
 def reconstruct_case(
@@ -181,15 +183,11 @@ def _read(folder: Path) -> CaseIndex:
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(
-        prog="egosurg case",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = command_parser("egosurg case", __doc__)
     sub = parser.add_subparsers(dest="verb", required=True)
-    p_info = sub.add_parser("info", help="what is done, pending, failed; sizes; timings")
+    p_info = add_subcommand(sub, "info", "what is done, pending, failed; sizes; timings")
     p_info.add_argument("case", help="a case folder made by 'egosurg reconstruct --every'")
-    p_exp = sub.add_parser("export", help="timestamps as standard 3DGS PLY (or .splat) files")
+    p_exp = add_subcommand(sub, "export", "timestamps as standard 3DGS PLY (or .splat) files")
     p_exp.add_argument("case")
     p_exp.add_argument("--out", required=True, help="folder to write the files to")
     p_exp.add_argument("--at", action="append", help="a timestamp's name (repeatable; default all)")

@@ -20,23 +20,19 @@ names a partial file.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
 import xxhash
 
-from reconstructor.errors import ReconstructError
+from protocol.durable import atomic_write_bytes
+from reconstructor.errors import CaseFolderError
 
 CASE_FORMAT = "egosurg-case"
 CASE_FORMAT_VERSION = 1
 INDEX_NAME = "case.json"
 Status = Literal["pending", "done", "failed"]
-
-
-class CaseFolderError(ReconstructError, ValueError):
-    """A case folder that cannot be used: foreign, unwritable, another session or config."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -136,23 +132,3 @@ def verify(folder: Path, entry: Entry) -> bool:
     if not path.is_file():
         return False
     return checksum_file(path) == (entry.xxh3_64, entry.bytes)
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` so that a reader sees the old file or the whole new one, even
-    after a crash or SIGKILL: a temp file in the same folder, fsync, rename, fsync the folder."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
-    with tmp.open("wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    fsync_dir(path.parent)
-
-
-def fsync_dir(folder: Path) -> None:
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)

@@ -12,13 +12,9 @@ import numpy as np
 import xxhash
 
 from protocol.session import SessionReader
-from reconstructor.errors import ReconstructError
+from reconstructor.errors import CasePlanError
 
 _DURATION = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:e[-+]?[0-9]+)?)\s*(ms|s)?\s*$", re.IGNORECASE)
-
-
-class CasePlanError(ReconstructError, ValueError):
-    """A case range or interval the session cannot serve."""
 
 
 @dataclass(frozen=True)

@@ -23,17 +23,13 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
-from reconstructor.errors import ReconstructError
+from reconstructor.errors import RayUnavailableError
 
 if TYPE_CHECKING:
     from reconstructor.case.work import ChainJob, StepJob
 
 log = logging.getLogger(__name__)
 PROBE_TIMEOUT_S = 5.0
-
-
-class RayUnavailableError(ReconstructError, ConnectionError):
-    """Ray is not installed, or its cluster does not answer."""
 
 
 def _probe(address: str) -> None:

@@ -23,15 +23,11 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from reconstructor.case.index import (
-    INDEX_NAME,
-    CaseFolderError,
-    CaseIndex,
-    Entry,
-    atomic_write_bytes,
-)
+from protocol.durable import atomic_write_bytes
+from reconstructor.case.index import INDEX_NAME, CaseIndex, Entry
 from reconstructor.case.plan import PlannedTimestamp, chains
 from reconstructor.case.work import ChainJob, StepJob, StepResult, limit_threads, run_chain
+from reconstructor.errors import CaseFolderError
 
 log = logging.getLogger(__name__)
 

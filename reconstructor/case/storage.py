@@ -47,7 +47,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from reconstructor.case.index import CaseFolderError, Entry, atomic_write_bytes, checksum_file
+from protocol.durable import atomic_write_bytes
+from reconstructor.case.index import Entry, checksum_file
+from reconstructor.errors import CaseStorageError
 from reconstructor.splats import ply
 from reconstructor.splats.gaussians import Gaussians
 
@@ -59,10 +61,6 @@ SUFFIX = ".npz"
 POINTS_STEP_M = 2.0**-8  # 3.9 mm: the sterile tool's voxels are 5 cm
 _MAX_INFLATE_RATIO = 1032  # deflate's most: a stream of N bytes inflates to at most ~1032 N
 _CACHE_SIZE = 4  # decoded models kept: a chain is read forward, each from the one before
-
-
-class CaseStorageError(CaseFolderError):
-    """A stored model that is missing, damaged or of an unknown format."""
 
 
 @dataclass(frozen=True, kw_only=True)

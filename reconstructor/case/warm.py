@@ -162,19 +162,6 @@ def seed_from_previous(
     return WarmSeed(gaussians=merged, alive=alive, counts=counts)
 
 
-def warm_seed(
-    previous: Gaussians,
-    ts: Timestamp,
-    fused: FusedCloud,
-    depths: dict[str, DepthMap],
-    cfg: WarmStartConfig,
-    init: GaussianInitConfig,
-) -> tuple[Gaussians, dict[str, int]]:
-    """The Gaussians t+1 starts from, and the counts (kept, dropped, faded, added)."""
-    seed = seed_from_previous(previous, ts, fused, depths, cfg, init)
-    return seed.gaussians, seed.counts
-
-
 def uncovered(
     points_m: np.ndarray, kept: Gaussians, cfg: WarmStartConfig, k: int = 4
 ) -> np.ndarray:

@@ -5,7 +5,7 @@ model atomically, and say what was made. Only the runner writes the index.
 A model is published as ``models/<name>.npz`` (``storage.py``: a cold timestamp as a quantised
 keyframe, a warm one as its changes since the timestamp before): written
 to ``.<name>.<ext>.<pid>.partial`` beside it, fsynced, then renamed, so a reader (and the
-index) sees the whole file or none (``index.atomic_write_bytes``). Its quaternions are
+index) sees the whole file or none (``protocol.durable.atomic_write_bytes``). Its quaternions are
 normalised on the way out: viewers
 assume unit length, and training leaves them between about 0.74 and 1.06. The run folder (log,
 summary, config) goes to ``runs/<name>/``.

@@ -24,19 +24,11 @@ from protocol.formats.rig_calibration import RigCalibration
 from protocol.formats.zed_conf import derive_intrinsics
 from protocol.images import EncodeError, decode_image
 from protocol.session import SessionInfo, SessionReader
-from reconstructor.errors import ReconstructError
+from reconstructor.errors import CalibrationMismatchError, ReconstructError, TimestampError
 
 log = logging.getLogger(__name__)
 
 SIDES = ("left", "right")
-
-
-class TimestampError(ReconstructError):
-    """A ``--at`` value that does not name a set of the session."""
-
-
-class CalibrationMismatchError(ReconstructError):
-    """A calibration that does not describe the session's cameras."""
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,7 @@ import zipfile
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Protocol, cast
 
 import numpy as np
 import xxhash
@@ -47,10 +47,30 @@ from reconstructor.depth.stereo import DepthMap, rectifier
 from reconstructor.errors import DepthCacheError
 
 if TYPE_CHECKING:
-    from reconstructor.config import ReconstructConfig
-    from reconstructor.depth.fusion import FusedCloud
+    from reconstructor.depth.fill import FillConfig
+    from reconstructor.depth.fusion import FusedCloud, FusionConfig
+    from reconstructor.depth.stereo_config import StereoConfig
 
 log = logging.getLogger(__name__)
+
+
+class DepthSettings(Protocol):
+    """What the depth stage reads of a reconstruction's settings (``ReconstructConfig`` is one,
+    resolved): the stage names only these, so it depends on no later stage's config."""
+
+    @property
+    def stereo(self) -> StereoConfig | None: ...
+    @property
+    def stereo_matcher(self) -> str: ...
+    @property
+    def stereo_weights(self) -> str: ...
+    @property
+    def fill(self) -> FillConfig: ...
+    @property
+    def fusion(self) -> FusionConfig: ...
+    @property
+    def room_bounds_m(self) -> tuple[float, ...]: ...
+
 
 FORMAT_VERSION = 1  # bump when what the stage computes, or the stored layout, changes
 
@@ -99,7 +119,7 @@ class DepthStage:
     made_by: dict[str, str] = dataclasses.field(default_factory=depth_libraries)
 
 
-def stage_key(ts: Timestamp, cfg: ReconstructConfig) -> str:
+def stage_key(ts: Timestamp, cfg: DepthSettings) -> str:
     """The digest of everything the depth stage of ``ts`` under ``cfg`` (resolved) reads."""
     h = xxhash.xxh3_128()
     settings = {
@@ -143,7 +163,7 @@ class DepthCache:
             if not os.access(self.folder, os.W_OK):
                 raise DepthCacheError(f"depth cache folder {self.folder} is not writable")
 
-    def get(self, ts: Timestamp, cfg: ReconstructConfig) -> DepthStage | None:
+    def get(self, ts: Timestamp, cfg: DepthSettings) -> DepthStage | None:
         key = stage_key(ts, cfg)
         stage = self._recent.get(key)
         if stage is None and self.folder is not None:
@@ -161,7 +181,7 @@ class DepthCache:
         self._remember(key, stage)
         return stage
 
-    def put(self, ts: Timestamp, cfg: ReconstructConfig, stage: DepthStage) -> None:
+    def put(self, ts: Timestamp, cfg: DepthSettings, stage: DepthStage) -> None:
         key = stage_key(ts, cfg)
         self.served.append(stage.made_by)
         self._remember(key, stage)
@@ -196,14 +216,16 @@ def _write(path: Path, stage: DepthStage) -> None:
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         with open(tmp, "wb") as f:
-            np.savez_compressed(f, **arrays)
+            # numpy's stubs (2.1 on) let a ** key fill savez's allow_pickle flag; no key here is
+            # that name, and numpy 1.26 (supported) has no flag to pass instead: the arrays as Any
+            np.savez_compressed(f, **cast(dict[str, Any], arrays))
         os.replace(tmp, path)
     except OSError as e:  # a full disk loses the cache entry, never the reconstruction
         log.warning("could not write depth cache entry %s: %s", path, e)
         tmp.unlink(missing_ok=True)
 
 
-def _read(path: Path, ts: Timestamp, cfg: ReconstructConfig) -> DepthStage:
+def _read(path: Path, ts: Timestamp, cfg: DepthSettings) -> DepthStage:
     from reconstructor.depth.fusion import FusedCloud
 
     assert cfg.stereo is not None, "resolve the config first"

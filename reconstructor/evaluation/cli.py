@@ -37,6 +37,7 @@ import shlex
 import time
 from pathlib import Path
 
+from protocol.command import CommandArgumentError, command_parser
 from protocol.formats.eval_set import EvalSet
 from reconstructor.case.warm import WarmStartConfig
 from reconstructor.evaluation.methods import (
@@ -44,7 +45,6 @@ from reconstructor.evaluation.methods import (
     PAPER_ORDER,
     PROTOCOLS,
     EvalSettings,
-    EvaluationArgumentError,
 )
 from reconstructor.raster.device import add_device_option, check_device
 
@@ -58,24 +58,13 @@ TITLES = {
 }
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse whose errors are one line through ``egosurg``'s error printer."""
-
-    def error(self, message: str):
-        raise EvaluationArgumentError(f"{message} (see 'egosurg evaluate --help')")
-
-
 def _names(values: list[str]) -> tuple[str, ...]:
     """``a b`` and ``a,b`` both name two items."""
     return tuple(dict.fromkeys(v for item in values for v in item.split(",") if v))
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(
-        prog="egosurg evaluate",
-        description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    p = command_parser("egosurg evaluate", __doc__)
     p.add_argument("eval_set", metavar="EVALSET", help="the evaluation set's folder (or manifest)")
     p.add_argument("--out", required=True, help="folder for the tables and pictures")
     p.add_argument(
@@ -168,7 +157,7 @@ def main(argv: list[str]) -> int:
         check_device(settings.device or None)  # no GPU: one line now, before any work
     out = Path(args.out)
     if out.exists() and not out.is_dir():
-        raise EvaluationArgumentError(f"--out {out} is a file; give a folder")
+        raise CommandArgumentError(f"--out {out} is a file; give a folder")
     if settings.config:
         from reconstructor.config import ReconstructConfig
 

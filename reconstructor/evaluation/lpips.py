@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from reconstructor.errors import ReconstructError
+from reconstructor.errors import LpipsNotInstalledError, LpipsWeightsError
 
 NO_WEIGHTS = "n/a (no --lpips-weights)"
 
@@ -52,14 +52,6 @@ _VGG_TAPS = (3, 8, 15, 22, 29)
 # the LPIPS input scaling (v0.1): inputs in [-1, 1] are shifted and scaled per channel
 _SHIFT = torch.tensor([-0.030, -0.088, -0.188]).view(1, 3, 1, 1)
 _SCALE = torch.tensor([0.458, 0.448, 0.450]).view(1, 3, 1, 1)
-
-
-class LpipsWeightsError(ReconstructError, FileNotFoundError):
-    """A backbone weights file that is missing or is not AlexNet/VGG16 in torchvision's layout."""
-
-
-class LpipsNotInstalledError(ReconstructError, ModuleNotFoundError):
-    """The ``lpips`` package (for its linear heads) is not installed."""
 
 
 def _features(net: str) -> nn.Sequential:

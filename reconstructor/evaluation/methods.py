@@ -34,20 +34,16 @@ import numpy as np
 import torch
 
 from protocol.camera import Pose
+from protocol.command import CommandArgumentError
 from reconstructor.case.warm import WarmStartConfig
-from reconstructor.config import ReconstructConfig, apply_overrides
+from reconstructor.config import ReconstructConfig
 from reconstructor.data.views import View
 from reconstructor.depth.stereo import DepthMap
-from reconstructor.errors import ReconstructError
 from reconstructor.evaluation.baselines import reproject_depth_maps
 from reconstructor.raster.config import RasterConfig
 from reconstructor.raster.device import for_device
 from reconstructor.splats.gaussians import Gaussians
 from reconstructor.splats.train import render
-
-
-class EvaluationArgumentError(ReconstructError, ValueError):
-    """An evaluation setting that cannot work; the message names the option and the value."""
 
 
 @dataclass(frozen=True)
@@ -124,8 +120,8 @@ class EvalSettings:
     device: str = ""  # "cuda": train and render on gsplat's CUDA backend; "" = as the config says
 
     def __post_init__(self) -> None:
-        def bad(option: str, value: object, why: str) -> EvaluationArgumentError:
-            return EvaluationArgumentError(f"{option} {value}: {why}")
+        def bad(option: str, value: object, why: str) -> CommandArgumentError:
+            return CommandArgumentError(f"{option} {value}: {why}")
 
         for p in self.protocols:
             if p not in PROTOCOLS:
@@ -214,8 +210,8 @@ def method_config(
         },
     }
     start = ReconstructConfig.read(settings.config) if settings.config else ReconstructConfig()
-    cfg = apply_overrides(start, base, "evaluation settings")
-    cfg = apply_overrides(cfg, overrides, f"method {key}")
+    cfg = start.overridden(base, "evaluation settings")
+    cfg = cfg.overridden(overrides, f"method {key}")
     if settings.device:
         cfg = dataclasses.replace(cfg, raster=for_device(cfg.raster, settings.device))
     return cfg

@@ -34,8 +34,9 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
+from protocol.command import CommandArgumentError
 from protocol.formats.eval_set import EvalScene, EvalSet, ReferenceView
-from reconstructor.evaluation.methods import EvalSettings, EvaluationArgumentError
+from reconstructor.evaluation.methods import EvalSettings
 
 log = logging.getLogger(__name__)
 
@@ -73,13 +74,13 @@ def select_scenes(settings: EvalSettings, eval_set: EvalSet) -> list[EvalScene]:
     phases = list(dict.fromkeys(s.phase for s in eval_set.scenes if s.phase))
     for name in settings.scenes:
         if name not in names:
-            raise EvaluationArgumentError(
+            raise CommandArgumentError(
                 f"--scenes {name}: the evaluation set has no such scene; it has {', '.join(names)}"
             )
     for phase in settings.phases:
         if phase not in phases:
             have = ", ".join(phases) or "none (no scene names its phase)"
-            raise EvaluationArgumentError(
+            raise CommandArgumentError(
                 f"--phases {phase}: no scene of the evaluation set shows it; its phases: {have}"
             )
     chosen = [
@@ -89,7 +90,7 @@ def select_scenes(settings: EvalSettings, eval_set: EvalSet) -> list[EvalScene]:
         and (not settings.phases or s.phase in settings.phases)
     ]
     if not chosen:
-        raise EvaluationArgumentError(
+        raise CommandArgumentError(
             f"--scenes {' '.join(settings.scenes)} --phases {' '.join(settings.phases)}: "
             "no scene is both; choose one of them"
         )
@@ -111,7 +112,7 @@ def plan(settings: EvalSettings, eval_set: EvalSet) -> list[Job]:
     def need(protocol: str, found: list[EvalScene], what: str) -> None:
         if protocol in settings.protocols and not found:
             chosen = ", ".join(s.name for s in scenes)
-            raise EvaluationArgumentError(
+            raise CommandArgumentError(
                 f"--protocol {protocol}: no chosen scene of the evaluation set ({chosen}) has "
                 f"{what}; choose another protocol or scene, or add them to the set "
                 "(docs/evaluation.md)"

@@ -29,14 +29,15 @@ import logging
 import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
 import xxhash
 
 from protocol import __version__
-from reconstructor.evaluation.methods import EvalSettings, EvaluationArgumentError
+from protocol.command import CommandArgumentError
+from reconstructor.evaluation.methods import EvalSettings
 from reconstructor.evaluation.plan import Job
 from reconstructor.evaluation.tables import ImageScore
 from reconstructor.splats.gaussians import Gaussians
@@ -116,7 +117,7 @@ class JobRecords:
         if not done:
             return 0
         if not resume:
-            raise EvaluationArgumentError(
+            raise CommandArgumentError(
                 f"--out {self.folder.parent} holds {len(done)} finished job(s) of an earlier "
                 "run: add --resume to continue it, or give another --out"
             )
@@ -127,13 +128,13 @@ class JobRecords:
             other_code += data.get("code", code_digest()) != code_digest()
             theirs = data.get("settings")
             if not isinstance(theirs, dict):
-                raise EvaluationArgumentError(
+                raise CommandArgumentError(
                     f"--resume: {path} names no settings; delete it to run that job again"
                 )
             differ = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
             if differ:
                 shown = ", ".join(f"{k} {theirs.get(k)!r} (now {mine.get(k)!r})" for k in differ)
-                raise EvaluationArgumentError(
+                raise CommandArgumentError(
                     f"--resume: {path} was made with other settings: {shown}; run with the "
                     "same options, or give another --out"
                 )
@@ -163,7 +164,7 @@ class JobRecords:
                 raise ValueError(f"format {data.get('format')!r}, expected {RECORD_FORMAT}")
             return data
         except (OSError, ValueError) as exc:
-            raise EvaluationArgumentError(
+            raise CommandArgumentError(
                 f"--resume: {path} cannot be read ({exc}); delete it to run that job again"
             ) from exc
 
@@ -192,7 +193,7 @@ class JobRecords:
                     model = Gaussians(**{n: torch.from_numpy(npz[n]) for n in npz.files})
                 record.warm = (seq, int(k), model)
         except (OSError, KeyError, ValueError, TypeError, AttributeError) as exc:
-            raise EvaluationArgumentError(
+            raise CommandArgumentError(
                 f"--resume: {path} or its arrays cannot be read ({exc!r}); delete {path} to run "
                 "that job again"
             ) from exc
@@ -245,5 +246,7 @@ def _made_by(value: Any) -> list[dict[str, str]] | None:
 def _atomic_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as fh:
-        np.savez(fh, **arrays)
+        # numpy's stubs (2.1 on) let a ** key fill savez's allow_pickle flag; no key here is
+        # that name, and numpy 1.26 (supported) has no flag to pass instead: the arrays as Any
+        np.savez(fh, **cast(dict[str, Any], arrays))
     os.replace(tmp, path)

@@ -24,7 +24,7 @@ import numpy as np
 from protocol.formats.eval_set import EvalScene, EvalSet, ReferenceView
 from protocol.formats.rig_calibration import RigCalibration
 from protocol.session import SessionReader
-from reconstructor.case.warm import WarmStartConfig, warm_config, warm_seed
+from reconstructor.case.warm import WarmStartConfig, seed_from_previous, warm_config
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import Timestamp, check_calibration, load_timestamp
 from reconstructor.data.views import EYE_NEAR_M, View, novel_view
@@ -338,7 +338,7 @@ class JobRunner:
             start = previous[1]
 
             def init(ts_, fused, depths):
-                return warm_seed(start, ts_, fused, depths, warm, cfg.init)[0]
+                return seed_from_previous(start, ts_, fused, depths, warm, cfg.init).gaussians
 
             recon = reconstruct(
                 ts,

@@ -1,5 +1,5 @@
-"""Rasterizer settings and outputs: :class:`RasterConfig` (validated on creation) and
-:class:`RenderOutput`.
+"""Rasterizer settings, inputs and outputs: :class:`RasterConfig` (validated on creation),
+:class:`RenderInputs` (what each backend is handed) and :class:`RenderOutput`.
 
 Units live in the names: ``_m`` metres (camera z), ``_px`` pixels, ``_px2`` squared pixels.
 """
@@ -28,7 +28,7 @@ class RasterConfig:
             3DGS's 16: on the CPU a Gaussian split over fewer tiles is gathered and visited
             fewer times, and a tile's state (32x32 pixels) still fits the L1/L2 caches; both
             compositing passes ran 1.2-1.3x faster than with 16 on a fresh and on a trained
-            SVGA model (BENCHMARKS.md, "Rasterizer"). Each pixel composites the same
+            SVGA model (docs/history/benchmarks.md). Each pixel composites the same
             fragments in the same order whatever the tile; only rounding differs where a
             fragment sits right at alpha_min (a trained model: up to 4e-3 in a few pixels).
         near_m, far_m: Gaussians whose camera z lies outside ``[near_m, far_m]`` are culled.
@@ -112,6 +112,31 @@ class RasterConfig:
     def device(self) -> str:
         """Where this backend computes: ``"cuda"`` for gsplat, else ``"cpu"``."""
         return "cuda" if self.backend == "gsplat" else "cpu"
+
+
+@dataclass(frozen=True, kw_only=True)
+class RenderInputs:
+    """One call's arguments of :func:`reconstructor.raster.rasterize`, as its backends receive
+    them (checked by ``function.validate_inputs``; see ``rasterize`` for each one's meaning).
+
+    Attributes:
+        means_m: (N, 3); quats_wxyz: (N, 4); log_scales: (N, 3); opacity_logits: (N,);
+            colors: (N, 3): the Gaussians, float32.
+        viewmat: (4, 4) world-to-camera; K: (3, 3) pinhole intrinsics; no gradient.
+        width_px, height_px: the image size.
+        background: (3,) RGB behind everything.
+    """
+
+    means_m: Tensor
+    quats_wxyz: Tensor
+    log_scales: Tensor
+    opacity_logits: Tensor
+    colors: Tensor
+    viewmat: Tensor
+    K: Tensor
+    width_px: int
+    height_px: int
+    background: Tensor
 
 
 @dataclass(frozen=True)

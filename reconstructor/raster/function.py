@@ -36,6 +36,7 @@ outputs are bit for bit those of the training forward.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from typing import Any
@@ -46,7 +47,7 @@ import torch
 from torch import Tensor
 
 from reconstructor.raster import kernels, projection
-from reconstructor.raster.config import RasterConfig, RenderOutput
+from reconstructor.raster.config import RasterConfig, RenderInputs, RenderOutput
 
 logger = logging.getLogger(__name__)
 
@@ -97,65 +98,51 @@ def rasterize(
             zero quaternions or a non-positive image size or focal length.
     """
     on_gpu = config.backend == "gsplat"
-    validate_inputs(
-        means_m, quats_wxyz, log_scales, opacity_logits, colors, viewmat, K,
-        width_px, height_px, background, any_device=on_gpu,
+    inputs = RenderInputs(
+        means_m=means_m, quats_wxyz=quats_wxyz, log_scales=log_scales,
+        opacity_logits=opacity_logits, colors=colors, viewmat=viewmat, K=K,
+        width_px=width_px, height_px=height_px, background=background,
     )  # fmt: skip
+    validate_inputs(inputs, any_device=on_gpu)
     if on_gpu:
         from reconstructor.raster.gsplat_backend import rasterize_gsplat
 
-        return rasterize_gsplat(
-            means_m, quats_wxyz, log_scales, opacity_logits, colors, viewmat, K,
-            width_px, height_px, background, config,
-        )  # fmt: skip
+        return rasterize_gsplat(inputs, config)
     viewmat = viewmat.detach().to(torch.float64)
     K = K.detach().to(torch.float64)
+    inputs = dataclasses.replace(inputs, viewmat=viewmat, K=K)
     if config.backend == "torch":
         from reconstructor.raster.reference import rasterize_reference
 
-        return rasterize_reference(
-            means_m, quats_wxyz, log_scales, opacity_logits, colors, viewmat, K,
-            width_px, height_px, background, config,
-        )  # fmt: skip
+        return rasterize_reference(inputs, config)
     params = (means_m, quats_wxyz, log_scales, opacity_logits, colors, background)
     if not (torch.is_grad_enabled() and any(t.requires_grad for t in params)):
-        return _render(*params, viewmat, K, width_px, height_px, config)
+        return _render(inputs, config)
     image, alpha, depth, radii = _RasterizeFn.apply(
         *params, viewmat, K, width_px, height_px, config
     )
     return RenderOutput(image=image, alpha=alpha, depth_m=depth, radii_px=radii)
 
 
-def validate_inputs(
-    means_m: Tensor,
-    quats_wxyz: Tensor,
-    log_scales: Tensor,
-    opacity_logits: Tensor,
-    colors: Tensor,
-    viewmat: Tensor,
-    K: Tensor,
-    width_px: int,
-    height_px: int,
-    background: Tensor,
-    *,
-    any_device: bool = False,
-) -> None:
+def validate_inputs(inputs: RenderInputs, *, any_device: bool = False) -> None:
     """Raise ValueError, naming the argument, unless the inputs are what ``rasterize`` takes.
 
     ``any_device`` (the gsplat backend): the Gaussians and the background may sit on any one
     device (viewmat and K anywhere); the value checks then cost one synchronisation."""
-    for name, value in (("width_px", width_px), ("height_px", height_px)):
+    for name in ("width_px", "height_px"):
+        value = getattr(inputs, name)
         if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
             raise ValueError(f"{name} must be a positive int, got {value!r}")
+    means_m, K = inputs.means_m, inputs.K
     n = means_m.shape[0] if isinstance(means_m, Tensor) and means_m.dim() == 2 else -1
     expected = {
         "means_m": ((n, 3), means_m),
-        "quats_wxyz": ((n, 4), quats_wxyz),
-        "log_scales": ((n, 3), log_scales),
-        "opacity_logits": ((n,), opacity_logits),
-        "colors": ((n, 3), colors),
-        "background": ((3,), background),
-        "viewmat": ((4, 4), viewmat),
+        "quats_wxyz": ((n, 4), inputs.quats_wxyz),
+        "log_scales": ((n, 3), inputs.log_scales),
+        "opacity_logits": ((n,), inputs.opacity_logits),
+        "colors": ((n, 3), inputs.colors),
+        "background": ((3,), inputs.background),
+        "viewmat": ((4, 4), inputs.viewmat),
         "K": ((3, 3), K),
     }
     for name, (shape, t) in expected.items():
@@ -180,7 +167,7 @@ def validate_inputs(
         for name, (_, t) in expected.items():
             if not _all_finite(t.detach().cpu().numpy()):
                 raise ValueError(f"{name} has non-finite values")
-        if n > 0 and _min_sq_norm(_np32(quats_wxyz.cpu())) < 1e-24:
+        if n > 0 and _min_sq_norm(_np32(inputs.quats_wxyz.cpu())) < 1e-24:
             raise ValueError("quats_wxyz has a zero quaternion; it cannot be normalised")
     if float(K[0, 0]) <= 0 or float(K[1, 1]) <= 0:
         raise ValueError(f"K must have positive focal lengths, got fx={K[0, 0]}, fy={K[1, 1]}")
@@ -277,24 +264,14 @@ def _project_and_bin(
     return projected, binned, ntx
 
 
-def _render(
-    means: Tensor,
-    quats: Tensor,
-    log_scales: Tensor,
-    logits: Tensor,
-    colors: Tensor,
-    background: Tensor,
-    viewmat: Tensor,
-    K: Tensor,
-    width: int,
-    height: int,
-    config: RasterConfig,
-) -> RenderOutput:
+def _render(inputs: RenderInputs, config: RasterConfig) -> RenderOutput:
     """``rasterize`` when no gradient can follow: the training forward's image, alpha and depth
     bits, from ``kernels.raster_render``, which skips what only the backward pass needs."""
+    width, height, background = inputs.width_px, inputs.height_px, inputs.background
     projected, (pairs, offsets, _, _), ntx = _project_and_bin(
-        means, quats, log_scales, logits, colors, viewmat, K, width, height, config, False
-    )
+        inputs.means_m, inputs.quats_wxyz, inputs.log_scales, inputs.opacity_logits,
+        inputs.colors, inputs.viewmat, inputs.K, width, height, config, False,
+    )  # fmt: skip
     t0 = time.perf_counter()
     with numba.parallel_chunksize(_TILE_CHUNK):
         image, t_final, depth = kernels.raster_render(

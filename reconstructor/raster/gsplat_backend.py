@@ -47,20 +47,15 @@ import logging
 from typing import Any
 
 import torch
-from torch import Tensor
 
-from reconstructor.errors import ReconstructError
-from reconstructor.raster.config import RasterConfig, RenderOutput
+from reconstructor.errors import GpuUnavailableError
+from reconstructor.raster.config import RasterConfig, RenderInputs, RenderOutput
 
 log = logging.getLogger(__name__)
 
 INSTALL_HINT = "pip install 'egosurg[gpu]' (gsplat; it compiles its CUDA code on first use)"
 GSPLAT_TILE_PX = 16
 _DEPTH_ALPHA_MIN = 1e-3  # as the numba kernels: no depth where almost nothing was drawn
-
-
-class GpuUnavailableError(ReconstructError, RuntimeError):
-    """The CUDA backend was asked for where it cannot run (no GPU, no CUDA torch, no gsplat)."""
 
 
 @functools.cache
@@ -107,32 +102,21 @@ def require_gpu() -> None:
     gsplat_module()
 
 
-def rasterize_gsplat(
-    means_m: Tensor,
-    quats_wxyz: Tensor,
-    log_scales: Tensor,
-    opacity_logits: Tensor,
-    colors: Tensor,
-    viewmat: Tensor,
-    K: Tensor,
-    width_px: int,
-    height_px: int,
-    background: Tensor,
-    config: RasterConfig,
-) -> RenderOutput:
+def rasterize_gsplat(inputs: RenderInputs, config: RasterConfig) -> RenderOutput:
     """``rasterize`` through gsplat (inputs already validated by ``function.validate_inputs``).
 
     Outputs are on the device of ``means_m``: the GPU's, or copied back to the CPU."""
     gsplat = gsplat_module()
-    home = means_m.device
+    home = inputs.means_m.device
     dev = home if home.type == "cuda" else torch.device("cuda")
+    names = ("means_m", "quats_wxyz", "log_scales", "opacity_logits", "colors", "background")
     means, quats, log_scales, logits, colors, background = (
-        t.to(dev) for t in (means_m, quats_wxyz, log_scales, opacity_logits, colors, background)
+        getattr(inputs, name).to(dev) for name in names
     )
-    k = K.detach().to(dev, torch.float32).clone()
+    k = inputs.K.detach().to(dev, torch.float32).clone()
     k[0, 2] += 0.5  # gsplat samples pixel (u, v) at (u + 0.5, v + 0.5)
     k[1, 2] += 0.5
-    vm = viewmat.detach().to(dev, torch.float32)
+    vm = inputs.viewmat.detach().to(dev, torch.float32)
     rendered, alphas, meta = gsplat.rasterization(
         means=means,
         quats=quats,
@@ -141,8 +125,8 @@ def rasterize_gsplat(
         colors=colors,
         viewmats=vm[None],
         Ks=k[None],
-        width=width_px,
-        height=height_px,
+        width=inputs.width_px,
+        height=inputs.height_px,
         near_plane=config.near_m,
         far_plane=config.far_m,
         eps2d=config.eps2d_px2,

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-from reconstructor.raster.config import RasterConfig, RenderOutput
+from reconstructor.raster.config import RasterConfig, RenderInputs, RenderOutput
 
 logger = logging.getLogger(__name__)
 
@@ -133,24 +133,16 @@ def _render_tile(
     return weight @ colors[:k], t_final, weight.detach() @ depth[:k]
 
 
-def rasterize_reference(
-    means_m: Tensor,
-    quats_wxyz: Tensor,
-    log_scales: Tensor,
-    opacity_logits: Tensor,
-    colors: Tensor,
-    viewmat: Tensor,
-    K: Tensor,
-    width_px: int,
-    height_px: int,
-    background: Tensor,
-    config: RasterConfig,
-) -> RenderOutput:
-    """Same contract as ``rasterize`` (inputs already validated); backward by autograd."""
+def rasterize_reference(inputs: RenderInputs, config: RasterConfig) -> RenderOutput:
+    """Same contract as ``rasterize`` (inputs already validated, viewmat and K in float64);
+    backward by autograd."""
+    colors, background = inputs.colors, inputs.background
+    width_px, height_px = inputs.width_px, inputs.height_px
     mean2d, conic, depth, radii, rect = project_reference(
-        means_m, quats_wxyz, log_scales, viewmat, K, width_px, height_px, config
-    )
-    opacity = torch.sigmoid(opacity_logits)
+        inputs.means_m, inputs.quats_wxyz, inputs.log_scales, inputs.viewmat, inputs.K,
+        width_px, height_px, config,
+    )  # fmt: skip
+    opacity = torch.sigmoid(inputs.opacity_logits)
     tile = config.tile_px
     ntx, nty = math.ceil(width_px / tile), math.ceil(height_px / tile)
     with torch.no_grad():

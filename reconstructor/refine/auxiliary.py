@@ -42,8 +42,8 @@ from protocol.camera import Camera, Pose
 from reconstructor.data.views import View
 from reconstructor.errors import ReconstructConfigError
 from reconstructor.raster import RasterConfig
-from reconstructor.refine.base import Refined, Refiner, RefineRequest
-from reconstructor.refine.checked import checked_refined
+from reconstructor.refine.base import Refined, Refiner
+from reconstructor.refine.checked import checked_refined, refine_request, unrecorded_view
 from reconstructor.refine.eye_views import EyeViewConfig
 from reconstructor.refine.guided import GuidedConfig
 from reconstructor.splats.gaussians import Gaussians
@@ -178,6 +178,14 @@ def median_depth_m(depth_m: np.ndarray, alpha: np.ndarray) -> float | None:
     return float(np.median(depth_m[sure]))
 
 
+@dataclass
+class _Seconds:
+    """Where the time of making auxiliary views went (``make_auxiliary_views``' timings_s)."""
+
+    render: float = 0.0
+    refine: float = 0.0
+
+
 def make_auxiliary_views(
     gaussians: Gaussians,
     train_views: Sequence[View],
@@ -198,23 +206,12 @@ def make_auxiliary_views(
     out: list[View] = []
     sheet: list[tuple[np.ndarray, np.ndarray, Refined]] = []
     sheet_every = max(1, len(train_views) // SHEET_ROWS)
-    render_s = refine_s = 0.0
+    seconds = _Seconds()
     t_start = time.perf_counter()
     for i, view in enumerate(train_views):
         t0 = time.perf_counter()
-        with torch.no_grad():
-            ref = render(gaussians, view, raster)
-        ref_depth = ref.depth_m.numpy()
-        look = config.look_at_depth_m or median_depth_m(ref_depth, ref.alpha.numpy())
-        if look is None:
-            log.warning(
-                "%s: the model renders almost nothing here; auxiliary cameras look %.1f m ahead",
-                view.name,
-                FALLBACK_LOOK_AT_M,
-            )
-            look = FALLBACK_LOOK_AT_M
-        look = max(look, 2 * config.radius_m)
-        render_s += time.perf_counter() - t0
+        ref_depth, look = _reference_depth(gaussians, view, config, raster)
+        seconds.render += time.perf_counter() - t0
         poses = sample_auxiliary_poses(
             view.camera,
             config.num_views,
@@ -224,39 +221,12 @@ def make_auxiliary_views(
             look_at_depth_m=look,
             bounds_m=bounds_m,
         )
-        reference = view.image.numpy()
-        reference_mask = view.mask.numpy() > 0.5
-        reference_camera = view.camera
+        reference = view.image.numpy()  # for the contact sheet
         for k, pose in enumerate(poses):
-            t0 = time.perf_counter()
-            name = f"aux:{view.name}:{k}"
-            aux = dataclasses.replace(
-                view,
-                name=name,
-                image=torch.zeros(0, 0, 3),
-                mask=torch.zeros(0, 0),
-                viewmat=torch.from_numpy(pose.matrix.astype(np.float32)),
+            aux, rendered, refined = _auxiliary_view(
+                gaussians, view, k, pose, raster, refiner, ref_depth_m=ref_depth, seconds=seconds
             )
-            with torch.no_grad():
-                r = render(gaussians, aux, raster)
-            rendered = r.image.clamp(0, 1).numpy()
-            t1 = time.perf_counter()
-            render_s += t1 - t0
-            refined = refiner.refine(
-                RefineRequest(
-                    rendered=rendered,
-                    rendered_alpha=r.alpha.numpy(),
-                    rendered_depth_m=r.depth_m.numpy(),
-                    camera=aux.camera,
-                    reference=reference,
-                    reference_mask=reference_mask,
-                    reference_depth_m=ref_depth,
-                    reference_camera=reference_camera,
-                )
-            )
-            refine_s += time.perf_counter() - t1
-            image, mask = checked_refined(refined, view, refiner)
-            out.append(dataclasses.replace(aux, image=image, mask=mask))
+            out.append(aux)
             if k == 0 and i % sheet_every == 0 and len(sheet) < SHEET_ROWS:
                 sheet.append((reference, rendered, refined))
         log.info(
@@ -274,16 +244,62 @@ def make_auxiliary_views(
         len(out),
         size,
         total,
-        render_s,
+        seconds.render,
         refiner.describe(),
-        refine_s,
+        seconds.refine,
     )
     if timings_s is not None:
-        timings_s["render"] = render_s
-        timings_s["refine"] = refine_s
+        timings_s["render"] = seconds.render
+        timings_s["refine"] = seconds.refine
     if sheet_path is not None and sheet:
         write_contact_sheet(sheet_path, sheet)
     return out
+
+
+def _reference_depth(
+    gaussians: Gaussians, view: View, config: AuxiliaryConfig, raster: RasterConfig
+) -> tuple[np.ndarray, float]:
+    """The model's depth (H, W) from the input camera, and the auxiliary cameras' look-at depth
+    in metres (module docstring, step 1)."""
+    with torch.no_grad():
+        ref = render(gaussians, view, raster)
+    ref_depth = ref.depth_m.numpy()
+    look = config.look_at_depth_m or median_depth_m(ref_depth, ref.alpha.numpy())
+    if look is None:
+        log.warning(
+            "%s: the model renders almost nothing here; auxiliary cameras look %.1f m ahead",
+            view.name,
+            FALLBACK_LOOK_AT_M,
+        )
+        look = FALLBACK_LOOK_AT_M
+    return ref_depth, max(look, 2 * config.radius_m)
+
+
+def _auxiliary_view(
+    gaussians: Gaussians,
+    view: View,
+    k: int,
+    pose: Pose,
+    raster: RasterConfig,
+    refiner: Refiner,
+    *,
+    ref_depth_m: np.ndarray,
+    seconds: _Seconds,
+) -> tuple[View, np.ndarray, Refined]:
+    """Auxiliary view ``k`` of input ``view``, at ``pose`` (module docstring, step 4), with the
+    render (H, W, 3) and the refiner's answer it came from. ``ref_depth_m``: the model's depth
+    (H, W) seen from ``view``."""
+    t0 = time.perf_counter()
+    aux = unrecorded_view(view, f"aux:{view.name}:{k}", pose)
+    with torch.no_grad():
+        r = render(gaussians, aux, raster)
+    rendered = r.image.clamp(0, 1).numpy()
+    t1 = time.perf_counter()
+    seconds.render += t1 - t0
+    refined = refiner.refine(refine_request(r, rendered, aux, view, ref_depth_m))
+    seconds.refine += time.perf_counter() - t1
+    image, mask = checked_refined(refined, view, refiner)
+    return dataclasses.replace(aux, image=image, mask=mask), rendered, refined
 
 
 def write_contact_sheet(path: Path, rows: Sequence[tuple[np.ndarray, np.ndarray, Refined]]) -> None:

@@ -1,4 +1,4 @@
-"""A refiner's output, checked and turned into training tensors.
+"""A refiner's request, and its output checked and turned into training tensors.
 
 Shared by the shell of auxiliary views around each camera (auxiliary.py) and the views at
 eye height (eye_views.py), so both hold a plug-in refiner to the same contract.
@@ -6,16 +6,49 @@ eye height (eye_views.py), so both hold a plug-in refiner to the same contract.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import torch
 
+from protocol.camera import Pose
 from reconstructor.data.views import View
-from reconstructor.errors import ReconstructError
-from reconstructor.refine.base import Refined, Refiner
+from reconstructor.errors import RefinerOutputError
+from reconstructor.raster import RenderOutput
+from reconstructor.refine.base import Refined, Refiner, RefineRequest
 
 
-class RefinerOutputError(ReconstructError, ValueError):
-    """A refiner returned an image or mask of the wrong shape."""
+def unrecorded_view(base: View, name: str, pose: Pose) -> View:
+    """``base``'s camera moved to ``pose`` (world-to-camera), with no image or mask yet: the
+    refiner's output becomes them."""
+    return dataclasses.replace(
+        base,
+        name=name,
+        image=torch.zeros(0, 0, 3),
+        mask=torch.zeros(0, 0),
+        viewmat=torch.from_numpy(pose.matrix.astype(np.float32)),
+    )
+
+
+def refine_request(
+    render: RenderOutput,
+    rendered: np.ndarray,
+    view: View,
+    reference: View,
+    reference_depth_m: np.ndarray,
+) -> RefineRequest:
+    """The refiner's input: ``render`` of ``view`` (its image clamped to [0, 1] as ``rendered``)
+    against the recorded ``reference`` view and the model's depth seen from it."""
+    return RefineRequest(
+        rendered=rendered,
+        rendered_alpha=render.alpha.numpy(),
+        rendered_depth_m=render.depth_m.numpy(),
+        camera=view.camera,
+        reference=reference.image.numpy(),
+        reference_mask=reference.mask.numpy() > 0.5,
+        reference_depth_m=reference_depth_m,
+        reference_camera=reference.camera,
+    )
 
 
 def checked_refined(

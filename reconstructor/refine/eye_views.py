@@ -35,8 +35,8 @@ from protocol.camera import Pose
 from reconstructor.data.views import View
 from reconstructor.errors import ReconstructConfigError
 from reconstructor.raster import RasterConfig
-from reconstructor.refine.base import Refiner, RefineRequest
-from reconstructor.refine.checked import checked_refined
+from reconstructor.refine.base import Refiner
+from reconstructor.refine.checked import checked_refined, refine_request, unrecorded_view
 from reconstructor.splats.gaussians import Gaussians
 from reconstructor.splats.train import render
 
@@ -217,32 +217,15 @@ def make_eye_views(
     base = train_views[0]
     out: list[View] = []
     for k, eye in enumerate(poses):
-        aux = dataclasses.replace(
-            base,
-            name=f"eye:{k}",
-            image=torch.zeros(0, 0, 3),
-            mask=torch.zeros(0, 0),
-            viewmat=torch.from_numpy(eye.pose.matrix.astype(np.float32)),
-        )
+        aux = unrecorded_view(base, f"eye:{k}", eye.pose)
         with torch.no_grad():
             r = render(gaussians, aux, raster)
         rendered = r.image.clamp(0, 1).numpy()
         image = torch.from_numpy(rendered.astype(np.float32))
         mask = torch.zeros(aux.height_px, aux.width_px)
         for j in reference_order(eye, train_views)[: cfg.references]:
-            ref = train_views[j]
-            refined = refiner.refine(
-                RefineRequest(
-                    rendered=rendered,
-                    rendered_alpha=r.alpha.numpy(),
-                    rendered_depth_m=r.depth_m.numpy(),
-                    camera=aux.camera,
-                    reference=ref.image.numpy(),
-                    reference_mask=ref.mask.numpy() > 0.5,
-                    reference_depth_m=reference_depths_m[j],
-                    reference_camera=ref.camera,
-                )
-            )
+            request = refine_request(r, rendered, aux, train_views[j], reference_depths_m[j])
+            refined = refiner.refine(request)
             img, m = checked_refined(refined, aux, refiner)
             new = (m > 0.5) & (mask < 0.5)
             image[new] = img[new]

@@ -12,31 +12,26 @@ Examples::
 
 from __future__ import annotations
 
-import argparse
 import logging
 import math
 from pathlib import Path
 
+from protocol.command import CommandArgumentError, command_parser
 from protocol.errors import UserError
 from protocol.formats.trajectory import Trajectory, read_trajectories
 from reconstructor.data.views import EYE_NEAR_M
-from reconstructor.errors import ReconstructError
 from reconstructor.raster.device import add_device_option, check_device
 
 log = logging.getLogger(__name__)
-
-
-class ReplayArgumentError(ReconstructError, ValueError):
-    pass
 
 
 def parse_size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise ReplayArgumentError(f"--size {text!r}: write it as WxH, e.g. 960x600") from None
+        raise CommandArgumentError(f"--size {text!r}: write it as WxH, e.g. 960x600") from None
     if not (16 <= w <= 8192 and 16 <= h <= 8192) or w % 2 or h % 2:
-        raise ReplayArgumentError(f"--size {text!r}: even sides of 16 to 8192 px, e.g. 960x600")
+        raise CommandArgumentError(f"--size {text!r}: even sides of 16 to 8192 px, e.g. 960x600")
     return w, h
 
 
@@ -45,24 +40,24 @@ def pick_trajectory(trajectory: str | None, role: str | None, roles: str | None)
     ``--role NAME --roles FILE``."""
     source = trajectory or roles
     if source is None:
-        raise ReplayArgumentError(
+        raise CommandArgumentError(
             "say whose view: --trajectory FILE, or --role NAME with --roles roles.toml "
             "(egosurg sim roles writes one)"
         )
     if trajectory and roles:
-        raise ReplayArgumentError("give --trajectory or --roles, not both")
+        raise CommandArgumentError("give --trajectory or --roles, not both")
     found = read_trajectories(source)
     if role is None:
         if len(found) == 1:
             return found[0]
-        raise ReplayArgumentError(
+        raise CommandArgumentError(
             f"{source} holds {len(found)} trajectories; pick one with --role: "
             + ", ".join(t.name for t in found)
         )
     for t in found:
         if t.name == role:
             return t
-    raise ReplayArgumentError(
+    raise CommandArgumentError(
         f"no role {role!r} in {source}; it has: {', '.join(t.name for t in found)}"
     )
 
@@ -87,10 +82,7 @@ def main_replay(argv: list[str]) -> int:
     from reconstructor.replay.path import CameraPath
     from reconstructor.replay.run import ReplayConfig, replay
 
-    p = argparse.ArgumentParser(
-        prog="egosurg replay", description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )  # fmt: skip
+    p = command_parser("egosurg replay", __doc__)
     p.add_argument("case", help="a case folder (egosurg reconstruct --every ... --out CASE/)")
     p.add_argument("--trajectory", help="a trajectory TOML (docs/replay.md)")
     p.add_argument("--role", help="a role's name in --roles (or in --trajectory)")
@@ -114,7 +106,7 @@ def main_replay(argv: list[str]) -> int:
     traj = pick_trajectory(args.trajectory, args.role, args.roles)
     near = args.near_m if args.near_m is not None else (EYE_NEAR_M if args.roles else 0.0)
     if not (math.isfinite(near) and 0 <= near < 10):
-        raise ReplayArgumentError(f"--near-m {near}: give 0 to 10 metres")
+        raise CommandArgumentError(f"--near-m {near}: give 0 to 10 metres")
     try:
         config = ReplayConfig(
             fps=args.fps, size_px=parse_size(args.size), t_from_s=args.t_from,
@@ -124,10 +116,10 @@ def main_replay(argv: list[str]) -> int:
     except ValueError as exc:
         if isinstance(exc, UserError):
             raise
-        raise ReplayArgumentError(str(exc)) from None
+        raise CommandArgumentError(str(exc)) from None
     out = Path(args.out)
     if out.suffix.lower() != ".mp4":
-        raise ReplayArgumentError(f"--out {out}: give a .mp4 path")
+        raise CommandArgumentError(f"--out {out}: give a .mp4 path")
     stats = replay(folder, CameraPath(traj), out, config, progress=_progress("frame"))
     print(
         f"{out}: {stats.frames} frames, {stats.t_from_s:.3f}-{stats.t_to_s:.3f} s of case time, "
@@ -147,10 +139,7 @@ def main_sightline(argv: list[str]) -> int:
     from reconstructor.replay.sightline import parse_offset
     from reconstructor.replay.sightline_run import VISIBLE_ENOUGH, sightline
 
-    p = argparse.ArgumentParser(
-        prog="egosurg sightline", description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )  # fmt: skip
+    p = command_parser("egosurg sightline", __doc__)
     p.add_argument("case", help="a case folder")
     p.add_argument("--viewer", required=True, help="a role in --roles (or a --trajectory)")
     p.add_argument("--roles", help="a roles TOML (egosurg sim roles writes the sim's)")
@@ -165,7 +154,7 @@ def main_sightline(argv: list[str]) -> int:
     traj = pick_trajectory(args.trajectory, args.viewer, args.roles)
     boxes = read_site(args.site)
     if args.target not in boxes:
-        raise ReplayArgumentError(
+        raise CommandArgumentError(
             f"no target {args.target!r} in {args.site}; it has: {', '.join(boxes)}"
         )
     offset = parse_offset(args.offset) if args.offset else None
@@ -191,10 +180,7 @@ def main_sterile(argv: list[str]) -> int:
     from reconstructor.replay.sterile import SterileConfig
     from reconstructor.replay.sterile_run import read_roles, sterile
 
-    p = argparse.ArgumentParser(
-        prog="egosurg sterile", description=__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )  # fmt: skip
+    p = command_parser("egosurg sterile", __doc__)
     p.add_argument("case", help="a case folder")
     p.add_argument("--field", required=True, help="a site file with the field box(es)")
     p.add_argument("--box", help="one box of --field (default: every box in it)")
@@ -215,7 +201,7 @@ def main_sterile(argv: list[str]) -> int:
     boxes = read_site(args.field)
     if args.box is not None:
         if args.box not in boxes:
-            raise ReplayArgumentError(
+            raise CommandArgumentError(
                 f"no box {args.box!r} in {args.field}; it has: {', '.join(boxes)}"
             )
         boxes = {args.box: boxes[args.box]}
@@ -227,7 +213,7 @@ def main_sterile(argv: list[str]) -> int:
             sterile_roles=sterile_roles,
         )  # fmt: skip
     except ValueError as exc:
-        raise ReplayArgumentError(str(exc)) from None
+        raise CommandArgumentError(str(exc)) from None
     paths = read_roles(args.roles, sterile_roles)
     out = Path(args.out)
     result = sterile(
@@ -251,11 +237,11 @@ def main_view(argv: list[str]) -> int:
     """``egosurg view CASE/ [--roles roles.toml] [--site site.toml] [--field field.toml]``."""
     from reconstructor.replay.view import CaseViewer, ViewConfig
 
-    p = argparse.ArgumentParser(
-        prog="egosurg view", formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Browse a case in a web browser (docs/replay.md, Viewer). Example:\n\n"
+    p = command_parser(
+        "egosurg view",
+        "Browse a case in a web browser (docs/replay.md, Viewer). Example:\n\n"
         "    egosurg view case/ --roles roles.toml --site site.toml --field field.toml",
-    )  # fmt: skip
+    )
     p.add_argument("case", help="a case folder")
     p.add_argument("--roles", help="a roles TOML: role cameras to look through")
     p.add_argument("--site", action="append", default=[], help="target boxes (repeatable)")

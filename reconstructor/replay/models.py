@@ -18,14 +18,10 @@ import numpy as np
 
 from reconstructor.case.index import INDEX_NAME, CaseIndex, Entry
 from reconstructor.case.storage import load_model
-from reconstructor.errors import ReconstructError
+from reconstructor.errors import CaseReplayError
 from reconstructor.splats.gaussians import Gaussians
 
 log = logging.getLogger(__name__)
-
-
-class CaseReplayError(ReconstructError, ValueError):
-    """A case that cannot be replayed over the asked span; the message says what to do."""
 
 
 class CaseModels:

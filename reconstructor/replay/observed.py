@@ -43,15 +43,11 @@ import torch
 
 from protocol.camera import Camera
 from protocol.formats.rig_calibration import RigCalibration
-from reconstructor.errors import ReconstructError
+from reconstructor.errors import ObservedError
 from reconstructor.raster import RasterConfig, rasterize
 from reconstructor.splats.gaussians import Gaussians
 
 log = logging.getLogger(__name__)
-
-
-class ObservedError(ReconstructError, ValueError):
-    """A model whose input cameras cannot be found; the message says what to do."""
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -21,10 +21,10 @@ import numpy as np
 
 from protocol.camera import Camera
 from reconstructor.case.index import Entry
+from reconstructor.errors import ObservedError
 from reconstructor.raster import RasterConfig
 from reconstructor.replay.observed import (
     ObservedConfig,
-    ObservedError,
     ObservedRender,
     observation_counts,
     observed_map,

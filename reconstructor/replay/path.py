@@ -13,12 +13,8 @@ from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, Slerp
 
 from protocol.camera import Camera, Intrinsics, Pose
-from protocol.errors import UserError
 from protocol.formats.trajectory import Trajectory
-
-
-class TrajectoryTimeError(UserError, ValueError):
-    """A time outside the trajectory's or the case's span."""
+from reconstructor.errors import TrajectoryTimeError
 
 
 class CameraPath:

@@ -21,9 +21,10 @@ from protocol.errors import UserError
 from protocol.formats.rig_calibration import RigCalibration
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.views import novel_view
+from reconstructor.errors import CaseReplayError
 from reconstructor.raster import RasterConfig
 from reconstructor.raster.device import for_device
-from reconstructor.replay.models import CaseModels, CaseReplayError, ModelSource
+from reconstructor.replay.models import CaseModels, ModelSource
 from reconstructor.replay.observed_case import ReplayObserved
 from reconstructor.replay.path import CameraPath
 from reconstructor.replay.video import Mp4Writer, burn_text, paste_pip, timecode

@@ -39,7 +39,7 @@ import torch
 
 from protocol.camera import Camera, Intrinsics, Pose
 from protocol.formats.site import SiteBox, surface_points
-from reconstructor.errors import ReconstructError
+from reconstructor.errors import SightlineError
 from reconstructor.raster import RasterConfig
 from reconstructor.splats.gaussians import Gaussians
 
@@ -50,10 +50,6 @@ _DIRECTIONS = {
 }  # fmt: skip
 DEPTH_SIZE_PX = 192  # the aimed depth camera: enough for a grid of 12 x 12 points per face
 HEAD_CLEARANCE_M = 0.3  # past the back of the viewer's head (sim: up to 0.25 m behind the eye)
-
-
-class SightlineError(ReconstructError, ValueError):
-    pass
 
 
 @dataclass(frozen=True)

@@ -11,9 +11,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from protocol.camera import Camera
 from protocol.formats.site import SiteBox
 from reconstructor.data.views import EYE_NEAR_M
-from reconstructor.replay.models import CaseModels, CaseReplayError, ModelSource
+from reconstructor.errors import CaseReplayError
+from reconstructor.replay.models import CaseModels, ModelSource
 from reconstructor.replay.observed_case import CaseObserved
 from reconstructor.replay.path import CameraPath
 from reconstructor.replay.run import case_raster, render_view
@@ -58,12 +60,7 @@ def sightline(
     with ModelSource(models, entries) as source:
         for k, e in enumerate(entries):
             g = source.get(e)
-            pose = path.pose(e.t_s)
-            positions = [("actual", np.zeros(3))]
-            if offset is not None:
-                positions.append((offset.text, offset.world_shift_m(pose)))
-            for label, shift in positions:
-                cam = path.camera(e.t_s, size_px, shift)
+            for label, cam in _positions(path, e.t_s, size_px, offset):
                 frac, det = visible_fraction(g, cam.pose.centre_m, box, raster)
                 eye = tuple(float(v) for v in cam.pose.centre_m)
                 share = observed.target_share(e, g, det, raster)
@@ -75,6 +72,17 @@ def sightline(
         _plot(out / "timeline.png", rows, box, path.name)
         _worst_renders(out, rows, path, box, source, models, raster, size_px, offset, worst)
     return rows
+
+
+def _positions(
+    path: CameraPath, t_s: float, size_px: tuple[int, int], offset: Offset | None
+) -> list[tuple[str, Camera]]:
+    """(label, camera) of the viewer at ``t_s``: its own position ("actual") and, given an
+    offset, the counterfactual one."""
+    shifts = [("actual", np.zeros(3))]
+    if offset is not None:
+        shifts.append((offset.text, offset.world_shift_m(path.pose(t_s))))
+    return [(label, path.camera(t_s, size_px, shift)) for label, shift in shifts]
 
 
 def _write_csv(path: Path, rows: list[SightRow], box: SiteBox) -> None:
@@ -125,12 +133,7 @@ def _worst_renders(out, rows, path, box, source, models, raster, size_px, offset
         e = models.entry_at(r.t_s)
         g = source.get(e)
         panels = []
-        pose = path.pose(r.t_s)
-        shifts = [("actual", np.zeros(3))]
-        if offset is not None:
-            shifts.append((offset.text, offset.world_shift_m(pose)))
-        for label, shift in shifts:
-            cam = path.camera(r.t_s, size_px, shift)
+        for label, cam in _positions(path, r.t_s, size_px, offset):
             rgb, _, _ = render_view(g, cam, raster)
             outline_box(rgb, cam, box)
             frac = next(x.visible_fraction for x in rows if x.t_s == r.t_s and x.position == label)

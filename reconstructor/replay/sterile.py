@@ -57,11 +57,7 @@ from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
 from protocol.formats.site import SiteBox
-from reconstructor.errors import ReconstructError
-
-
-class SterileError(ReconstructError, ValueError):
-    pass
+from reconstructor.errors import SterileError
 
 
 @dataclass(frozen=True, kw_only=True)

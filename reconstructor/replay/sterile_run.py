@@ -29,17 +29,17 @@ from protocol.formats.rig_calibration import RigCalibration
 from protocol.formats.site import SiteBox
 from reconstructor.case.storage import load_points
 from reconstructor.data.views import EYE_NEAR_M
+from reconstructor.errors import SightlineError, SterileError
 from reconstructor.replay.models import CaseModels, ModelSource
 from reconstructor.replay.path import CameraPath
 from reconstructor.replay.run import case_raster, render_view
-from reconstructor.replay.sightline import SightlineError, visible_fraction
+from reconstructor.replay.sightline import visible_fraction
 from reconstructor.replay.sightline_run import outline_box
 from reconstructor.replay.sterile import (
     Event,
     Instant,
     Region,
     SterileConfig,
-    SterileError,
     background,
     group_events,
     moving_blobs,
@@ -87,14 +87,15 @@ def sterile(
     regions = [Region(b, config) for b in boxes]
     frames: list[list[np.ndarray]] = [[] for _ in boxes]
     stored = [load_points(folder, e) for e in entries]
-    evidence = "points" if all(p is not None for p in stored) else "gaussians"
-    if evidence == "gaussians" and any(p is not None for p in stored):
+    points = [p for p in stored if p is not None]  # entries[k]'s when every entry has them
+    evidence = "points" if len(points) == len(stored) else "gaussians"
+    if evidence == "gaussians" and points:
         log.warning("%s: some timestamps were stored without their points; judging every "
                     "timestamp on its Gaussians' centres", folder)  # fmt: skip
     with ModelSource(models, entries if evidence == "gaussians" else []) as source:
         for k, e in enumerate(entries):
             if evidence == "points":
-                pts = stored[k]
+                pts = points[k]
             else:
                 g = source.get(e)
                 keep = g.opacities().detach().numpy() >= config.min_opacity

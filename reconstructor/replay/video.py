@@ -10,11 +10,7 @@ import av
 import cv2
 import numpy as np
 
-from reconstructor.errors import ReconstructError
-
-
-class VideoOutputError(ReconstructError, OSError):
-    pass
+from reconstructor.errors import VideoOutputError
 
 
 class Mp4Writer:

@@ -30,7 +30,7 @@ from protocol.errors import UserError
 from protocol.formats.site import SiteBox, read_site
 from protocol.formats.trajectory import Keyframe, Trajectory, read_trajectories
 from reconstructor.case.index import Entry
-from reconstructor.errors import ReconstructError
+from reconstructor.errors import ViewerError
 from reconstructor.replay.models import CaseModels
 from reconstructor.replay.path import CameraPath
 from reconstructor.replay.view_scene import (
@@ -51,10 +51,6 @@ log = logging.getLogger(__name__)
 ROLE_COLOUR = (40, 110, 220)
 TARGET_COLOUR = (250, 170, 20)
 FIELD_COLOUR = (220, 30, 30)
-
-
-class ViewerError(ReconstructError, ValueError):
-    """The viewer cannot start: the message says what to do."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -149,7 +145,11 @@ class CaseViewer:
         self.box_nodes: dict[str, Any] = {}  # site box -> its wireframe
         self._player = threading.Thread(target=self._play_loop, name="view-play", daemon=True)
 
-        class LocalServer(viser.ViserServer):
+        # viser is imported on first use (an optional extra), so its server class is a value
+        # here; typed Any, mypy accepts it as the base class.
+        viser_server: Any = viser.ViserServer
+
+        class LocalServer(viser_server):
             def request_share_url(self, verbose: bool = True) -> str | None:
                 log.warning("refused a request to share the case through a public relay")
                 return None

@@ -18,17 +18,9 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.detect import (
-    DetectorConfig,
-    SphereBlob,
-    SphereDetector,
-    cone_axis_from_conic,
-    conic_of_sphere,
-    eccentricity_bias_px,
-    fit_sphere_outline,
-    project_directions,
-)
-from calibration.label import (
+from calibration.detect.config import DetectorConfig, SphereBlob
+from calibration.detect.detector import SphereDetector
+from calibration.detect.label import (
     AMBIGUOUS,
     FEWER_THAN_3,
     NOT_COLLINEAR,
@@ -41,6 +33,13 @@ from calibration.label import (
     label_stereo,
     label_wand,
     refit_without_rod,
+)
+from calibration.detect.sphere_geometry import (
+    cone_axis_from_conic,
+    conic_of_sphere,
+    eccentricity_bias_px,
+    fit_sphere_outline,
+    project_directions,
 )
 from protocol.camera import Camera, Intrinsics, Pose
 from protocol.formats.wand import WandSpec
@@ -233,7 +232,7 @@ def test_cone_axis_recovers_the_centre_exactly_where_the_ellipse_centre_is_biase
         bias = float(np.linalg.norm(fit.ellipse_centre_px - truth_px[0]))
         expected = eccentricity_bias_px(intr.fx_px, theta, 0.02)
         print(f"ellipse-centre bias at 50 deg, 1 m: {bias:.3f} px (pinhole formula {expected:.3f})")
-        if intr is pinhole:  # the REFERENCES formula holds exactly for a pinhole
+        if intr is pinhole:  # eccentricity_bias_px holds exactly for a pinhole
             assert bias == pytest.approx(expected, rel=1e-6)
         else:  # barrel distortion shrinks it a little, but it stays large
             assert 0.7 * expected < bias < expected

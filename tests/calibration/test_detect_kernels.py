@@ -1,11 +1,11 @@
 """The wand detector's numba kernels against their slow, obvious numpy twins.
 
-Each fast kernel in ``calibration.detect_kernels`` has a reference (the numpy code it replaced,
-in ``calibration.detect``, or numpy/cv2 itself) that ``DetectorConfig(kernels="numpy")`` runs;
-here each pair is fed the same synthetic inputs (anti-aliased discs of the spheres' colour over a
-textured room, a lens with distortion, outliers like the wand's rod) and must agree within the
-stated tolerances. The detector on simulator frames, both ways, is compared in
-tests/test_calibration_detect.py.
+Each fast kernel in ``calibration.detect.kernels`` has a reference (the numpy code it replaced,
+in ``calibration.detect._reference``, or numpy/cv2 itself) that ``DetectorConfig(kernels="numpy")``
+runs; here each pair is fed the same synthetic inputs (anti-aliased discs of the spheres' colour
+over a textured room, a lens with distortion, outliers like the wand's rod) and must agree within
+the stated tolerances. The detector on simulator frames, both ways, is compared in
+tests/calibration/test_detect.py.
 """
 
 from __future__ import annotations
@@ -16,9 +16,11 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration import detect as D
-from calibration import detect_kernels as K
-from calibration.detect import DetectorConfig, SphereDetector, project_directions
+from calibration.detect import _reference as reference
+from calibration.detect import kernels as K
+from calibration.detect.config import DetectorConfig, colour_mask
+from calibration.detect.detector import SphereDetector
+from calibration.detect.sphere_geometry import project_directions
 from protocol.camera import Intrinsics
 
 SPHERE_BGR = (20, 105, 235)  # about the simulator's orange, lit
@@ -73,7 +75,7 @@ def test_bilinear_kernel_matches_numpy():
     pts = np.column_stack([rng.uniform(-2, 33, 500), rng.uniform(-2, 25, 500)])
     pts[:5] = np.array([[0, 0], [30, 22], [29.9999, 21.9999], [15, 11], [-0.0, 22]])  # corners
     fast, inside_fast = K._bilinear_nb(img, pts)
-    slow, inside_slow = D._bilinear(img, pts)
+    slow, inside_slow = reference.bilinear(img, pts)
     assert (inside_fast == inside_slow).all()
     # the reference interpolates in float32
     assert np.abs(fast - slow).max() < 2e-6
@@ -124,7 +126,7 @@ def test_edge_points_kernel_matches_reference(bright, with_background):
         bg_roi = bg if with_background else None
         for density in (1.0, 2.0):
             fast, n_fast = det._edge_points(roi, bg_roi, c, A, density)
-            slow, n_slow = det._edge_points_reference(roi, bg_roi, c, A, density)
+            slow, n_slow = reference.edge_points(roi, bg_roi, c, A, density, det.config)
             assert n_fast == n_slow
             assert fast.shape == slow.shape, f"seed {seed}: {len(fast)} vs {len(slow)} edges"
             if len(fast):
@@ -162,7 +164,7 @@ def test_robust_cone_kernel_matches_reference():
                 0.8 * (edges[:k] - centre) / np.linalg.norm(edges[:k] - centre, axis=1)[:, None]
             )
         fast = det._robust_fit(edges)
-        slow = det._robust_fit_reference(edges)
+        slow = reference.robust_fit(edges, det.intrinsics, det.config)
         assert fast is not None and slow is not None
         assert (fast.keep == slow.keep).all()
         assert np.abs(fast.axis - slow.axis).max() < 1e-12
@@ -170,7 +172,10 @@ def test_robust_cone_kernel_matches_reference():
         assert np.abs(fast.residuals_px - slow.residuals_px).max() < 1e-8
         assert np.abs(fast.rays - slow.rays).max() < 1e-15
     # too few points, or all outliers: both give up
-    assert det._robust_fit(edges[:5]) is None and det._robust_fit_reference(edges[:5]) is None
+    assert (
+        det._robust_fit(edges[:5]) is None
+        and reference.robust_fit(edges[:5], det.intrinsics, det.config) is None
+    )
 
 
 def test_ellipse_through_kernel_matches_numpy():
@@ -188,14 +193,14 @@ def test_ellipse_through_kernel_matches_numpy():
         pts = c + (np.column_stack([r1 * np.cos(ang), r2 * np.sin(ang)]) @ R.T)
         pts += rng.normal(0, 0.05, pts.shape)
         fast = det._ellipse_through(pts)
-        slow = D._ellipse_through(pts)
+        slow = reference.ellipse_through(pts)
         assert (fast is None) == (slow is None)
         if fast is None or slow is None:
             continue
         assert np.abs(fast[0] - slow[0]).max() < 1e-9  # centre, px
         assert np.abs(fast[1] - slow[1]).max() < 1e-9 * np.abs(slow[1]).max()
     line = np.column_stack([np.arange(8.0), 2 * np.arange(8.0)])
-    assert det._ellipse_through(line) is None and D._ellipse_through(line) is None
+    assert det._ellipse_through(line) is None and reference.ellipse_through(line) is None
     assert det._ellipse_through(line[:4]) is None
 
 
@@ -207,11 +212,11 @@ def test_colour_table_is_exactly_cv2s_colour_test():
     rng = np.random.default_rng(5)
     colours = rng.integers(0, 256, (200_000, 1, 3), dtype=np.uint8)
     colours[:4096, 0] = np.array(SPHERE_BGR) + rng.integers(-40, 40, (4096, 3))  # near orange
-    table = K._colour_table(det._hsv_bounds())
+    table = K.colour_table(det.config.hsv_bounds())
     idx = (colours[:, 0, 0].astype(np.int64) << 16) | (colours[:, 0, 1].astype(np.int64) << 8)
     idx |= colours[:, 0, 2]
     looked_up = (table[idx >> 3] >> (idx & 7)) & 1
-    assert (looked_up == det._colour_mask(colours)[:, 0]).all()
+    assert (looked_up == colour_mask(colours, det.config)[:, 0]).all()
     assert looked_up.sum() > 1000
 
 
@@ -229,13 +234,14 @@ def test_candidate_mask_kernel_matches_cv2():
     det.set_background(bg)
     frame = np.clip(frame + rng.normal(0, 3, frame.shape), 0, 255).astype(np.uint8)
     fast = det._candidate_mask(frame)
-    slow = det._candidate_mask_reference(frame)
+    slow = reference.candidate_mask(det._downsample(frame), det._background, det.config)
     assert fast.dtype == slow.dtype == np.uint8
     assert (fast == slow).all() and fast.sum() > 100
     assert len(det.candidates(frame)) >= 5
     # without a background the cv2 path runs as it is
     det.clear_background()
-    assert (det._candidate_mask(frame) == det._candidate_mask_reference(frame)).all()
+    slow = reference.candidate_mask(det._downsample(frame), None, det.config)
+    assert (det._candidate_mask(frame) == slow).all()
 
 
 # ---- the detector, both ways -------------------------------------------------------------------

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calibration.drift import align_to
+from calibration.solve.drift import align_to
 from protocol.camera import Pose
 from protocol.formats.rig_calibration import RigCalibration
 from sim import World

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.exports import (
+from calibration.report.exports import (
     export_colmap,
     export_nerfstudio,
     export_opencv_yaml,
@@ -114,7 +114,7 @@ def test_opencv_yaml_missing_file_is_a_clear_error(tmp_path):
 # -- COLMAP -------------------------------------------------------------------------------------
 def test_colmap_opencv_round_trip_is_exact_without_k3(rig, points, tmp_path, caplog):
     cal = without_k3(rig)
-    with caplog.at_level(logging.WARNING, logger="calibration.exports"):
+    with caplog.at_level(logging.WARNING, logger="calibration.report.exports"):
         export_colmap(cal, tmp_path)
     assert not caplog.records
     back = read_colmap(tmp_path)
@@ -137,7 +137,7 @@ def test_colmap_opencv_reports_k3_and_refits_k1_k2(rig, points, tmp_path, caplog
     this rig: for points in the room, median 0.36 px, p95 1.3 px, max 2.3 px; over a grid
     covering the whole image, p95 1.1-2.2 px and 6-15 px in the extreme corners. The bounds below
     are those numbers with some slack; the warning must name every sensor."""
-    with caplog.at_level(logging.WARNING, logger="calibration.exports"):
+    with caplog.at_level(logging.WARNING, logger="calibration.report.exports"):
         export_colmap(rig, tmp_path)
     message = " ".join(r.getMessage() for r in caplog.records)
     assert "no k3" in message and "FULL_OPENCV" in message

@@ -7,8 +7,9 @@ import itertools
 import numpy as np
 import pytest
 
-from calibration.background import temporal_median, temporal_median_reference
-from calibration.extract import ExtractConfig, ExtractionError, choose_sets, split_runs
+from calibration.detect.background import temporal_median, temporal_median_reference
+from calibration.detect.extract import ExtractConfig, choose_sets, split_runs
+from calibration.errors import ExtractionError
 
 
 @pytest.mark.parametrize("n_frames", [3, 4, 9, 15])

@@ -9,16 +9,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from calibration.report import (
-    PICTURES,
-    ReportData,
-    Thresholds,
-    annotate,
-    quality_table,
-    sensor_stats,
-    verdict,
-)
-from calibration.report_page import write_report
+from calibration.report.page import PICTURES, write_report
+from calibration.report.stats import ReportData, sensor_stats
+from calibration.report.thresholds import Thresholds
+from calibration.report.verdict import annotate, quality_table, verdict
 from protocol.formats.rig_calibration import RigCalibration
 
 SPEC_MM = 450.0

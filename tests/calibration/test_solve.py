@@ -16,9 +16,11 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration import bundle, linear
+from calibration.errors import SolveError
 from calibration.observations import WandObservations
-from calibration.solve import SolveConfig, SolveError, solve, thin_sets
+from calibration.solve import bundle, linear
+from calibration.solve.config import SolveConfig
+from calibration.solve.solver import solve, thin_sets
 from protocol.camera import Intrinsics, Resolution
 from protocol.errors import ConfigError
 from protocol.formats.rig_calibration import RigCalibration

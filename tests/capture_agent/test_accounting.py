@@ -8,11 +8,12 @@ import pytest
 from capture_agent.recorder.accounting import (
     MEDIAN_MIN_SAMPLES,
     NO_FRAME_INDEX,
-    GapKind,
-    GapRecord,
     StreamAccounting,
+    gap_record,
 )
+from protocol.session import GapKind, GapRecord
 from sim.timing import ClockSpec, FrameClock, FrameTruth
+from tests.helpers import frame_message
 
 FPS = 30.0
 P_NS = round(1e9 / FPS)
@@ -171,9 +172,9 @@ def test_a_lost_message_of_the_other_camera_is_charged_to_that_camera():
     acc = StreamAccounting()
     records = _feed(acc, [m for m in msgs if m != lost])
     seq_gap = [r for r in records if r.kind == GapKind.SEQ_GAP]
-    assert seq_gap == [GapRecord(1, GapKind.SEQ_GAP, NO_FRAME_INDEX, 1, msgs[20][0], msgs[22][0])]
+    assert seq_gap == [gap_record(1, GapKind.SEQ_GAP, NO_FRAME_INDEX, 1, msgs[20][0], msgs[22][0])]
     index_gap = [r for r in records if r.kind == GapKind.FRAME_INDEX_GAP]
-    assert index_gap == [GapRecord(2, GapKind.FRAME_INDEX_GAP, 10, 1, msgs[19][0], msgs[23][0])]
+    assert index_gap == [gap_record(2, GapKind.FRAME_INDEX_GAP, 10, 1, msgs[19][0], msgs[23][0])]
     t = acc.totals()
     assert (t[1].frames_missing, t[1].transport_lost, t[1].frames_dropped_camera) == (0, 0, 0)
     assert (t[2].frames_missing, t[2].transport_lost, t[2].frames_dropped_camera) == (1, 1, 0)
@@ -274,7 +275,6 @@ def test_stop_summary_session_info_and_summary_count_missing_members_alike(tmp_p
     from capture_agent.recorder.recording import Recording
     from capture_agent.recorder.sync import SyncConfig, Synchroniser
     from protocol.session import CameraInfo, SessionReader, SessionWriter
-    from protocol.wire import FrameMessage
 
     serials, jpeg = (11, 12), b"\xff\xd8" + bytes(64) + b"\xff\xd9"
     t0 = 1_700_000_000_000_000_000
@@ -308,13 +308,8 @@ def test_stop_summary_session_info_and_summary_count_missing_members_alike(tmp_p
             if serial == 12 and k in (20, 40):
                 continue
             cap = t0 + k * P_NS + offset_ns
-            msg = FrameMessage(
-                node_id="n0", camera_serial=serial, frame_index=k, seq=seq, capture_unix_ns=cap,
-                host_receive_unix_ns=cap, ptp_offset_ns=0, ptp_locked=True, encoding="jpeg",
-                width=8, height=4, left=jpeg, right=jpeg,
-            )  # fmt: skip
+            rec.write_frame(frame_message("n0", serial, k, seq, cap, jpeg), cap)
             seq += 1
-            rec.write_frame(msg, cap)
     stop = rec.finish("stopped by request", {})
     with SessionReader(tmp_path / "take.h5") as reader:
         info = {c["serial"]: c["missing_in_sets"] for c in summarise(reader)["cameras"]}

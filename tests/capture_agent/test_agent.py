@@ -20,42 +20,21 @@ from protocol.wire import (
     decode_published,
 )
 from protocol.wire.agent_info import AgentStatusReply
-from sim.deploy import free_ports
+from tests.helpers import loopback_sim_node
 
 FPS = 10.0
 
 
 def _node(faults_cam1: list[dict]) -> NodeConfig:
-    fport, cport = free_ports(2)
-    epoch = (time.time_ns() // 10**9 - 1) * 10**9
-    cams = []
-    for i, faults in ((0, []), (1, faults_cam1)):
-        cams.append(
-            {
-                "source": "sim",
-                "seed": 2,
-                "camera_index": i,
-                "fps": FPS,
-                "epoch_unix_ns": epoch,
-                "content_fps": 0.5,
-                "prerender_s": 2.0,
-                "pre_encode": "jpeg",
-                "drop_probability": 0.0,
-                "faults": faults,
-            }
-        )
-    table = {
-        "node_id": "orin-t",
-        "frames_bind": f"tcp://127.0.0.1:{fport}",
-        "control_bind": f"tcp://127.0.0.1:{cport}",
-        "watchdog_timeout_s": 0.8,
-        "reopen_interval_s": 0.3,
-        "status_interval_s": 0.25,
-        "ptp": {"source": "none", "require_lock": False},
-        "cameras": cams,
-        "security": {"insecure": True},  # the links are tests/capture_agent/test_security.py's
-    }
-    return NodeConfig.from_table(table, "test node.toml")
+    return loopback_sim_node(
+        "orin-t",
+        fps=FPS,
+        seed=2,
+        cameras=({"faults": []}, {"faults": faults_cam1}),
+        watchdog_timeout_s=0.8,
+        reopen_interval_s=0.3,
+        status_interval_s=0.25,
+    )
 
 
 def _collect(cfg: NodeConfig, seconds: float) -> tuple[list[FrameMessage], list[AgentStatus]]:

@@ -7,18 +7,15 @@ shrinks to a small message or a single damaged offset."""
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import pytest
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
-from capture_agent.config import NodeConfig
-from sim.deploy import free_ports
 from tests import fuzzing
 from tests.fuzzing import DataChooser
-from tests.helpers import loopback_rig_config
+from tests.helpers import loopback_rig_config, loopback_sim_node
 
 # No example database (the test pass writes nothing into the checkout), and the same examples
 # every run: a bounded sample must not pass or fail by chance; bench_fuzz.py explores seeds.
@@ -96,29 +93,9 @@ def agent_control():
     """A real agent with one simulated camera, plaintext links."""
     from capture_agent.agent.agent import Agent
 
-    fport, cport = free_ports(2)
-    table = {
-        "node_id": "orin-f",
-        "frames_bind": f"tcp://127.0.0.1:{fport}",
-        "control_bind": f"tcp://127.0.0.1:{cport}",
-        "ptp": {"source": "none", "require_lock": False},
-        "cameras": [
-            {
-                "source": "sim",
-                "seed": 2,
-                "camera_index": 0,
-                "fps": 5.0,
-                "epoch_unix_ns": (time.time_ns() // 10**9 - 1) * 10**9,
-                "content_fps": 0.5,
-                "prerender_s": 2.0,
-                "pre_encode": "jpeg",
-            }
-        ],
-        "security": {"insecure": True},
-    }
-    agent = Agent(NodeConfig.from_table(table, "fuzz node.toml"))
+    agent = Agent(loopback_sim_node("orin-f", fps=5.0, seed=2, where="fuzz node.toml"))
     agent.start()
-    probe = fuzzing.ControlProbe(f"tcp://127.0.0.1:{cport}")
+    probe = fuzzing.ControlProbe(agent.config.control_bind)
     try:
         yield agent, probe
     finally:
@@ -132,8 +109,8 @@ def test_the_recorder_answers_every_control_request_once_and_keeps_serving(recor
     recorder, probe = recorder_control
     reply = probe.send(fuzzing.control_case(DataChooser(data)))
     assert reply.ok or reply.error
-    assert recorder.recording is None  # no fuzzed start got a take going without cameras
-    assert recorder._thread is not None and recorder._thread.is_alive()
+    assert recorder.take.recording is None  # no fuzzed start got a take going without cameras
+    assert recorder.alive()
 
 
 @SOCKET

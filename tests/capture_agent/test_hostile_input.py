@@ -31,14 +31,19 @@ import pytest
 import zmq
 
 from capture_agent.agent.agent import Agent
-from capture_agent.config import AgentEndpoint, NodeConfig, RigConfig, SecurityConfig
+from capture_agent.config import AgentEndpoint, NodeConfig, RigConfig
 from capture_agent.daemon import Progress, run_until_signal
 from capture_agent.operator.control import format_status, format_summary
-from capture_agent.recorder.recorder import MAX_UNLISTED_CAMERAS, Recorder, StartRefused
+from capture_agent.recorder.intake import MAX_UNLISTED_CAMERAS
+from capture_agent.recorder.recorder import Recorder
+from capture_agent.recorder.start import StartRefused, start_args
 from capture_agent.recorder.sync import SyncConfig, Synchroniser, group_offline
+from capture_agent.security_config import RigSecurityConfig
 from protocol.session import SessionReader
-from protocol.wire import MAX_JSON_BYTES, ControlReply, ControlRequest, FrameMessage
+from protocol.toml_config import dumps
+from protocol.wire import MAX_JSON_BYTES, ControlReply, ControlRequest
 from sim.deploy import free_ports
+from tests.helpers import frame_message, loopback_rig_config, loopback_sim_node
 
 FPS = 10.0
 PUPPET_SERIAL = 77
@@ -49,21 +54,7 @@ _ESC = "\x1b"
 
 
 def _frame(serial: int, index: int, seq: int, capture_ns: int, node: str = "puppet") -> list:
-    return FrameMessage(
-        node_id=node,
-        camera_serial=serial,
-        frame_index=index,
-        seq=seq,
-        capture_unix_ns=capture_ns,
-        host_receive_unix_ns=capture_ns,
-        ptp_offset_ns=0,
-        ptp_locked=True,
-        encoding="jpeg",
-        width=8,
-        height=4,
-        left=JPEG,
-        right=JPEG,
-    ).to_parts()
+    return frame_message(node, serial, index, seq, capture_ns, JPEG).to_parts()
 
 
 def _wait_until(predicate, timeout_s: float, what: str):
@@ -166,32 +157,14 @@ class Puppet:
 
 
 def _node() -> NodeConfig:
-    fport, cport = free_ports(2)
-    epoch = (time.time_ns() // 10**9 - 1) * 10**9
-    cams = [
-        {
-            "source": "sim",
-            "seed": 4,
-            "camera_index": i,
-            "fps": FPS,
-            "epoch_unix_ns": epoch,
-            "content_fps": 0.5,
-            "prerender_s": 2.0,
-            "pre_encode": "jpeg",
-            "drop_probability": 0.0,
-        }
-        for i in range(2)
-    ]
-    table = {
-        "node_id": "node-a",
-        "frames_bind": f"tcp://127.0.0.1:{fport}",
-        "control_bind": f"tcp://127.0.0.1:{cport}",
-        "status_interval_s": 0.25,
-        "ptp": {"source": "none", "require_lock": False},
-        "cameras": cams,
-        "security": {"insecure": True},
-    }
-    return NodeConfig.from_table(table, "hostile node.toml")
+    return loopback_sim_node(
+        "node-a",
+        fps=FPS,
+        seed=4,
+        cameras=({}, {}),
+        where="hostile node.toml",
+        status_interval_s=0.25,
+    )
 
 
 class Rig:
@@ -258,7 +231,7 @@ def rig(tmp_path_factory):
         require_ptp_lock=False,
         disk_reserve_gb=0.0,
         planned_duration_min=1.0,
-        security=SecurityConfig(insecure=True),
+        security=RigSecurityConfig(insecure=True),
     )
     recorder = Recorder(config)
     agent.start()
@@ -402,9 +375,10 @@ def test_a_nan_or_infinite_planned_duration_is_refused(rig):
         _raw(rig.control, [_raw_start('{"case": "c", "planned_duration_min": 1e999}')]), "inf"
     )
     assert "JSON" in reply.error
+    default_min = rig.recorder.config.planned_duration_min
     for planned in (math.nan, math.inf, -math.inf):
         with pytest.raises(StartRefused, match="planned_duration_min"):
-            rig.recorder._start_args({"case": "c", "planned_duration_min": planned})
+            start_args({"case": "c", "planned_duration_min": planned}, default_min)
     rig.still_recording()
 
 
@@ -425,7 +399,7 @@ def test_a_rogue_publisher_cannot_grow_the_camera_table(rig):
     assert raw is not None and len(raw) < 64 * 1024
     st = ControlReply.from_bytes(raw).result
     assert sorted(c["serial"] for c in st["cameras"]) == sorted((*rig.serials, PUPPET_SERIAL))
-    assert len(rig.recorder.cameras) == 3
+    assert len(rig.recorder.table.cameras) == 3
     rig.still_recording()
 
 
@@ -512,51 +486,34 @@ def test_the_synchroniser_jumps_over_empty_time():
 def test_the_recorder_keeps_no_message_per_camera(tmp_path):
     """Each camera's last message pinned its images (up to 128 MiB a serial); a frame's
     buffers are now free once it is handled."""
-    recorder = Recorder(_hand_config(tmp_path, cameras=(11,)))
+    recorder = Recorder(
+        loopback_rig_config(tmp_path / "sessions", cameras=(11,), fps=FPS, rig_name="hand")
+    )
     agent = recorder.config.agents[0]
     for k in range(3):
         left = np.frombuffer(JPEG, np.uint8).copy()
         right = np.frombuffer(JPEG, np.uint8).copy()
         header = _frame(11, k, k, time.time_ns(), node="n0")[0]
-        recorder._on_published([header, left, right], agent)
+        recorder.on_published([header, left, right], agent)
         alive = weakref.ref(left)
         del left, right
         gc.collect()
         assert alive() is None, "the recorder holds the frame's image buffer"
-    assert recorder.cameras[11].frames_rx == 3
+    assert recorder.table.cameras[11].frames_rx == 3
 
 
 def test_the_camera_table_is_capped_when_rig_toml_lists_no_cameras(tmp_path):
-    recorder = Recorder(_hand_config(tmp_path, cameras=()))
+    recorder = Recorder(
+        loopback_rig_config(tmp_path / "sessions", cameras=(), fps=FPS, rig_name="hand")
+    )
     agent = recorder.config.agents[0]
     for serial in range(1, 101):
-        recorder._on_published(_frame(serial, 0, serial, time.time_ns(), node="n0"), agent)
-    assert len(recorder.cameras) == MAX_UNLISTED_CAMERAS
+        recorder.on_published(_frame(serial, 0, serial, time.time_ns(), node="n0"), agent)
+    assert len(recorder.table.cameras) == MAX_UNLISTED_CAMERAS
     st = recorder.status()
     assert st["frames_refused_unknown_camera"] == 100 - MAX_UNLISTED_CAMERAS
     assert len(st["cameras"]) == MAX_UNLISTED_CAMERAS
     assert len(json.dumps(st)) < 64 * 1024
-
-
-def _hand_config(tmp_path: Path, cameras: tuple[int, ...]) -> RigConfig:
-    control, frames, agent_control = free_ports(3)
-    return RigConfig(
-        rig_name="hand",
-        fps=FPS,
-        control_bind=f"tcp://127.0.0.1:{control}",
-        output_dir=str(tmp_path / "sessions"),
-        agents=(
-            AgentEndpoint(
-                node_id="n0",
-                frames=f"tcp://127.0.0.1:{frames}",
-                control=f"tcp://127.0.0.1:{agent_control}",
-                cameras=cameras,
-            ),
-        ),
-        require_ptp_lock=False,
-        disk_reserve_gb=0.0,
-        security=SecurityConfig(insecure=True),
-    )
 
 
 # -- what the operator sees -----------------------------------------------------------------
@@ -664,24 +621,9 @@ def test_a_loop_that_stops_making_progress_stops_the_daemon_for_systemd(monkeypa
 def test_the_recorder_process_speaks_the_systemd_notify_protocol(tmp_path):
     """A real ``egosurg recorder``: READY=1 once it answers, WATCHDOG=1 while its loop makes
     progress, a STATUS line, and STOPPING=1 then exit 0 on SIGTERM."""
-    control, frames, agent_control = free_ports(3)
+    config = loopback_rig_config(tmp_path / "sessions", cameras=(), fps=10.0, rig_name="notify")
     rig_toml = tmp_path / "rig.toml"
-    rig_toml.write_text(
-        f"""rig_name = "notify"
-fps = 10
-control_bind = "tcp://127.0.0.1:{control}"
-output_dir = "{tmp_path / "sessions"}"
-require_ptp_lock = false
-
-[security]
-insecure = true
-
-[[agents]]
-node_id = "n0"
-frames = "tcp://127.0.0.1:{frames}"
-control = "tcp://127.0.0.1:{agent_control}"
-"""
-    )
+    rig_toml.write_text(dumps(config))
     notes = Notifications()
     env = {"NOTIFY_SOCKET": notes.path, "WATCHDOG_USEC": "400000", "PATH": "/usr/bin:/bin"}
     log_path = tmp_path / "recorder.log"
@@ -694,7 +636,7 @@ control = "tcp://127.0.0.1:{agent_control}"
     try:
         got = notes.wait_for(lambda g: g.count("WATCHDOG=1") >= 3, 60)
         assert got[0].startswith("READY=1\nSTATUS=egosurg recorder notify")
-        assert _request(f"tcp://127.0.0.1:{control}", "heartbeat").ok
+        assert _request(config.control_bind, "heartbeat").ok
         notes.wait_for(lambda g: any(m.startswith("STATUS=idle") for m in g), 30)
         proc.send_signal(signal.SIGTERM)
         notes.wait_for(lambda g: "STOPPING=1" in g, 20)

@@ -16,13 +16,14 @@ from pathlib import Path
 import pytest
 
 from capture_agent.agent.ptp import (
-    PtpConfig,
     PtpMonitor,
     PtpStatus,
     parse_time_status,
     read_ptp_status,
 )
+from capture_agent.config import PtpConfig
 from protocol.errors import ConfigError
+from protocol.toml_config import read_table
 
 HEADER = "sending: GET TIME_STATUS_NP\n"
 
@@ -175,16 +176,16 @@ def test_wait_for_lock_times_out_with_the_latest_status(tmp_path):
 
 
 def test_config_from_table():
-    cfg = PtpConfig.from_table({"source": "pmc", "lock_threshold_ns": 500}, "node.toml [ptp]")
+    cfg = read_table(PtpConfig, {"source": "pmc", "lock_threshold_ns": 500}, "node.toml [ptp]")
     assert cfg.lock_threshold_ns == 500 and cfg.require_lock and cfg.poll_interval_s == 1.0
-    assert PtpConfig.from_table({}, "x") == PtpConfig()
+    assert read_table(PtpConfig, {}, "x") == PtpConfig()
     with pytest.raises(ConfigError, match=r"node.toml \[ptp\]: source = 'gps'.*'pmc', 'none'"):
-        PtpConfig.from_table({"source": "gps"}, "node.toml [ptp]")
+        read_table(PtpConfig, {"source": "gps"}, "node.toml [ptp]")
     with pytest.raises(ConfigError, match="lock_threshold_ns = -5"):
-        PtpConfig.from_table({"lock_threshold_ns": -5}, "node.toml [ptp]")
+        read_table(PtpConfig, {"lock_threshold_ns": -5}, "node.toml [ptp]")
     with pytest.raises(ConfigError, match="require_lock = 'yes'"):
-        PtpConfig.from_table({"require_lock": "yes"}, "node.toml [ptp]")
+        read_table(PtpConfig, {"require_lock": "yes"}, "node.toml [ptp]")
     with pytest.raises(ConfigError, match=r"unknown option.*treshold"):
-        PtpConfig.from_table({"treshold": 5}, "node.toml [ptp]")
+        read_table(PtpConfig, {"treshold": 5}, "node.toml [ptp]")
     with pytest.raises(ValueError):
         PtpStatus(state="sort of", checked_unix_ns=0)

@@ -15,13 +15,15 @@ import zmq
 from capture_agent.config import RigConfig
 from capture_agent.operator.control import format_status, format_summary
 from capture_agent.recorder.accounting import StreamAccounting
-from capture_agent.recorder.recorder import RECEIVE_QUEUE_S, CameraLive, Recorder, receive_hwm
+from capture_agent.recorder.intake import CameraLive, CameraTable
+from capture_agent.recorder.links import RECEIVE_QUEUE_S, receive_hwm
+from capture_agent.recorder.recorder import Recorder
 from capture_agent.recorder.recording import Recording
 from capture_agent.recorder.sync import SyncConfig, Synchroniser
 from capture_agent.recorder.write_queue import WriteQueue
 from protocol.session import CameraInfo, SessionReader, SessionWriter, chunk_sink
 from protocol.wire import ControlReply, ControlRequest, FrameMessage
-from tests.helpers import loopback_rig_config
+from tests.helpers import frame_message, loopback_rig_config
 
 FPS = 30.0
 PERIOD_NS = int(1e9 / FPS)
@@ -34,21 +36,7 @@ def _config(tmp_path, frames: str, cameras: tuple[int, ...] = SERIALS) -> RigCon
 
 
 def _frame(serial: int, index: int, seq: int, capture_unix_ns: int) -> list:
-    return FrameMessage(
-        node_id="n0",
-        camera_serial=serial,
-        frame_index=index,
-        seq=seq,
-        capture_unix_ns=capture_unix_ns,
-        host_receive_unix_ns=capture_unix_ns,
-        ptp_offset_ns=0,
-        ptp_locked=True,
-        encoding="jpeg",
-        width=8,
-        height=4,
-        left=JPEG,
-        right=JPEG,
-    ).to_parts()
+    return frame_message("n0", serial, index, seq, capture_unix_ns, JPEG).to_parts()
 
 
 @pytest.fixture
@@ -60,7 +48,7 @@ def queued(tmp_path):
     pub.setsockopt(zmq.LINGER, 0)
     port = pub.bind_to_random_port("tcp://127.0.0.1")
     recorder = Recorder(_config(tmp_path, f"tcp://127.0.0.1:{port}"))
-    recorder.open_sockets()
+    recorder.links.open()
     try:
         deadline = time.monotonic() + 10
         while not recorder.receive_published(50):  # PUB/SUB joins late: probe with camera 99
@@ -82,7 +70,7 @@ def queued(tmp_path):
             for s in SERIALS
         ]
         started = now - 2_000_000_000
-        recorder.recording = Recording(
+        recorder.take.recording = Recording(
             writer=SessionWriter(
                 tmp_path / "sessions" / "take.h5",
                 session_name="take",
@@ -100,7 +88,7 @@ def queued(tmp_path):
             serials=SERIALS,
         )
         for s in SERIALS:  # both cameras stream (the start checked it)
-            recorder.cameras[s] = CameraLive(
+            recorder.table.cameras[s] = CameraLive(
                 s, "n0", frames_rx=1, last_rx_monotonic=time.monotonic()
             )
         seq = 1
@@ -114,15 +102,15 @@ def queued(tmp_path):
         time.sleep(0.5)  # into the SUB socket's queue; nobody reads it yet
         yield recorder, take
     finally:
-        if recorder.recording is not None:
-            recorder.recording.writer.abort()
-        recorder.close_sockets()
+        if recorder.take.recording is not None:
+            recorder.take.recording.writer.abort()
+        recorder.links.close()
         pub.close(linger=0)
 
 
 def test_a_stop_writes_the_frames_of_the_take_still_queued(queued):
     recorder, take = queued
-    summary = recorder._stop_recording("stopped by request")
+    summary = recorder.stop_recording("stopped by request")
     assert summary["frames"] == take * len(SERIALS)
     assert summary["frames_not_written_at_stop"] == 0
     for s in SERIALS:
@@ -139,7 +127,7 @@ def test_a_stop_writes_the_frames_of_the_take_still_queued(queued):
 def test_a_stop_that_cannot_write_counts_what_it_leaves(queued):
     """The disk reserve's stop writes nothing more, but every frame of the take is counted."""
     recorder, take = queued
-    summary = recorder._stop_recording("disk", write_queued=False)
+    summary = recorder.stop_recording("disk", write_queued=False)
     assert summary["frames"] == 0
     assert summary["frames_not_written_at_stop"] == take * len(SERIALS)
     for s in SERIALS:
@@ -179,14 +167,14 @@ def test_a_disk_full_for_a_moment_loses_only_the_frames_it_refused(queued, monke
     how many frames are not."""
     recorder, take = queued
     full = _disk_full(monkeypatch)
-    rec = recorder.recording
+    rec = recorder.take.recording
     written = 10
     assert recorder.receive_published(1000, max_messages=written) == written
     full.set()
     rec.last_flush = 0.0
-    recorder._periodic()  # a flush is due: it fails, the recording goes on
+    recorder.periodic()  # a flush is due: it fails, the recording goes on
     assert rec.wait_written(10.0)  # the writer thread has done what was queued
-    assert recorder.recording is rec and rec.write_failing_since is not None
+    assert recorder.take.recording is rec and rec.write_failing_since is not None
     assert "No space" in rec.write_error
     _receive_all(recorder)  # the rest of the take arrives while the disk is full: refused
     assert rec.wait_written(10.0)
@@ -196,10 +184,10 @@ def test_a_disk_full_for_a_moment_loses_only_the_frames_it_refused(queued, monke
     assert "WRITING FAILS" in format_status(status)
     full.clear()
     rec.last_flush = 0.0  # due again: it succeeds, with the chunks that failed
-    recorder._periodic()
+    recorder.periodic()
     assert rec.wait_written(10.0)
     assert rec.write_failing_since is None
-    summary = recorder._stop_recording("stopped by request")
+    summary = recorder.stop_recording("stopped by request")
     refused = summary["frames_not_written_write_failed"]
     assert summary["frames"] == written
     assert refused == (take + 3) * len(SERIALS) - written
@@ -221,16 +209,16 @@ def test_a_recording_that_cannot_write_for_long_stops_with_the_reason(queued, mo
     full = _disk_full(monkeypatch)
     monkeypatch.setattr(recorder_module, "WRITE_FAILURE_STOP_S", 0.0)
     _receive_all(recorder)
-    recorder.recording.flush()  # every frame of the take so far, durable
-    flushed = recorder.recording.frames_written
+    recorder.take.recording.flush()  # every frame of the take so far, durable
+    flushed = recorder.take.recording.frames_written
     assert flushed == (take + 3) * len(SERIALS)
     full.set()
-    recorder.recording.last_flush = 0.0
-    recorder._periodic()  # queues the flush, which fails on the writer thread...
-    assert recorder.recording.wait_written(10.0)
-    recorder._periodic()  # ...and the next step sees the failure: the take stops
-    assert recorder.recording is None
-    summary = recorder.last_stop_summary
+    recorder.take.recording.last_flush = 0.0
+    recorder.periodic()  # queues the flush, which fails on the writer thread...
+    assert recorder.take.recording.wait_written(10.0)
+    recorder.periodic()  # ...and the next step sees the failure: the take stops
+    assert recorder.take.recording is None
+    summary = recorder.take.last_stop_summary
     assert "failed" in summary["reason"] and "No space left" in summary["reason"]
     assert "check the disk" in summary["reason"]
     with SessionReader(summary["file"]) as r:
@@ -306,7 +294,7 @@ def _assert_sets_name_their_frames(path, tolerance_ns: int) -> None:
 def test_a_stalling_disk_is_reported_and_costs_only_what_a_full_queue_refused(queued, monkeypatch):
     recorder, take = queued
     stalled, _ = _disk(monkeypatch)
-    rec = recorder.recording
+    rec = recorder.take.recording
     rec.queue.max_bytes = 6 * FRAME_BYTES  # a queue of a few frames, so the stall fills it
     assert recorder.receive_published(1000, max_messages=4) == 4
     stalled.set()
@@ -323,7 +311,7 @@ def test_a_stalling_disk_is_reported_and_costs_only_what_a_full_queue_refused(qu
     stalled.clear()  # the disk answers: the queue drains, the take goes on
     assert rec.wait_written(10.0)
     assert recorder.status()["write_stalled_s"] == 0
-    summary = recorder._stop_recording("stopped by request")
+    summary = recorder.stop_recording("stopped by request")
     assert summary["frames_not_written_disk_stalled"] == refused
     for s in SERIALS:
         cam = summary["cameras"][str(s)]
@@ -399,14 +387,14 @@ def test_a_bug_in_frame_handling_is_counted_and_the_recorder_goes_on(tmp_path, m
     port = pub.bind_to_random_port("tcp://127.0.0.1")
     config = _config(tmp_path, f"tcp://127.0.0.1:{port}")
     recorder = Recorder(config)
-    real = Recorder._on_frame
+    real = CameraTable.accept_frame
 
     def buggy(self, msg, rx_ns):
         if msg.camera_serial == 12:
             raise KeyError("a planted bug")
         return real(self, msg, rx_ns)
 
-    monkeypatch.setattr(Recorder, "_on_frame", buggy)
+    monkeypatch.setattr(CameraTable, "accept_frame", buggy)
     recorder.start()
     try:
         k = 0
@@ -416,10 +404,10 @@ def test_a_bug_in_frame_handling_is_counted_and_the_recorder_goes_on(tmp_path, m
             for s in SERIALS:
                 pub.send_multipart(_frame(s, k, k, time.time_ns()), copy=False)
             k += 1
-            return recorder.internal_errors >= 5 and 11 in recorder.cameras
+            return recorder.internal_errors >= 5 and 11 in recorder.table.cameras
 
         _wait_for("frames of both cameras to be handled", publish_some)
-        assert recorder._thread.is_alive()
+        assert recorder.alive()
         status = _control(config.control_bind, "status")
         assert status.ok and status.result["internal_errors"] >= 5
         cam = next(c for c in status.result["cameras"] if c["serial"] == 11)
@@ -427,7 +415,7 @@ def test_a_bug_in_frame_handling_is_counted_and_the_recorder_goes_on(tmp_path, m
     finally:
         recorder.stop()
         pub.close()
-    assert not recorder._thread.is_alive()
+    assert not recorder.alive()
 
 
 def test_a_stop_while_the_disk_stalls_answers_and_the_file_closes_when_it_returns(
@@ -441,15 +429,15 @@ def test_a_stop_while_the_disk_stalls_answers_and_the_file_closes_when_it_return
     stalled, _ = _disk(monkeypatch)
     monkeypatch.setattr(recorder_module, "STOP_WRITE_S", 0.5)
     monkeypatch.setattr(recorder_module, "STOP_COUNT_S", 0.5)
-    rec = recorder.recording
+    rec = recorder.take.recording
     assert recorder.receive_published(1000, max_messages=4) == 4
     stalled.set()
     rec.request_flush()
     _wait_for("the stall to show", lambda: rec.write_stalled_s() > 0)
     t0 = time.monotonic()
-    summary = recorder._stop_recording("stopped by request")
+    summary = recorder.stop_recording("stopped by request")
     assert time.monotonic() - t0 < 10.0
-    assert "closing" in summary and recorder.recording is None
+    assert "closing" in summary and recorder.take.recording is None
     assert summary["frames"] + summary["frames_not_written_at_stop"] <= take * len(SERIALS)
     assert summary["frames_not_written_at_stop"] > 0
     stalled.clear()

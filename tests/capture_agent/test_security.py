@@ -22,9 +22,10 @@ from capture_agent.operator.rig_client import RigClient
 from capture_agent.recorder.recorder import Recorder
 from capture_agent.security import LinkSecurity
 from protocol.errors import ConfigError
-from protocol.wire import AgentStatus, ControlReply, ControlRequest, FrameMessage, PtpState
+from protocol.wire import AgentStatus, ControlReply, ControlRequest, PtpState
 from sim.deploy import free_ports
 from tests.conftest import run_egosurg
+from tests.helpers import frame_message
 
 NODE = "orin-s"
 
@@ -106,7 +107,7 @@ def rig(keys):
     client = RigClient(
         cfg.control_bind,
         links=links,
-        recorder_key=recorder.links.public_key,
+        recorder_key=recorder.links.security.public_key,
     )
     deadline = time.monotonic() + 120
     while not client.status()["cameras"][0]["streaming"]:
@@ -173,15 +174,15 @@ def test_an_unlisted_key_and_a_plaintext_client_get_nothing_and_are_counted(rig,
     agent, recorder, client, cfg = rig
     caplog.set_level(logging.WARNING, logger="capture_agent.security")
     intruder = keys / "intruder.key_secret"
-    rec_key = recorder.links.public_key
+    rec_key = recorder.links.security.public_key
     agent_key = zmq.auth.load_certificate(keys / f"{NODE}.key")[0]
-    before_rec = recorder.guard.refused.get("recorder.control", 0)
+    before_rec = recorder.links.guard.refused.get("recorder.control", 0)
     before_ctl = agent.guard.refused.get(f"{NODE}.control", 0)
     before_frames = agent.guard.refused.get(f"{NODE}.frames", 0)
     # the recorder's control socket: every command refused (no reply at all), nothing recorded
     assert _request(cfg.control_bind, rec_key, intruder) is None
     assert _request(cfg.control_bind, rec_key, None) is None
-    assert _wait_refused(recorder.guard, "recorder.control", before_rec + 2) >= before_rec + 2
+    assert _wait_refused(recorder.links.guard, "recorder.control", before_rec + 2) >= before_rec + 2
     # the agent's control and live video
     assert _request(cfg.agents[0].control, agent_key, intruder) is None
     assert _request(cfg.agents[0].control, agent_key, None) is None
@@ -194,7 +195,7 @@ def test_an_unlisted_key_and_a_plaintext_client_get_nothing_and_are_counted(rig,
     assert not status["recording"]
     assert status["links"]["auth_refused"]["recorder.control"] >= before_rec + 2
     # the agent reports its own refusals in its status reply, to the recorder's key
-    reply = recorder.request_agent(cfg.agents[0].control, "status")
+    reply = recorder.links.request(cfg.agents[0].control, "status")
     assert reply is not None and reply.ok, reply
     agent_links = reply.result["links"]["auth_refused"]
     assert agent_links[f"{NODE}.control"] >= before_ctl + 2
@@ -230,20 +231,8 @@ def _publisher(key_file: Path | None) -> tuple[zmq.Socket, str]:
 
 def _frame(node: str, serial: int, seq: int) -> list:
     now = time.time_ns()
-    return FrameMessage(
-        node_id=node,
-        camera_serial=serial,
-        frame_index=seq,
-        seq=seq,
-        capture_unix_ns=now,
-        host_receive_unix_ns=now,
-        ptp_offset_ns=0,
-        ptp_locked=True,
-        encoding="raw_bgr8",
-        width=2,
-        height=2,
-        left=bytes(12),
-        right=bytes(12),
+    return frame_message(
+        node, serial, seq, seq, now, bytes(12), encoding="raw_bgr8", size_px=(2, 2)
     ).to_parts()
 
 
@@ -263,7 +252,7 @@ def _hand_driven_recorder(keys: Path, frames: str) -> Recorder:
         _rig_table(keys, frames, "tcp://127.0.0.1:1", [111]), str(keys.parent / "rig.toml")
     )
     recorder = Recorder(cfg)
-    recorder.open_sockets()
+    recorder.links.open()
     return recorder
 
 
@@ -282,19 +271,20 @@ def test_an_agent_key_cannot_speak_for_another_node_or_camera(keys):
     it, or another node's status: refused and counted; its own camera is accepted."""
     pub, endpoint = _publisher(keys / f"{NODE}.key_secret")
     recorder = _hand_driven_recorder(keys, endpoint)
+    table = recorder.table
     try:
         assert _pump(recorder, pub, _frame("orin-x", 111, 0)) > 0
-        assert recorder.frames_refused_sender > 0 and 111 not in recorder.cameras
-        refused = recorder.frames_refused_sender
+        assert table.frames_refused_sender > 0 and 111 not in table.cameras
+        refused = table.frames_refused_sender
         assert _pump(recorder, pub, _frame(NODE, 222, 0)) > 0
-        assert recorder.frames_refused_sender > refused and 222 not in recorder.cameras
+        assert table.frames_refused_sender > refused and 222 not in table.cameras
         assert _pump(recorder, pub, _status("orin-x")) > 0
-        assert recorder.status_refused_sender > 0 and "orin-x" not in recorder.agent_status
+        assert table.status_refused_sender > 0 and "orin-x" not in table.agent_status
         assert _pump(recorder, pub, _frame(NODE, 111, 0)) > 0
-        assert 111 in recorder.cameras  # its own camera, from its own key
+        assert 111 in table.cameras  # its own camera, from its own key
         assert recorder.status()["links"]["frames_refused_sender"] >= 2
     finally:
-        recorder.close_sockets()
+        recorder.links.close()
         pub.close(linger=0)
 
 
@@ -306,9 +296,9 @@ def test_a_publisher_without_the_agents_key_delivers_nothing(keys, key):
     recorder = _hand_driven_recorder(keys, endpoint)
     try:
         assert _pump(recorder, pub, _frame(NODE, 111, 0), seconds=1.5) == 0
-        assert not recorder.cameras
+        assert not recorder.table.cameras
     finally:
-        recorder.close_sockets()
+        recorder.links.close()
         pub.close(linger=0)
 
 
@@ -417,8 +407,8 @@ def test_insecure_links_warn_at_every_start(keys, caplog):
         cfg = RigConfig.from_table(table, str(keys.parent / "rig.toml"))
         caplog.clear()
         recorder = Recorder(cfg)
-        recorder.open_sockets()
-        recorder.close_sockets()
+        recorder.links.open()
+        recorder.links.close()
         warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
         assert any("INSECURE" in r.getMessage() for r in warnings)
 

@@ -8,7 +8,6 @@ import itertools
 import json
 import math
 import re
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -17,6 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
+from capture_agent.camera_config import CameraConfig, FaultSpec, SimSourceConfig
 from capture_agent.sources import (
     CameraSource,
     CameraUnavailableError,
@@ -24,24 +24,25 @@ from capture_agent.sources import (
     GrabbedFrame,
     make_source,
 )
-from capture_agent.sources.sim_source import (
-    DAY_NS,
-    FaultSpec,
-    SimSource,
-    SimSourceConfig,
-)
+from capture_agent.sources.sim_source import DAY_NS, SimSource
 from capture_agent.sources.zed_source import ZedSource
 from protocol.camera import Resolution
 from protocol.errors import ConfigError, UserError
 from protocol.formats.zed_conf import ZedFactoryCalibration
 from protocol.images import decode_image
+from protocol.toml_config import read_table
+from tests.helpers import heavy_modules_after
 
-REPO = Path(__file__).resolve().parents[2]
 FAKES = Path(__file__).resolve().parents[1] / "fakes"
 WHERE = "node.toml [[cameras]] #1"
 # One epoch for every sim source here, as every agent of a rig shares one; an hour ago keeps
 # sim times small.
 EPOCH = (time.time_ns() - 3600 * 10**9) // 10**9 * 10**9
+
+
+def source_from_table(kind: str, table: dict, where: str) -> CameraSource:
+    """The source of a node.toml ``[[cameras]]`` table with ``source = kind``."""
+    return make_source(read_table(CameraConfig, {"source": kind, **table}, where))
 
 
 def sim(world, **kw) -> SimSource:
@@ -244,7 +245,7 @@ def test_sim_factory_conf_is_the_rig_file(world):
 
 
 def test_make_source_sim_and_config_errors(world):
-    src = make_source(
+    src = source_from_table(
         "sim",
         {"source": "sim", "seed": 11, "camera_index": 3, "resolution": "svga", "fps": 60},
         WHERE,
@@ -256,7 +257,7 @@ def test_make_source_sim_and_config_errors(world):
 
     def bad(table, *patterns):
         with pytest.raises(ConfigError) as info:
-            make_source("sim", table, WHERE)
+            source_from_table("sim", table, WHERE)
         for p in (re.escape(WHERE), *patterns):
             assert re.search(p, str(info.value)), (p, str(info.value))
 
@@ -270,23 +271,17 @@ def test_make_source_sim_and_config_errors(world):
     bad({"faults": [{"kind": "explode", "at_s": 1, "duration_s": 1}]}, r"faults\[0\]", "'hang'")
     bad({"faults": [{"kind": "hang", "at_s": 1}]}, r"faults\[0\]", "duration_s")
     bad({"drop_probability": 0.7}, "drop_probability = 0.7")
-    with pytest.raises(ConfigError, match=r"unknown camera source 'gige'.*'sim', 'zed', 'video'"):
-        make_source("gige", {}, WHERE)
+    with pytest.raises(ConfigError, match=r"source = 'gige'.*'sim', 'zed', 'video'"):
+        source_from_table("gige", {}, WHERE)
 
 
 def test_sources_import_without_the_simulator_or_the_sdk():
     """The agent on a Jetson imports every backend module but sim's without sim/ or numba."""
-    snippet = (
-        "import sys\n"
+    imports = (
         "import capture_agent.sources, capture_agent.agent.ptp, protocol.images\n"
-        "from capture_agent.sources import zed_source, video_source\n"
-        "bad = [m for m in ('sim', 'numba', 'torch', 'open3d', 'pyzed') if m in sys.modules]\n"
-        "print(','.join(bad))\n"
+        "from capture_agent.sources import zed_source, video_source"
     )
-    out = subprocess.run(
-        [sys.executable, "-c", snippet], capture_output=True, text=True, check=True, cwd=REPO
-    )
-    assert out.stdout.strip() == ""
+    assert heavy_modules_after(imports, ("sim", "numba", "torch", "open3d", "pyzed")) == []
 
 
 # ---- zed (fake pyzed) --------------------------------------------------------------------------
@@ -344,7 +339,7 @@ def test_zed_frames_and_stamps_flow_through(fake_sl, tmp_path):
     events = [stamps[0], stamps[1], stamps[2], "CORRUPTED_FRAME", stamps[3], "CAMERA_NOT_DETECTED"]
     images = write_replay(tmp_path / "replay", events)
     (tmp_path / f"SN{SERIAL}.conf").write_text("[STEREO]\nBaseline=120.0\n")
-    src = make_source("zed", zed_table(tmp_path), WHERE)
+    src = source_from_table("zed", zed_table(tmp_path), WHERE)
     with src:
         assert src.serial == SERIAL and src.is_open
         before = time.time_ns()
@@ -371,7 +366,7 @@ def test_zed_frames_and_stamps_flow_through(fake_sl, tmp_path):
 
 def test_zed_grab_times_out_when_no_frame_comes(fake_sl, tmp_path):
     write_replay(tmp_path / "replay", [T0_NS])
-    src = make_source("zed", zed_table(tmp_path, settings_dir=str(tmp_path / "none")), WHERE)
+    src = source_from_table("zed", zed_table(tmp_path, settings_dir=str(tmp_path / "none")), WHERE)
     src.open()
     try:
         assert src.grab(2.0) is not None
@@ -387,7 +382,7 @@ def test_zed_grab_times_out_when_no_frame_comes(fake_sl, tmp_path):
 
 def test_zed_open_failure_is_camera_unavailable(fake_sl, tmp_path):
     write_replay(tmp_path / "replay", [T0_NS])
-    src = make_source("zed", zed_table(tmp_path, serial=SERIAL + 1), WHERE)
+    src = source_from_table("zed", zed_table(tmp_path, serial=SERIAL + 1), WHERE)
     with pytest.raises(CameraUnavailableError, match=rf"SN{SERIAL + 1}.*CAMERA_NOT_DETECTED"):
         src.open()
     assert not src.is_open
@@ -397,13 +392,13 @@ def test_zed_without_pyzed_says_what_to_install(monkeypatch):
     monkeypatch.setitem(sys.modules, "pyzed", None)  # as on a machine without the ZED SDK
     monkeypatch.delitem(sys.modules, "pyzed.sl", raising=False)
     with pytest.raises(UserError) as info:
-        make_source("zed", {"serial": SERIAL}, WHERE)
+        source_from_table("zed", {"serial": SERIAL}, WHERE)
     message = str(info.value)
     assert "pyzed" in message and "ZED SDK" in message and "get_python_api.py" in message
     assert isinstance(info.value, ImportError)
     # a bad option is reported before the SDK is even needed
     with pytest.raises(ConfigError, match=r"fps = 120.*15, 30, 60"):
-        make_source("zed", {"serial": SERIAL, "resolution": "HD1200", "fps": 120}, WHERE)
+        source_from_table("zed", {"serial": SERIAL, "resolution": "HD1200", "fps": 120}, WHERE)
 
 
 # ---- video -------------------------------------------------------------------------------------
@@ -429,7 +424,9 @@ def test_video_side_by_side_replay(tmp_path):
     path = write_video(tmp_path / "sbs.avi", sbs, fps=25)
     conf = tmp_path / "SN7.conf"
     conf.write_text("[STEREO]\n")
-    src = make_source("video", {"path": str(path), "serial": 7, "conf_path": str(conf)}, WHERE)
+    src = source_from_table(
+        "video", {"path": str(path), "serial": 7, "conf_path": str(conf)}, WHERE
+    )
     assert src.fps == 25.0 and src.resolution is Resolution.SVGA and src.serial == 7
     assert src.factory_conf_text() == "[STEREO]\n"
     with src:
@@ -460,7 +457,7 @@ def test_video_two_files_loop_and_resize(tmp_path):
         "realtime": False,
         "resolution": "SVGA",
     }
-    with make_source("video", table, WHERE) as src:
+    with source_from_table("video", table, WHERE) as src:
         frames = [must(src.grab(0.0)) for _ in range(7)]
     assert [f.frame_index for f in frames] == list(range(7))
     assert [f.capture_unix_ns - frames[0].capture_unix_ns for f in frames] == [
@@ -476,7 +473,7 @@ def test_video_two_files_loop_and_resize(tmp_path):
 
 def test_video_realtime_grab_times_out_between_frames(tmp_path):
     path = write_video(tmp_path / "sbs.avi", [np.zeros((600, 1920, 3), np.uint8)] * 3, fps=25)
-    with make_source("video", {"path": str(path), "fps": 4}, WHERE) as src:
+    with source_from_table("video", {"path": str(path), "fps": 4}, WHERE) as src:
         assert src.grab(1.0) is not None
         assert src.grab(0.05) is None  # the next frame is due 0.25 s after the first
         t0 = time.monotonic()
@@ -487,20 +484,20 @@ def test_video_realtime_grab_times_out_between_frames(tmp_path):
 
 def test_video_config_errors(tmp_path):
     with pytest.raises(ConfigError, match=rf"{re.escape(WHERE)}: give either 'path'"):
-        make_source("video", {}, WHERE)
+        source_from_table("video", {}, WHERE)
     with pytest.raises(ConfigError, match="give either 'path'"):
-        make_source("video", {"path": "a.avi", "left_path": "b.avi"}, WHERE)
+        source_from_table("video", {"path": "a.avi", "left_path": "b.avi"}, WHERE)
     with pytest.raises(ConfigError, match="give either 'path'"):
-        make_source("video", {"left_path": "b.avi"}, WHERE)
+        source_from_table("video", {"left_path": "b.avi"}, WHERE)
     with pytest.raises(ConfigError, match="fps = -1"):
-        make_source("video", {"path": "a.avi", "fps": -1}, WHERE)
+        source_from_table("video", {"path": "a.avi", "fps": -1}, WHERE)
     with pytest.raises(ConfigError, match="does not exist"):
-        make_source("video", {"path": str(tmp_path / "missing.avi")}, WHERE).open()
+        source_from_table("video", {"path": str(tmp_path / "missing.avi")}, WHERE).open()
     small = write_video(tmp_path / "small.avi", [np.zeros((60, 192, 3), np.uint8)] * 2, fps=10)
     with pytest.raises(ConfigError, match=r"96x60 per side, not a ZED X mode.*'resolution'"):
-        make_source("video", {"path": str(small)}, WHERE).open()
+        source_from_table("video", {"path": str(small)}, WHERE).open()
     other = write_video(tmp_path / "other.avi", [np.zeros((64, 96, 3), np.uint8)] * 2, fps=10)
-    src = make_source(
+    src = source_from_table(
         "video", {"left_path": str(small), "right_path": str(other), "resolution": "SVGA"}, WHERE
     )
     with pytest.raises(ConfigError, match="differ in frame size"):

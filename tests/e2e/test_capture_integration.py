@@ -10,17 +10,17 @@ import signal
 import subprocess
 import threading
 import time
-import tomllib
 
 import numpy as np
 import pytest
 import zmq
 import zmq.auth
 
-from capture_agent.config import RigConfig
+from capture_agent.camera_config import SimSourceConfig
+from capture_agent.config import NodeConfig, RigConfig
 from capture_agent.operator.rig_client import CommandRefusedError, RigClient
 from capture_agent.recorder.recorder import Recorder
-from capture_agent.sources.sim_source import SimSource, SimSourceConfig
+from capture_agent.sources.sim_source import SimSource
 from protocol.session import GapKind, SessionReader
 from protocol.wire import (
     Encoding,
@@ -52,9 +52,9 @@ def _truth_sources(files) -> dict[int, SimSource]:
     """The same sim cameras the agents run, built from their own config tables."""
     out = {}
     for _node, path in files.node_configs.items():
-        for i, table in enumerate(tomllib.loads(path.read_text())["cameras"]):
-            t = {k: v for k, v in table.items() if k != "source"}
-            src = SimSource(SimSourceConfig.from_table(t, f"{path} #{i}"))
+        for cam in NodeConfig.from_toml(path).cameras:
+            assert isinstance(cam, SimSourceConfig)
+            src = SimSource(cam)
             out[src.serial] = src
     return out
 
@@ -425,9 +425,10 @@ def test_a_sim_rig_of_more_cameras(tmp_path):
     assert {a.node_id: a.cameras for a in cfg.agents} == files.serials_by_node
     seeds = []
     for node, path in files.node_configs.items():
-        tables = tomllib.loads(path.read_text())["cameras"]
-        seeds += [t["seed"] for t in tables]
-        assert [t["camera_index"] for t in tables] == [
+        tables = NodeConfig.from_toml(path).cameras
+        assert all(isinstance(t, SimSourceConfig) for t in tables)
+        seeds += [t.seed for t in tables]  # type: ignore[union-attr]
+        assert [t.camera_index for t in tables] == [  # type: ignore[union-attr]
             files.camera_index_by_serial[s] for s in files.serials_by_node[node]
         ]
     assert sorted(seeds) == [3, 3, 3, 3, 4, 4]  # cameras 4 and 5 come from the world of seed 4

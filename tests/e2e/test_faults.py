@@ -273,19 +273,26 @@ def test_an_agent_cut_off_for_ten_seconds_leaves_its_exact_gap_and_bounded_memor
     _assert_sets_sound(sets, tables, serials, tolerance)
 
 
-@pytest.fixture
-def tmpfs(tmp_path) -> Iterator[Path]:
-    mount = tmp_path / "tmpfs"
+@contextmanager
+def _mounted(mount: Path, source: list[str], what: str, *, thaw: bool = False) -> Iterator[Path]:
+    """``mount <source...> <mount>`` for the test, unmounted lazily after it (thawed first where
+    the test may have frozen it); the test is skipped where this user cannot mount ``what``."""
     mount.mkdir()
-    done = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", "size=200m", "tmpfs", str(mount)], capture_output=True
-    )
+    done = subprocess.run(["mount", *source, str(mount)], capture_output=True)
     if done.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs (needs root): {done.stderr.decode().strip()}")
+        pytest.skip(f"cannot mount {what} (needs root): {done.stderr.decode().strip()}")
     try:
         yield mount
     finally:
+        if thaw:
+            subprocess.run(["fsfreeze", "-u", str(mount)], capture_output=True)
         subprocess.run(["umount", "-l", str(mount)], check=False)
+
+
+@pytest.fixture
+def tmpfs(tmp_path) -> Iterator[Path]:
+    with _mounted(tmp_path / "tmpfs", ["-t", "tmpfs", "-o", "size=200m", "tmpfs"], "a tmpfs") as m:
+        yield m
 
 
 def test_a_disk_filled_by_another_writer_stops_the_take_cleanly(rig, tmpfs):
@@ -331,18 +338,12 @@ def freezable_disk(tmp_path) -> Iterator[Path]:
     """An ext4 filesystem on a loop device, which ``fsfreeze`` can stall (writes block)."""
     if not shutil.which("fsfreeze") or not shutil.which("mkfs.ext4"):
         pytest.skip("needs fsfreeze and mkfs.ext4 (util-linux, e2fsprogs)")
-    image, mount = tmp_path / "disk.img", tmp_path / "ext4"
-    mount.mkdir()
+    image = tmp_path / "disk.img"
     subprocess.run(["truncate", "-s", "400M", str(image)], check=True)
     subprocess.run(["mkfs.ext4", "-q", "-F", str(image)], check=True)
-    done = subprocess.run(["mount", "-o", "loop", str(image), str(mount)], capture_output=True)
-    if done.returncode != 0:
-        pytest.skip(f"cannot loop-mount a filesystem (needs root): {done.stderr.decode()}")
-    try:
-        yield mount
-    finally:
-        subprocess.run(["fsfreeze", "-u", str(mount)], capture_output=True)
-        subprocess.run(["umount", "-l", str(mount)], check=False)
+    loop = ["-o", "loop", str(image)]
+    with _mounted(tmp_path / "ext4", loop, "a loop-mounted filesystem", thaw=True) as m:
+        yield m
 
 
 def test_a_stalling_disk_is_reported_and_the_take_resumes(rig, freezable_disk):

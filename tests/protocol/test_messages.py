@@ -123,6 +123,24 @@ def _frame(**overrides: object) -> FrameMessage:
     return FrameMessage(**fields)  # type: ignore[arg-type]
 
 
+def _camera(**overrides: object) -> CameraStatus:
+    """A streaming camera's status; ``overrides`` change fields."""
+    fields: dict[str, object] = dict(
+        camera_serial=41000001,
+        state="streaming",
+        fps_measured=29.97,
+        frames_captured=1800,
+        frames_dropped=2,
+        frames_published=1797,
+        queue_depth=1,
+        reopen_count=0,
+        last_capture_unix_ns=1_700_000_000_990_000_000,
+        error=None,
+    )
+    fields.update(overrides)
+    return CameraStatus(**fields)  # type: ignore[arg-type]
+
+
 def _status() -> AgentStatus:
     return AgentStatus(
         node_id="node-b",
@@ -130,18 +148,7 @@ def _status() -> AgentStatus:
         status_seq=9,
         ptp=PtpState(state="locked", master_offset_ns=-17, gm_present=True),
         cameras=(
-            CameraStatus(
-                camera_serial=41000001,
-                state="streaming",
-                fps_measured=29.97,
-                frames_captured=1800,
-                frames_dropped=2,
-                frames_published=1797,
-                queue_depth=1,
-                reopen_count=0,
-                last_capture_unix_ns=1_700_000_000_990_000_000,
-                error=None,
-            ),
+            _camera(),
             CameraStatus(
                 camera_serial=41000002,
                 state="reopening",
@@ -516,16 +523,7 @@ def test_status_bad_bodies_and_versions():
 
 def test_status_construction_is_validated():
     with pytest.raises(MalformedMessageError, match="fps_measured"):
-        CameraStatus(
-            camera_serial=1,
-            state="streaming",
-            fps_measured=float("nan"),
-            frames_captured=0,
-            frames_dropped=0,
-            frames_published=0,
-            queue_depth=0,
-            reopen_count=0,
-        )
+        _camera(fps_measured=float("nan"))
     with pytest.raises(MalformedMessageError, match="'synced' is unknown"):
         PtpState(state="synced")
     status = _status()

@@ -28,7 +28,7 @@ from protocol.session import SessionFormatError, SessionReader, SessionWriter
 from protocol.session.privacy import make_private_dir
 from protocol.session.recover import recover_session
 from tests.conftest import REPO, run_egosurg
-from tests.protocol.test_session import _cameras, _image, _write_session, _writer
+from tests.protocol.test_session import _append, _cameras, _image, _write_session, _writer
 
 CUTS = [512, 4096, 65_536, 300_000, 1 << 20]
 
@@ -391,18 +391,7 @@ def test_session_files_are_0600_and_the_folder_0700_whatever_the_umask(tmp_path)
     try:
         assert make_private_dir(folder) == folder
         with _writer(folder / "s.h5", _cameras(1)) as w:
-            w.append_frame(
-                1,
-                left=_image(1, 0, 0),
-                right=_image(1, 0, 1),
-                capture_unix_ns=1,
-                host_receive_unix_ns=1,
-                recorder_receive_unix_ns=1,
-                frame_index=0,
-                seq=0,
-                ptp_offset_ns=0,
-                ptp_locked=True,
-            )
+            _append(w, 1, 0, (_image(1, 0, 0), _image(1, 0, 1)))
     finally:
         os.umask(old)
     assert stat.S_IMODE(folder.stat().st_mode) == 0o700

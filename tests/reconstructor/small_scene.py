@@ -5,11 +5,15 @@ would give), and a perfect refiner."""
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from protocol.camera import Camera, Intrinsics
 from reconstructor.data.views import View, view_from_image
+from reconstructor.evaluation.metrics import psnr
+from reconstructor.raster import RasterConfig
 from reconstructor.refine.base import Refined, Refiner, RefineRequest
 from reconstructor.splats.gaussians import Gaussians, init_from_points
+from reconstructor.splats.train import render
 
 T_S = 1.0
 ROOM = (np.array([-3.5, -3.0, 0.0]), np.array([3.5, 3.0, 3.0]))  # the sim's 7 x 6 x 3 m room
@@ -50,3 +54,12 @@ class TruthRefiner(Refiner):
         self.requests.append(request)
         img = self.world.render(request.camera, T_S).image_rgb
         return Refined(image=img.astype(np.float32) / 255, mask=np.ones(img.shape[:2], bool))
+
+
+def mean_psnr(model: Gaussians, views: list[View], raster: RasterConfig) -> float:
+    """The mean PSNR of the model's renders (clamped to [0, 1]) against ``views``' images."""
+    with torch.no_grad():
+        scores = [
+            psnr(render(model, v, raster).image.clamp(0, 1).numpy(), v.image.numpy()) for v in views
+        ]
+    return float(np.mean(scores))

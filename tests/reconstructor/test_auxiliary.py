@@ -14,13 +14,13 @@ import pytest
 import torch
 
 from protocol.camera import Camera, Intrinsics, Pose, Resolution
-from reconstructor.cli import ReconstructArgumentError, _with_options, reconstruct_parser
+from protocol.command import CommandArgumentError
+from reconstructor.cli import _with_options, reconstruct_parser
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import SensorFrame, Timestamp
 from reconstructor.data.views import View, view_from_image
 from reconstructor.depth.fusion import FusionConfig
-from reconstructor.errors import ReconstructConfigError, RefinerNotFoundError
-from reconstructor.evaluation.metrics import psnr
+from reconstructor.errors import ReconstructConfigError, RefinerNotFoundError, RefinerOutputError
 from reconstructor.pipeline import reconstruct
 from reconstructor.raster import RasterConfig
 from reconstructor.refine.auxiliary import (
@@ -29,29 +29,15 @@ from reconstructor.refine.auxiliary import (
     sample_auxiliary_poses,
 )
 from reconstructor.refine.base import Refined, Refiner, RefineRequest
-from reconstructor.refine.checked import RefinerOutputError
 from reconstructor.refine.eye_views import EyeViewConfig
 from reconstructor.refine.refiners import load_refiner
 from reconstructor.splats.gaussians import init_random, random_init_box
 from reconstructor.splats.train import TrainConfig, Trainer, ViewGroup, render, scene_extent_m
 from tests.helpers import run_egosurg
-from tests.reconstructor.small_scene import ROOM, T_S, TruthRefiner, true_depth_scene
+from tests.reconstructor.small_scene import ROOM, T_S, TruthRefiner, mean_psnr, true_depth_scene
 
 SIZE = (80, 50)  # pixels: small enough for training runs of a few seconds
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Images of 80x50 pixels gain nothing from threads, and on a shared, loaded machine the
-    threads of torch and numba wait for each other: one thread each runs this file ~4x faster."""
-    import numba
-
-    before = torch.get_num_threads(), numba.get_num_threads()
-    torch.set_num_threads(1)
-    numba.set_num_threads(1)
-    yield
-    torch.set_num_threads(before[0])
-    numba.set_num_threads(before[1])
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _look_at_camera(eye, target, size=(160, 100), hfov_deg=90.0) -> Camera:
@@ -228,13 +214,6 @@ def test_training_on_true_auxiliary_views_improves_held_out_views(scene, world):
             cam = Camera(name="held", intrinsics=v.intrinsics, pose=pose)
             held.append(view_from_image(cam, world.render(cam, T_S).image_rgb))
 
-    def held_out_psnr(model) -> float:
-        with torch.no_grad():
-            return float(np.mean([
-                psnr(render(model, h, raster).image.clamp(0, 1).numpy(), h.image.numpy())
-                for h in held
-            ]))  # fmt: skip
-
     scores = {}
     warm = gaussians.detach_clone()
     for arm, train_views in (("inputs", views), ("inputs + auxiliary", [*views, *aux])):
@@ -242,7 +221,7 @@ def test_training_on_true_auxiliary_views_improves_held_out_views(scene, world):
         t = Trainer(model, train, raster, scene_extent_m(views))
         t.step_index = train.warmup_steps  # the refinement stage's learning-rate schedule
         t.run(train_views, train.refine_steps)
-        scores[arm] = held_out_psnr(model)
+        scores[arm] = mean_psnr(model, held, raster)
     print(f"held-out PSNR: {scores}")
     assert scores["inputs + auxiliary"] > scores["inputs"] + 0.4
 
@@ -312,12 +291,12 @@ def test_config_round_trips_with_the_ablation_fields():
         ("[auxiliary]\nnum_views = 0\n", r"auxiliary\.num_views=0"),
         ("[auxiliary]\nmin_radius_m = 0.5\n", r"auxiliary\.min_radius_m=0\.5"),
         ("[auxiliary]\naux_weight = -1.0\n", r"auxiliary\.aux_weight=-1\.0"),
-        ("[auxiliary]\nenabled = 1\n", r"auxiliary\.enabled must be true or false"),
+        ("[auxiliary]\nenabled = 1\n", r"auxiliary\.enabled = 1: must be true or false"),
         ('[auxiliary]\nrefiner = ""\n', r"auxiliary\.refiner=''"),
-        ("[auxiliary]\nradius = 1.0\n", r"unknown key 'auxiliary\.radius'"),
-        ('init_method = "sparse"\n', r"init_method='sparse': choose one of depth, random"),
+        ("[auxiliary]\nradius = 1.0\n", r"unknown option 'auxiliary\.radius'"),
+        ('init_method = "sparse"\n', r"init_method = 'sparse': choose one of 'depth', 'random'"),
         ("random_init_count = 0\n", r"random_init_count=0"),
-        ("room_bounds_m = [0, 0, 0, 1, 1]\n", r"room_bounds_m=\[0, 0, 0, 1, 1\]"),
+        ("room_bounds_m = [0, 0, 0, 1, 1]\n", r"room_bounds_m=\[0\.0, 0\.0, 0\.0, 1\.0, 1\.0\]"),
         ("room_bounds_m = [0, 0, 3, 1, 1, 0]\n", r"each min below its max"),
     ],
 )
@@ -373,7 +352,7 @@ def test_cli_options_set_the_ablation_switches():
     assert cfg.auxiliary.refiner == "difix" and cfg.auxiliary.refiner_weights == "/w/difix"
     assert cfg.auxiliary.enabled and cfg.init_method == "depth"
     assert options() == ReconstructConfig()
-    with pytest.raises(ReconstructArgumentError, match="--no-refinement"):
+    with pytest.raises(CommandArgumentError, match="--no-refinement"):
         options("--no-refinement", "--refiner", "difix")
 
 

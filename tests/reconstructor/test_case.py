@@ -19,23 +19,8 @@ import xxhash
 from reconstructor.case import storage
 from reconstructor.case.index import CaseIndex
 from reconstructor.splats import ply
-from sim.eval_set import EvalSetSpec, write_eval_set
 from tests.helpers import REPO, run_egosurg
-
-TINY = """
-train_max_width_px = 96
-[stereo]
-match_scale = 0.25
-[fill]
-enabled = false
-[fusion]
-max_points = 20000
-[train]
-warmup_steps = {steps}
-refine_steps = 0
-[auxiliary]
-enabled = false
-"""
+from tests.reconstructor.tiny import tiny_config_toml, tiny_eval_session
 
 
 @pytest.fixture(scope="module")
@@ -43,13 +28,10 @@ def session(tmp_path_factory) -> tuple[Path, Path]:
     """Six consecutive sets (15 fps, 2.0 s to 2.33 s) of the intraoperative sim, and a tiny
     config."""
     root = tmp_path_factory.mktemp("case")
-    spec = EvalSetSpec(
-        phases=("intraoperative",), sets=6, eval_sets=(0,), instants=1, view_size_px=(64, 40)
-    )
-    write_eval_set(root / "es", spec)
+    folder = tiny_eval_session(root, sets=6)
     config = root / "tiny.toml"
-    config.write_text(TINY.format(steps=3))
-    return root / "es" / "intraoperative" / "session.h5", config
+    config.write_text(tiny_config_toml(3))
+    return folder / "session.h5", config
 
 
 def _index(folder: Path) -> dict:
@@ -110,7 +92,7 @@ def test_a_case_holds_one_checked_model_per_timestamp_and_a_rerun_skips_them(ses
 
     # other settings in the same folder are refused, and nothing finished is touched
     other = tmp_path / "other.toml"
-    other.write_text(TINY.format(steps=4))
+    other.write_text(tiny_config_toml(4))
     refused = run_egosurg(*_args(h5, other, out, "--every", "0.1s", "--cold"))
     assert refused.returncode == 2 and "Traceback" not in refused.stderr
     assert "other settings" in refused.stderr and "--force" in refused.stderr
@@ -123,7 +105,7 @@ def test_a_case_holds_one_checked_model_per_timestamp_and_a_rerun_skips_them(ses
 def test_a_run_killed_halfway_resumes_and_the_index_never_names_a_partial_file(session, tmp_path):
     h5, _ = session
     config = tmp_path / "slower.toml"
-    config.write_text(TINY.format(steps=40))  # long enough to be caught halfway
+    config.write_text(tiny_config_toml(40))  # long enough to be caught halfway
     out = tmp_path / "case"
     argv = [sys.executable, "-m", "protocol.cli", *_args(h5, config, out, "--every", "0.0667s")]
     proc = subprocess.Popen(

@@ -14,7 +14,7 @@ import pytest
 from reconstructor.case.index import CaseIndex
 from reconstructor.case.storage import load_model
 from tests.helpers import run_egosurg
-from tests.reconstructor.test_case import TINY, session  # noqa: F401  (the fixture)
+from tests.reconstructor.test_case import session  # noqa: F401  (the fixture)
 
 ray = pytest.importorskip("ray")
 

@@ -18,13 +18,15 @@ from reconstructor.case.index import CaseIndex, Entry, checksum_file
 from reconstructor.case.warm import WarmStartConfig, seed_from_previous, warm_config
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import load_timestamp
+from reconstructor.errors import CaseStorageError
 from reconstructor.evaluation.metrics import psnr
 from reconstructor.pipeline import reconstruct
 from reconstructor.replay.models import CaseModels
 from reconstructor.splats import ply
 from tests.helpers import run_egosurg
-from tests.reconstructor.test_case import TINY, session  # noqa: F401  (the module's fixture)
+from tests.reconstructor.test_case import session  # noqa: F401  (the module's fixture)
 from tests.reconstructor.test_ply import random_gaussians
+from tests.reconstructor.tiny import tiny_config_toml
 
 
 def _psnr(g, view, raster) -> float:
@@ -41,7 +43,7 @@ def test_a_stored_warm_chain_renders_within_a_tenth_of_a_db_of_the_trained_model
 ):
     h5, _ = session
     calibration = RigCalibration.read(h5.parent / "calibration.toml")
-    cold = ReconstructConfig.from_toml(TINY.format(steps=4))
+    cold = ReconstructConfig.from_toml(tiny_config_toml(4))
     wcfg = WarmStartConfig(steps=3, keyframe_every=3)
     warm = warm_config(cold, wcfg)
     parent, ref = None, None
@@ -226,7 +228,7 @@ def test_a_timestamp_keeps_the_points_its_stereo_saw_within_half_a_grid_step(tmp
     blob = bytearray(with_points.read_bytes())
     blob[len(blob) // 2] ^= 0xFF
     with_points.write_bytes(bytes(blob))
-    with pytest.raises(storage.CaseStorageError, match=r"a\.npz.*fails its checksum"):
+    with pytest.raises(CaseStorageError, match=r"a\.npz.*fails its checksum"):
         storage.load_points(tmp_path, good)
 
 
@@ -294,7 +296,7 @@ def test_a_crafted_model_file_is_refused_in_one_line_without_inflating_it(tmp_pa
 
     tracemalloc.start()
     try:
-        with pytest.raises(storage.CaseStorageError, match=r"m\.npz") as err:
+        with pytest.raises(CaseStorageError, match=r"m\.npz") as err:
             storage.load_stored(tmp_path, "models/m.npz", digest, size)
         peak = tracemalloc.get_traced_memory()[1]
     finally:

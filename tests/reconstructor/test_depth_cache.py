@@ -21,35 +21,18 @@ from reconstructor.data.frames import load_timestamp
 from reconstructor.depth.cache import DepthCache, describe_made_by, stage_key
 from reconstructor.errors import DepthCacheError
 from reconstructor.pipeline import reconstruct
-from sim.eval_set import EvalSetSpec, write_eval_set
 from tests.helpers import run_egosurg
-
-TINY = """
-train_max_width_px = 96
-[stereo]
-match_scale = 0.25
-[fusion]
-max_points = 20000
-[train]
-warmup_steps = 2
-refine_steps = 0
-[auxiliary]
-enabled = false
-"""
+from tests.reconstructor.tiny import tiny_config_toml, tiny_eval_session
 
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     """One set of the intraoperative sim, its calibration and a tiny config."""
     root = tmp_path_factory.mktemp("depth_cache")
-    spec = EvalSetSpec(
-        phases=("intraoperative",), sets=1, eval_sets=(0,), instants=1, view_size_px=(64, 40)
-    )
-    write_eval_set(root / "es", spec)
-    folder = root / "es" / "intraoperative"
+    folder = tiny_eval_session(root, sets=1)
     calibration = RigCalibration.read(folder / "calibration.toml")
     ts = load_timestamp(folder / "session.h5", calibration, "set:0")
-    (root / "tiny.toml").write_text(TINY)
+    (root / "tiny.toml").write_text(tiny_config_toml(2, fill=True))
     cfg = ReconstructConfig.read(root / "tiny.toml")
     return root, ts, calibration, cfg
 

@@ -1,7 +1,8 @@
-"""The depth term (reconstructor/splats/depth_term.py, depth/reproject.py's depth_targets): the
-rendered depth is the surface's, the term pulls a Gaussian along its ray toward the stereo
-depth, a depth map drawn into its own view gives back its depths, and training with the term
-keeps Gaussians on the true surfaces of the sim's room where the images alone let them drift."""
+"""The depth term (reconstructor/splats/depth_term.py, reconstructor/depth/reproject.py's
+depth_targets): the rendered depth is the surface's, the term pulls a Gaussian along its ray
+toward the stereo depth, a depth map drawn into its own view gives back its depths, and training
+with the term keeps Gaussians on the true surfaces of the sim's room where the images alone let
+them drift."""
 
 from __future__ import annotations
 

@@ -19,11 +19,13 @@ import pytest
 import torch
 
 from protocol.cli import main as egosurg
+from protocol.command import CommandArgumentError
 from protocol.formats.eval_set import EvalSet, EvalSetError
 from protocol.formats.rig_calibration import RigCalibration
+from reconstructor.errors import LpipsWeightsError
 from reconstructor.evaluation.doc import measured_order, order_holds
-from reconstructor.evaluation.lpips import LpipsWeightsError, backbone_state_dict, load_lpips
-from reconstructor.evaluation.methods import PROTOCOLS, EvalSettings, EvaluationArgumentError
+from reconstructor.evaluation.lpips import backbone_state_dict, load_lpips
+from reconstructor.evaluation.methods import PROTOCOLS, EvalSettings
 from reconstructor.evaluation.plan import plan
 from reconstructor.evaluation.run import check_plan
 from reconstructor.evaluation.runner import EvalSource
@@ -210,15 +212,15 @@ def test_a_protocol_the_set_cannot_serve_is_refused_by_name(eval_set):
         ("temporal", "at least two temporal_sets"),
         ("phases", "a phase"),
     ):
-        with pytest.raises(EvaluationArgumentError, match=f"--protocol {protocol}: .*{words}"):
+        with pytest.raises(CommandArgumentError, match=f"--protocol {protocol}: .*{words}"):
             plan(EvalSettings(protocols=(protocol,)), bare)
     assert len(plan(EvalSettings(protocols=("near-field",)), bare)) == 1
 
 
 def test_scenes_and_phases_choose_among_the_set_s_scenes(eval_set):
-    with pytest.raises(EvaluationArgumentError, match=f"--scenes nope: .* it has {PHASE}"):
+    with pytest.raises(CommandArgumentError, match=f"--scenes nope: .* it has {PHASE}"):
         plan(EvalSettings(scenes=("nope",)), eval_set)
-    with pytest.raises(EvaluationArgumentError, match=f"--phases empty: .*phases: {PHASE}"):
+    with pytest.raises(CommandArgumentError, match=f"--phases empty: .*phases: {PHASE}"):
         plan(EvalSettings(phases=("empty",)), eval_set)
     assert len(plan(EvalSettings(scenes=(PHASE,), phases=(PHASE,)), eval_set)) == 1
 

@@ -11,7 +11,6 @@ from protocol.camera import Camera, Intrinsics, Pose
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.views import view_from_image
 from reconstructor.errors import ReconstructConfigError
-from reconstructor.evaluation.metrics import psnr
 from reconstructor.raster import RasterConfig
 from reconstructor.refine.base import Refined, Refiner, RefineRequest
 from reconstructor.refine.eye_views import (
@@ -22,22 +21,11 @@ from reconstructor.refine.eye_views import (
     reference_order,
     sample_eye_poses,
 )
-from reconstructor.splats.train import TrainConfig, Trainer, ViewGroup, render, scene_extent_m
-from tests.reconstructor.small_scene import ROOM, T_S, TruthRefiner, true_depth_scene
+from reconstructor.splats.train import TrainConfig, Trainer, ViewGroup, scene_extent_m
+from tests.reconstructor.small_scene import ROOM, T_S, TruthRefiner, mean_psnr, true_depth_scene
 
 SIZE = (80, 50)
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    import numba
-
-    before = torch.get_num_threads(), numba.get_num_threads()
-    torch.set_num_threads(1)
-    numba.set_num_threads(1)
-    yield
-    torch.set_num_threads(before[0])
-    numba.set_num_threads(before[1])
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _table_and_floor(rng) -> np.ndarray:
@@ -210,13 +198,6 @@ def test_training_on_true_eye_views_improves_the_views_people_see(scene, world):
         held.append(view_from_image(cam, world.render(cam, T_S).image_rgb))
     assert len(held) == 8
 
-    def score(model) -> float:
-        with torch.no_grad():
-            return float(np.mean([
-                psnr(render(model, h, raster).image.clamp(0, 1).numpy(), h.image.numpy())
-                for h in held
-            ]))  # fmt: skip
-
     scores = {}
     for arm, groups in (
         ("wall cameras", [ViewGroup(views, 1.0)]),
@@ -226,6 +207,6 @@ def test_training_on_true_eye_views_improves_the_views_people_see(scene, world):
         t = Trainer(model, train, raster, scene_extent_m(views))
         t.step_index = train.warmup_steps
         t.run_mixed(groups, train.refine_steps)
-        scores[arm] = score(model)
+        scores[arm] = mean_psnr(model, held, raster)
     print(f"held-out eye-height PSNR: {scores}")
     assert scores["wall cameras + eye views"] > scores["wall cameras"] + 0.3

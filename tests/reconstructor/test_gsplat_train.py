@@ -11,9 +11,10 @@ import statistics
 import pytest
 import torch
 
+from reconstructor.errors import GpuUnavailableError
 from reconstructor.evaluation.metrics import psnr
 from reconstructor.raster import RasterConfig
-from reconstructor.raster.gsplat_backend import GpuUnavailableError, require_gpu
+from reconstructor.raster.gsplat_backend import require_gpu
 from reconstructor.splats import ply
 from reconstructor.splats.train import TrainConfig, Trainer, render
 

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from reconstructor.config import ReconstructConfig
-from reconstructor.data.frames import TimestampError, resolve_at
-from reconstructor.errors import ReconstructConfigError
+from reconstructor.data.frames import resolve_at
+from reconstructor.errors import ReconstructConfigError, TimestampError
 from reconstructor.evaluation.metrics import psnr, ssim_value
 
 

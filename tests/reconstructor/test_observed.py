@@ -19,10 +19,10 @@ from protocol.formats.rig_calibration import RigCalibration, SensorCalibration
 from protocol.formats.site import SiteBox, site_toml
 from protocol.formats.trajectory import Keyframe, Trajectory, write_trajectories
 from reconstructor.case.index import CaseIndex, Entry, checksum_file
+from reconstructor.errors import ObservedError
 from reconstructor.raster import RasterConfig
 from reconstructor.replay.observed import (
     ObservedConfig,
-    ObservedError,
     observation_counts,
     observed_map,
     run_input_cameras,

@@ -26,9 +26,10 @@ import numpy as np
 import pytest
 import torch
 
+from reconstructor.errors import GpuUnavailableError
 from reconstructor.raster import RasterConfig, rasterize
 from reconstructor.raster.device import for_device
-from reconstructor.raster.gsplat_backend import GpuUnavailableError, require_gpu
+from reconstructor.raster.gsplat_backend import require_gpu
 from tests.helpers import run_egosurg
 from tests.reconstructor.test_raster import PARAMS, SCENES, make_scene
 

@@ -17,8 +17,8 @@ from protocol.formats.site import read_site
 from protocol.formats.trajectory import Keyframe, Trajectory, read_trajectories, write_trajectories
 from reconstructor.replay.models import CaseModels, ModelSource
 from reconstructor.replay.path import CameraPath
-from sim.eval_set import EvalSetSpec, write_eval_set
 from tests.helpers import run_egosurg
+from tests.reconstructor.tiny import tiny_config_toml, tiny_eval_session
 
 
 class Ran:
@@ -35,33 +35,13 @@ def egosurg(capsys, *args: str) -> Ran:
     return Ran(code, capsys.readouterr().err)
 
 
-TINY = """
-train_max_width_px = 96
-[stereo]
-match_scale = 0.25
-[fill]
-enabled = false
-[fusion]
-max_points = 20000
-[train]
-warmup_steps = 3
-refine_steps = 0
-[auxiliary]
-enabled = false
-"""
-
-
 @pytest.fixture(scope="module")
 def case(tmp_path_factory) -> dict[str, Path]:
     """Four sets (2.0-2.2 s) of the intraoperative sim, a case of three timestamps, the sim's
     true roles and site boxes."""
     root = tmp_path_factory.mktemp("replay")
-    spec = EvalSetSpec(
-        phases=("intraoperative",), sets=4, eval_sets=(0,), instants=1, view_size_px=(64, 40)
-    )
-    write_eval_set(root / "es", spec)
-    (root / "tiny.toml").write_text(TINY)
-    h5 = root / "es" / "intraoperative" / "session.h5"
+    h5 = tiny_eval_session(root, sets=4) / "session.h5"
+    (root / "tiny.toml").write_text(tiny_config_toml(3))
     done = run_egosurg("reconstruct", str(h5), "--config", str(root / "tiny.toml"),
                        "--every", "0.0667s", "--out", str(root / "case"), timeout=300)  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]

@@ -30,7 +30,8 @@ from reconstructor.replay.sterile import (
 )
 from reconstructor.splats import ply
 from reconstructor.splats.gaussians import GaussianInitConfig, init_from_points
-from sim.contact import DRAPE_FIELD, true_field_intervals
+from sim.contact import DRAPE_FIELD
+from sim.contact_truth import true_field_intervals
 from sim.roles import role_trajectories
 from sim.world import World
 from tests.helpers import run_egosurg

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calibration.bundle import FlatObservations, RigState, SensorModels
 from calibration.observations import WandObservations
+from calibration.solve.bundle import FlatObservations, RigState, SensorModels
 from protocol.camera import undistort_to_normalized
 
 log = logging.getLogger(__name__)

@@ -9,7 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from calibration.report import ReportData, Thresholds, coverage_counts, residual_stats
+from calibration.report.stats import ReportData, coverage_counts, residual_stats
+from calibration.report.thresholds import Thresholds
 from protocol.formats.rig_calibration import SensorCalibration
 
 

@@ -17,7 +17,7 @@ Increments are re-based at every call, so no angle wraps or hits a pole. Residua
 errors through the full OpenCV distortion model of each sensor. The Jacobian is analytic and
 sparse (each residual row touches 6 camera and 5 set columns): finite differences over the same
 structure (``jac_sparsity``) would cost about 25 residual evaluations per Jacobian, and
-``tests/test_calibration_solve.py`` checks the analytic one against them.
+``tests/calibration/test_solve.py`` checks the analytic one against them.
 """
 
 from __future__ import annotations

@@ -14,13 +14,14 @@ of the ellipse (``ellipse_centre``), which lies further from the principal point
 its worst cases are several times worse, so "sphere" is the default. The axis goes back through
 the lens (distortion, ``project_directions``) to give the centre's pixel; the cone's opening
 gives the distance ``D = R / sin(alpha)``. ``fit_sphere_outline`` does it all for one outline;
-``calibration.detect`` uses the pieces.
+``calibration.detect.detector`` uses the pieces.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -142,17 +143,29 @@ class SphereImageFit:
     residuals_px: np.ndarray  # (N,) signed, per edge point (positive: outside the fitted outline)
 
 
+class ConeFit(NamedTuple):
+    """A sphere's cone fitted robustly to its edge points: the centre's direction ``axis`` (3,),
+    ``sin_alpha``, the edge points' rays (N, 3), their signed residuals (N,) in px, and which
+    edge points are on the outline (N,)."""
+
+    axis: np.ndarray
+    sin_alpha: float
+    rays: np.ndarray
+    residuals_px: np.ndarray
+    keep: np.ndarray
+
+
 def fit_sphere_outline(
     edge_px: np.ndarray, intr: Intrinsics, sphere_radius_m: float, method: str = "sphere"
 ) -> SphereImageFit:
     """(N, 2) distorted edge pixels of one sphere -> its centre's image and its distance."""
     xy = undistort_to_normalized(np.asarray(edge_px, dtype=np.float64).reshape(-1, 2), intr)
     U = rays_from_normalized(xy)
-    axis, sin_alpha = _fit_cone(xy, U, method)
-    return _sphere_image(axis, sin_alpha, U, intr, sphere_radius_m)
+    axis, sin_alpha = fit_cone(xy, U, method)
+    return sphere_image(axis, sin_alpha, U, intr, sphere_radius_m)
 
 
-def _fit_cone(xy: np.ndarray, U: np.ndarray, method: str) -> tuple[np.ndarray, float]:
+def fit_cone(xy: np.ndarray, U: np.ndarray, method: str) -> tuple[np.ndarray, float]:
     if method == "sphere":
         return fit_sphere_cone(U)
     if method == "conic":
@@ -160,7 +173,7 @@ def _fit_cone(xy: np.ndarray, U: np.ndarray, method: str) -> tuple[np.ndarray, f
     raise ValueError(f"unknown centre method {method!r}; use one of {CENTRE_METHODS}")
 
 
-def _cone_residuals_px(
+def cone_residuals_px(
     U: np.ndarray, axis: np.ndarray, sin_alpha: float, focal_px: float
 ) -> np.ndarray:
     """Angle of each ray outside the cone, in px (f per radian: close enough for residuals)."""
@@ -168,7 +181,7 @@ def _cone_residuals_px(
     return ang * focal_px
 
 
-def _sphere_image(
+def sphere_image(
     axis: np.ndarray, sin_alpha: float, U: np.ndarray, intr: Intrinsics, sphere_radius_m: float
 ) -> SphereImageFit:
     e_norm = ellipse_centre(conic_of_sphere(axis, sin_alpha))
@@ -181,5 +194,5 @@ def _sphere_image(
         axis=axis,
         sin_alpha=sin_alpha,
         distance_m=sphere_radius_m / sin_alpha if sin_alpha > 0 else float("nan"),
-        residuals_px=_cone_residuals_px(U, axis, sin_alpha, f),
+        residuals_px=cone_residuals_px(U, axis, sin_alpha, f),
     )

@@ -1,6 +1,6 @@
 """What the wand detector is told and what it returns: ``DetectorConfig`` (how the wand's
 spheres look, learned from a few pixels with ``from_sphere_pixels``) and ``SphereBlob`` (one
-detected sphere). The detector itself is ``calibration.detect``.
+detected sphere). The detector itself is ``calibration.detect.detector``.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calibration.sphere_geometry import CENTRE_METHODS
+from calibration.detect.sphere_geometry import CENTRE_METHODS
 
 KERNELS = ("numba", "numpy")
 
@@ -101,6 +101,32 @@ class DetectorConfig:
         }
         learned.update(overrides)
         return cls(**learned)  # type: ignore[arg-type]
+
+    def hsv_bounds(self) -> tuple[tuple[int, int, int], tuple[int, int, int]]:
+        """The spheres' colour window in OpenCV HSV: (low, high), each (hue, saturation, value)."""
+        return (self.hue_range[0], self.min_saturation, self.min_value), (
+            self.hue_range[1],
+            255,
+            255,
+        )
+
+    def linear_levels(self) -> np.ndarray:
+        """(256,) float32: each 8-bit level with the camera's ``gamma`` undone (linear light)."""
+        levels = np.arange(256, dtype=np.float64) / 255.0
+        return (levels**self.gamma).astype(np.float32)
+
+    def sphere_direction_bgr(self) -> np.ndarray:
+        """(3,) the spheres' linear colour as a unit vector in B, G, R order, like the frames."""
+        rho = np.asarray(self.sphere_rgb, dtype=np.float64)[::-1]
+        return rho / np.linalg.norm(rho)
+
+
+def colour_mask(bgr: np.ndarray, config: DetectorConfig) -> np.ndarray:
+    """(h, w) uint8 0/1: the pixels of an (h, w, 3) BGR image inside the config's HSV window."""
+    hsv = cv2.cvtColor(bgr, cv2.COLOR_BGR2HSV)
+    lo = np.array([config.hue_range[0], config.min_saturation, config.min_value], np.uint8)
+    hi = np.array([config.hue_range[1], 255, 255], np.uint8)
+    return (cv2.inRange(hsv, lo, hi) > 0).astype(np.uint8)
 
 
 @dataclass(frozen=True, kw_only=True)

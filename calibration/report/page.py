@@ -1,6 +1,8 @@
 """The calibration report as a page: ``write_report(data, out_dir)`` writes ``report.html``
 (self-contained: the verdict at the top, tables, pictures embedded) and the pictures as PNGs next
-to it. The numbers and the verdict come from ``report.py``; the pictures from ``report_plots.py``.
+to it. The numbers come from ``calibration.report.stats``, the verdict from
+``calibration.report.verdict`` and the pictures from ``calibration.report.plots``: the page only
+lays them out.
 """
 
 from __future__ import annotations
@@ -11,24 +13,27 @@ import logging
 import math
 from pathlib import Path
 
-from calibration.report import (
-    PICTURES,
-    REPORT_FORMAT_VERSION,
-    ReportData,
-    Thresholds,
-    quality_table,
-    sensor_stats,
-    verdict,
-)
-from calibration.report_plots import (
+from calibration.report.plots import (
     plot_coverage,
     plot_histograms,
     plot_residual_radius,
     plot_rig,
     plot_wand,
 )
+from calibration.report.stats import ReportData, sensor_stats
+from calibration.report.thresholds import Thresholds
+from calibration.report.verdict import quality_table, verdict
 
 log = logging.getLogger(__name__)
+
+REPORT_FORMAT_VERSION = 1
+PICTURES = {
+    "coverage": "coverage.png",
+    "residual_radius": "residual_vs_radius.png",
+    "residual_hist": "residual_histograms.png",
+    "rig": "rig_top_down.png",
+    "wand": "wand_length.png",
+}
 
 
 # -- the page ---------------------------------------------------------------------------------
@@ -109,27 +114,38 @@ def _table(header: list[str], rows: list[str]) -> str:
 
 
 def _html(data: ReportData, th: Thresholds, pngs: dict[str, bytes]) -> str:
-    passed, reasons = verdict(data, th)
-    q = quality_table(data, th)
-    stats = sensor_stats(data, th)
-    cal = data.calibration
     e = html.escape
+    return (
+        f'<!DOCTYPE html><html><head><meta charset="utf-8"><title>{e(data.title)}</title>'
+        f"<style>{_CSS}</style></head><body>{_banner(data, th)}<h2>{e(data.title)}</h2>"
+        f"<h3>Overall</h3>{_overall(data, th)}<h3>Per sensor</h3>{_per_sensor(data, th)}"
+        f"<h3>Pictures</h3>{_figures(pngs, th)}<h3>Calibrated cameras</h3>{_geometry(data)}"
+        f"<h3>Pass/fail limits</h3>{_limits(th)}<h3>Conventions</h3>{_about(data)}</body></html>\n"
+    )
+
+
+def _banner(data: ReportData, th: Thresholds) -> str:
+    """The verdict, first thing on the page: pass, or fail with what to fix."""
+    passed, reasons = verdict(data, th)
     if passed:
-        banner = (
+        return (
             '<div class="banner pass"><h1>PASSED: the camera calibration is good enough to use.'
             "</h1><p>All cameras agree on where the wand was to within the limits below; 3D "
             "reconstructions made with this calibration will line up across cameras.</p></div>"
         )
-    else:
-        items = "".join(f"<li>{e(r)}</li>" for r in reasons)
-        banner = (
-            '<div class="banner fail"><h1>FAILED: do not use this calibration.</h1><p>The '
-            "cameras' positions could not be measured precisely enough, so 3D reconstructions "
-            "would not line up. What to fix:</p>"
-            f"<ul>{items}</ul></div>"
-        )
+    items = "".join(f"<li>{html.escape(r)}</li>" for r in reasons)
+    return (
+        '<div class="banner fail"><h1>FAILED: do not use this calibration.</h1><p>The '
+        "cameras' positions could not be measured precisely enough, so 3D reconstructions "
+        "would not line up. What to fix:</p>"
+        f"<ul>{items}</ul></div>"
+    )
+
+
+def _overall(data: ReportData, th: Thresholds) -> str:
+    q = quality_table(data, th)
     wl_ok = not (q["wand_score"] > th.wand_score_pct)
-    overall = _table(
+    return _table(
         ["Quantity", "Value", "Limit"],
         [
             "<td>Mean reprojection error (px)</td>"
@@ -150,6 +166,27 @@ def _html(data: ReportData, th: Thresholds, pngs: dict[str, bytes]) -> str:
             f"<td>Sets with a measured wand</td><td>{q['wand_sets']}</td><td></td>",
         ],
     )
+
+
+_SENSOR_HEADER = [
+    "Sensor",
+    "Image",
+    "Frames used",
+    "Frames rejected",
+    "Usable frames",
+    "Kept / seen",
+    "Mean px",
+    "Median px",
+    "RMS px",
+    "p95 px",
+    "Coverage cells",
+    "Rejection reasons",
+]
+
+
+def _per_sensor(data: ReportData, th: Thresholds) -> str:
+    stats = sensor_stats(data, th)
+    e = html.escape
     rows = []
     for s in data.sensors:
         st = stats[s.name]
@@ -174,48 +211,38 @@ def _html(data: ReportData, th: Thresholds, pngs: dict[str, bytes]) -> str:
             )
             + f"<td>{e(why_txt) or '-'}</td>"
         )
-    per_sensor = _table(
-        [
-            "Sensor",
-            "Image",
-            "Frames used",
-            "Frames rejected",
-            "Usable frames",
-            "Kept / seen",
-            "Mean px",
-            "Median px",
-            "RMS px",
-            "p95 px",
-            "Coverage cells",
-            "Rejection reasons",
-        ],
-        rows,
-    )
+    return _table(_SENSOR_HEADER, rows)
+
+
+_GEOMETRY_HEADER = [
+    "Sensor",
+    "fx px",
+    "fy px",
+    "cx px",
+    "cy px",
+    "k1 k2 p1 p2 k3",
+    "Centre x, y, z (m)",
+    "Looks along x, y, z",
+]
+
+
+def _geometry(data: ReportData) -> str:
     geo = []
     for s in data.sensors:
         i, c = s.intrinsics, s.pose.centre_m
         d = s.pose.R[2]  # optical axis in world coordinates
         geo.append(
-            f"<td>{e(s.name)}</td><td>{i.fx_px:.2f}</td><td>{i.fy_px:.2f}</td>"
+            f"<td>{html.escape(s.name)}</td><td>{i.fx_px:.2f}</td><td>{i.fy_px:.2f}</td>"
             f"<td>{i.cx_px:.2f}</td><td>{i.cy_px:.2f}</td>"
             f"<td>{' '.join(f'{v:.5g}' for v in i.dist)}</td>"
             f"<td>{c[0]:.3f}, {c[1]:.3f}, {c[2]:.3f}</td>"
             f"<td>{d[0]:.3f}, {d[1]:.3f}, {d[2]:.3f}</td>"
         )
-    geometry = _table(
-        [
-            "Sensor",
-            "fx px",
-            "fy px",
-            "cx px",
-            "cy px",
-            "k1 k2 p1 p2 k3",
-            "Centre x, y, z (m)",
-            "Looks along x, y, z",
-        ],
-        geo,
-    )
-    limits = _table(
+    return _table(_GEOMETRY_HEADER, geo)
+
+
+def _limits(th: Thresholds) -> str:
+    return _table(
         ["Limit", "Value"],
         [
             f"<td>Mean reprojection error, rig / each sensor</td><td>{th.mean_px:g} / "
@@ -230,22 +257,32 @@ def _html(data: ReportData, th: Thresholds, pngs: dict[str, bytes]) -> str:
             "</td>",
         ],
     )
+
+
+def _figures(pngs: dict[str, bytes], th: Thresholds) -> str:
     figs = []
     for key, png in pngs.items():
         cap = _CAPTIONS[key].format(g=th.coverage_grid, p=th.min_points_per_cell)
         b64 = base64.b64encode(png).decode("ascii")
         figs.append(
             f'<figure><img alt="{key}" src="data:image/png;base64,{b64}">'
-            f'<figcaption>{e(cap)} (<a href="{PICTURES[key]}">{PICTURES[key]}</a>)</figcaption>'
+            f"<figcaption>{html.escape(cap)} "
+            f'(<a href="{PICTURES[key]}">{PICTURES[key]}</a>)</figcaption>'
             "</figure>"
         )
+    return "".join(figs)
+
+
+def _about(data: ReportData) -> str:
+    cal = data.calibration
+    e = html.escape
     meta = {**cal.metadata}
     frame = (
         "z = 0 on the floor, z up"
         if cal.world_frame == "floor"
         else "the world is the named sensor's camera frame"
     )
-    about = (
+    return (
         f"<p>Resolution {e(cal.resolution.value)}; world frame <code>{e(cal.world_frame)}</code>"
         f" (metres; {frame}). Cameras use OpenCV axes (x right, y down, z forward); poses are "
         "world-to-camera, <code>x_cam = R x_world + t</code>. Pixel errors are observed minus "
@@ -253,13 +290,3 @@ def _html(data: ReportData, th: Thresholds, pngs: dict[str, bytes]) -> str:
         + (f"<p>{e(', '.join(f'{k}: {v}' for k, v in meta.items()))}</p>" if meta else "")
         + f"<p>Report format {REPORT_FORMAT_VERSION}.</p>"
     )
-    return (
-        f'<!DOCTYPE html><html><head><meta charset="utf-8"><title>{e(data.title)}</title>'
-        f"<style>{_CSS}</style></head><body>{banner}<h2>{e(data.title)}</h2>"
-        f"<h3>Overall</h3>{overall}<h3>Per sensor</h3>{per_sensor}"
-        f"<h3>Pictures</h3>{''.join(figs)}<h3>Calibrated cameras</h3>{geometry}"
-        f"<h3>Pass/fail limits</h3>{limits}<h3>Conventions</h3>{about}</body></html>\n"
-    )
-
-
-# -- pictures -----------------------------------------------------------------------------------

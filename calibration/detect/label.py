@@ -32,7 +32,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from calibration.detect import SphereBlob, SphereDetector
+from calibration.detect.config import SphereBlob
+from calibration.detect.detector import SphereDetector
 from protocol.camera import undistort_to_normalized
 from protocol.formats.wand import WandSpec
 from protocol.formats.zed_conf import StereoCalibration

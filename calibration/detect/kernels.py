@@ -1,24 +1,24 @@
-"""Numba kernels of the wand detector (``calibration.detect``), each the fast twin of code there.
+"""Numba kernels of the wand detector (``calibration.detect.detector``), each the fast twin of
+slow, obvious code in ``calibration.detect._reference``.
 
 The detector's per-sphere work is many operations on arrays of a few hundred values: on 3-5 px
 spheres, many small float32 array operations cost more in numpy's per-call overhead than in
 arithmetic. These kernels do the same maths in float64 loops. Each is the fast twin of code in
-``calibration.detect`` (the names below, and in the kernels' docstrings, are that module's),
-which ``DetectorConfig(kernels="numpy")`` runs:
+``calibration.detect._reference`` (the names below, and in the kernels' docstrings, are that
+module's), which ``DetectorConfig(kernels="numpy")`` runs:
 
-  _bilinear_nb, _edge_points_nb  <-> _bilinear, SphereDetector._edge_points_reference (with
-                                     _coverage and _coverage_map): rays, bilinear samples,
-                                     unmixing and the edge crossing in one pass
-  _robust_cone_nb                <-> SphereDetector._robust_fit_reference ("sphere" method)
-  _ellipse_through_nb            <-> _ellipse_through
+  _bilinear_nb, edge_points_nb   <-> bilinear, edge_points (with _coverage and _coverage_map):
+                                     rays, bilinear samples, unmixing and the edge crossing in
+                                     one pass
+  robust_cone_nb                 <-> robust_fit ("sphere" method)
+  ellipse_through_nb             <-> ellipse_through
   _lstsq_nb, _median_nb, _smallest_right_singular_vector_nb <-> np.linalg.lstsq, np.median,
                                      np.linalg.svd (LAPACK in numba compiles slowly)
-  _moving_nb, _colour_where_nb   <-> SphereDetector._candidate_mask_reference (cv2): the
-                                     spheres' colour tested only near pixels that differ from
-                                     the background, by a table of cv2's own HSV test
-                                     (_colour_table, plain Python)
+  moving_nb, colour_where_nb     <-> candidate_mask (cv2): the spheres' colour tested only
+                                     near pixels that differ from the background, by a table of
+                                     cv2's own HSV test (colour_table, plain Python)
 
-tests/test_calibration_detect_kernels.py checks each pair against the other: the same edge
+tests/calibration/test_detect_kernels.py checks each pair against the other: the same edge
 points to 1e-4 px (1e-6 on the simulator), the same masks bit for bit. bench/bench_wand_detect.py
 compares the two on simulated sessions (about 3x). The kernels compile on first use (about 10 s
 per process) and are cached next to this file (``cache=True``), so later processes load them in
@@ -36,10 +36,10 @@ from numba import njit
 
 
 @functools.lru_cache(maxsize=8)
-def _colour_table(
+def colour_table(
     bounds: tuple[tuple[int, int, int], tuple[int, int, int]],
 ) -> np.ndarray:
-    """``_colour_mask``'s verdict on every BGR colour, one bit each (2 MB): bit
+    """``config.colour_mask``'s verdict on every BGR colour, one bit each (2 MB): bit
     ``(b << 16) | (g << 8) | r``, little-endian within bytes. Made by ``cv2`` itself (HSV
     conversion and ``inRange``), so a look-up is exactly what the reference computes."""
     lo, hi = (np.array(v, np.uint8) for v in bounds)
@@ -57,7 +57,7 @@ def _colour_table(
 
 @njit(cache=True, error_model="numpy")
 def _bilinear_setup(x: float, y: float, h: int, w: int) -> tuple[int, int, float, float, bool]:
-    """Top-left pixel, fractions and inside flag of a bilinear sample, as ``_bilinear``."""
+    """Top-left pixel, fractions and inside flag of a bilinear sample, as ``bilinear``."""
     inside = x >= 0.0 and y >= 0.0 and x <= w - 1 and y <= h - 1
     xc = min(max(x, 0.0), w - 1.001)
     yc = min(max(y, 0.0), h - 1.001)
@@ -80,7 +80,7 @@ def _lerp4(v00: float, v01: float, v10: float, v11: float, fx: float, fy: float)
 
 @njit(cache=True, error_model="numpy")
 def _bilinear_nb(img: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``_bilinear`` (in float64): samples (N, C) of (h, w, C) ``img`` at (N, 2) (x, y)."""
+    """``bilinear`` (in float64): samples (N, C) of (h, w, C) ``img`` at (N, 2) (x, y)."""
     h, w, nc = img.shape
     n = pts.shape[0]
     out = np.empty((n, nc))
@@ -122,7 +122,7 @@ def _cover_px(
 
 
 @njit(cache=True, error_model="numpy")
-def _edge_points_nb(
+def edge_points_nb(
     roi: np.ndarray,
     bg: np.ndarray,
     has_bg: bool,
@@ -137,7 +137,7 @@ def _edge_points_nb(
     clip_level: int,
     min_contrast: float,
 ) -> tuple[np.ndarray, int]:
-    """``SphereDetector._edge_points`` (with ``_coverage``) in one pass over the rays."""
+    """``edge_points`` (with ``_coverage``) in one pass over the rays."""
     h, w = roi.shape[0], roi.shape[1]
     n_off = off.shape[0]
     # the rays: as many as the expected outline's mean radius asks for
@@ -415,10 +415,10 @@ def _smallest_right_singular_vector_nb(M: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, error_model="numpy")
-def _robust_cone_nb(
+def robust_cone_nb(
     xy: np.ndarray, focal_px: float
 ) -> tuple[bool, np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
-    """``_robust_fit_reference`` for ``centre_method="sphere"``: (ok, axis, sin_alpha, rays,
+    """``robust_fit`` for ``centre_method="sphere"``: (ok, axis, sin_alpha, rays,
     residuals_px, keep) from (N, 2) normalized edge points."""
     n = xy.shape[0]
     U = np.empty((n, 3))
@@ -474,8 +474,8 @@ def _robust_cone_nb(
 
 
 @njit(cache=True, error_model="numpy")
-def _ellipse_through_nb(points: np.ndarray) -> tuple[bool, np.ndarray, np.ndarray]:
-    """``_ellipse_through``: (ok, centre (2,), shape A (2, 2)) of the conic through (N, 2) px."""
+def ellipse_through_nb(points: np.ndarray) -> tuple[bool, np.ndarray, np.ndarray]:
+    """``ellipse_through``: (ok, centre (2,), shape A (2, 2)) of the conic through (N, 2) px."""
     centre = np.zeros(2)
     A = np.zeros((2, 2))
     n = points.shape[0]
@@ -545,7 +545,7 @@ def _ellipse_through_nb(points: np.ndarray) -> tuple[bool, np.ndarray, np.ndarra
 
 
 @njit(cache=True, error_model="numpy")
-def _moving_nb(small: np.ndarray, background: np.ndarray, threshold: int) -> np.ndarray:
+def moving_nb(small: np.ndarray, background: np.ndarray, threshold: int) -> np.ndarray:
     """Flat (h * w) uint8 0/1: some channel of the flat (h * w * 3) frame differs from the
     background by more than ``threshold`` (``cv2.absdiff``, the channels' max, a threshold)."""
     n = small.shape[0] // 3
@@ -561,9 +561,9 @@ def _moving_nb(small: np.ndarray, background: np.ndarray, threshold: int) -> np.
 
 
 @njit(cache=True, error_model="numpy")
-def _colour_where_nb(small: np.ndarray, where: np.ndarray, colour_bits: np.ndarray) -> np.ndarray:
-    """Flat (h * w) uint8 0/1: ``_colour_mask`` of the flat (h * w * 3) frame, looked up in
-    ``_colour_table``, only where ``where`` (flat (h * w)) is set; 0 elsewhere."""
+def colour_where_nb(small: np.ndarray, where: np.ndarray, colour_bits: np.ndarray) -> np.ndarray:
+    """Flat (h * w) uint8 0/1: ``config.colour_mask`` of the flat (h * w * 3) frame, looked up in
+    ``colour_table``, only where ``where`` (flat (h * w)) is set; 0 elsewhere."""
     n = where.shape[0]
     out = np.zeros(n, np.uint8)
     words = where[: n - n % 8].view(np.uint64)  # skip eight clear bytes at a time

@@ -1,0 +1,21 @@
+"""Fixtures the reconstructor's tests share."""
+
+from __future__ import annotations
+
+import pytest
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """Torch and numba on one thread each for a module: images of 80x50 pixels gain nothing from
+    threads, and on a shared, loaded machine the threads of torch and numba wait for each other
+    (one thread each ran test_auxiliary.py ~4x faster)."""
+    import numba
+    import torch
+
+    before = torch.get_num_threads(), numba.get_num_threads()
+    torch.set_num_threads(1)
+    numba.set_num_threads(1)
+    yield
+    torch.set_num_threads(before[0])
+    numba.set_num_threads(before[1])
