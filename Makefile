@@ -37,15 +37,16 @@ bench: $(STAMP)
 # it skips without it).
 system-deps:
 	@if ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' && command -v h5dump >/dev/null \
-			&& ls /usr/lib/*/faketime/libfaketime.so.1 >/dev/null 2>&1 && command -v chromium >/dev/null; then \
-		echo "system: libusb-1.0-0, hdf5-tools, libfaketime and chromium present"; \
+			&& ls /usr/lib/*/faketime/libfaketime.so.1 >/dev/null 2>&1 && command -v chromium >/dev/null \
+			&& test -x /usr/sbin/ptp4l; then \
+		echo "system: libusb-1.0-0, hdf5-tools, libfaketime, linuxptp and chromium present"; \
 	elif [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
-		echo "system: installing libusb-1.0-0 (for open3d), hdf5-tools (h5dump), libfaketime and chromium (tests)"; \
-		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 hdf5-tools libfaketime \
+		echo "system: installing libusb-1.0-0 (for open3d), hdf5-tools (h5dump), libfaketime, linuxptp (PTP) and chromium (tests)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 hdf5-tools libfaketime linuxptp \
 			&& { DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium \
 				|| echo "system: chromium not installed (optional: the browser test skips)"; }; \
 	elif ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
-		echo "system: hdf5-tools missing (optional: sudo apt-get install hdf5-tools for h5dump)"; \
+		echo "system: hdf5-tools or linuxptp missing (optional: sudo apt-get install hdf5-tools linuxptp)"; \
 	else \
 		echo "open3d needs the system library libusb-1.0-0, which is missing."; \
 		echo "Install it as root, then run make again:  sudo apt-get install libusb-1.0-0 hdf5-tools"; \

@@ -17,16 +17,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import Literal
 
 from protocol.camera import Resolution
 from protocol.config_fields import check, option, validate
 from protocol.errors import ConfigError
 
 FaultKind = Literal["hang", "vanish"]
-FAULT_KINDS: tuple[FaultKind, ...] = get_args(FaultKind)
-PreEncoding = Literal["jpeg"]
-PRE_ENCODINGS: tuple[PreEncoding, ...] = get_args(PreEncoding)
 DEFAULT_SETTINGS_DIR = "/usr/local/zed/settings"
 
 
@@ -161,4 +158,3 @@ class VideoSourceConfig:
 
 
 CameraConfig = SimSourceConfig | ZedSourceConfig | VideoSourceConfig
-SOURCE_KINDS = ("sim", "zed", "video")

@@ -70,7 +70,6 @@ from protocol.wire import MAX_FRAME_BYTES
 __all__ = [
     "ENCODINGS",
     "MIN_RECEIVE_MESSAGES",
-    "PTP_SOURCES",
     "AgentEndpoint",
     "EncodingName",
     "NodeConfig",
@@ -83,7 +82,6 @@ __all__ = [
 EncodingName = Literal["jpeg", "raw_bgr8"]
 ENCODINGS: tuple[EncodingName, ...] = get_args(EncodingName)
 PtpSource = Literal["pmc", "none"]  # "none": no PTP (simulation)
-PTP_SOURCES: tuple[PtpSource, ...] = get_args(PtpSource)
 MIN_RECEIVE_MESSAGES = 8  # the smallest receive queue per agent that receive_buffer_mb may give
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,31}$")
 _NAME_HINT = "must be a name of letters, digits, - _ . (at most 32)"
@@ -113,6 +111,13 @@ class PtpConfig:
     require_lock: bool = True
     poll_interval_s: float = option(1.0, ge=0.05, le=60, must="must be from 0.05 to 60 seconds")
     timeout_s: float = option(2.0, gt=0, le=30, must="must be > 0 and <= 30 s")
+    ptp4l_socket: str = option(
+        "/var/run/ptp4l", test=bool, must="must name ptp4l's uds_address (its UNIX socket)"
+    )
+    pmc_client_dir: str = ""  # "": $RUNTIME_DIRECTORY, else the temp folder
+    # CLOCK_REALTIME vs the NIC's clock: further apart, phc2sys is not running or not locked
+    system_clock_threshold_ns: int = option(20_000, gt=0, must="must be > 0 ns")
+    phc_device: str = ""  # "": the PHC of ptp4l's interface (ethtool -T)
 
     def __post_init__(self) -> None:
         validate(self)

@@ -32,7 +32,7 @@ from typing import Any
 
 import zmq
 
-from protocol.errors import UserError
+from capture_agent.errors import Refused
 from protocol.safe_text import brief, safe_text
 from protocol.wire import (
     MAX_JSON_BYTES,
@@ -53,10 +53,6 @@ _LAST_RESORT = ControlReply(
     error="internal error while answering; the daemon goes on, see its log",
     request_id="",
 ).to_bytes()
-
-
-class Refused(UserError, RuntimeError):
-    """A request that cannot be done now; the message says why and what to do."""
 
 
 Handler = Callable[[ControlRequest], dict[str, Any]]

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import os
+import pwd
 import stat
 import threading
 from collections.abc import Mapping
@@ -91,15 +92,36 @@ def _z85_key(value: bytes | None, path: Path, which: str) -> bytes:
 
 
 def _read_certificate(path: Path, what: str) -> tuple[bytes | None, bytes | None]:
+    # Opened here first because zmq says only "Invalid certificate file" for a file this user
+    # may not read (keys made by 'sudo egosurg keys generate' without --owner).
+    try:
+        with open(path, "rb"):
+            pass
+    except PermissionError:
+        raise ConfigError(_unreadable(path, what)) from None
+    except (FileNotFoundError, NotADirectoryError):
+        raise ConfigError(
+            f"{what} {path} does not exist; make it with 'egosurg keys generate' or fix the "
+            "path in the config"
+        ) from None
+    except OSError as exc:
+        raise ConfigError(f"{what} {path} cannot be read as a key file: {exc}") from None
     try:
         return zmq.auth.load_certificate(path)
     except (OSError, ValueError) as exc:
-        if not path.exists():
-            raise ConfigError(
-                f"{what} {path} does not exist; make it with 'egosurg keys generate' or fix the "
-                "path in the config"
-            ) from None
         raise ConfigError(f"{what} {path} cannot be read as a key file: {exc}") from None
+
+
+def _unreadable(path: Path, what: str) -> str:
+    try:
+        user = pwd.getpwuid(os.geteuid()).pw_name
+    except KeyError:  # a uid without a passwd entry (a container)
+        user = f"uid {os.geteuid()}"
+    return (
+        f"{what} {path} cannot be read by user {user}: make the key owned by that user "
+        f"('sudo chown {user}: {path}' and let it enter the folder), or make new keys with "
+        f"'sudo egosurg keys generate --owner {user} --out DIR --name NAME'"
+    )
 
 
 def check_secret_mode(path: Path) -> None:

@@ -61,3 +61,21 @@ def add_subcommand(
     if func is not None:
         p.set_defaults(func=func)
     return p
+
+
+def parse_size_px(
+    text: str, option: str, *, min_px: int = 16, max_px: int | None = 8192, even: bool = False
+) -> tuple[int, int]:
+    """``"960x600"`` -> ``(960, 600)``, the (width, height) in pixels an option such as
+    ``--size`` names; ``even``: both sides even (a video encoder's 4:2:0 chroma needs it)."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise CommandArgumentError(f"{option} {text!r}: write it as WxH, e.g. 960x600") from None
+    top = max_px if max_px is not None else max(w, h, min_px)
+    if not (min_px <= w <= top and min_px <= h <= top) or (even and (w % 2 or h % 2)):
+        sides = f"{min_px} to {max_px} px" if max_px is not None else f"at least {min_px} px"
+        raise CommandArgumentError(
+            f"{option} {text!r}: {'even ' if even else ''}sides of {sides}, e.g. 960x600"
+        )
+    return w, h

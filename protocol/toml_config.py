@@ -23,8 +23,8 @@ This module imports nothing heavy (the capture edge imports it) and is the only 
 Example::
 
     cfg = read_table(PtpConfig, {"lock_threshold_ns": 500}, "node.toml [ptp]")
-    cfg = read_file(NodeConfig, "node.toml", "node config")
-    Path("node.toml").write_text(dumps(cfg, comment="written by sim.deploy"))
+    cfg = read_file(PtpConfig, "ptp.toml", "the PTP settings")
+    Path("ptp.toml").write_text(dumps(cfg, comment="written by hand"))
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ import dataclasses
 import enum
 import sys
 import typing
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
@@ -63,10 +64,12 @@ __all__ = [
 ]
 
 T = TypeVar("T")
+# the error a reader raises: ConfigError, or a format's own (a UserError and ValueError too)
+ErrorType = Callable[[str], Exception]
 _MISSING: Any = dataclasses.MISSING
 
 
-def parse_toml(text: str, source: str, *, error: type[ConfigError] = ConfigError) -> dict:
+def parse_toml(text: str, source: str, *, error: ErrorType = ConfigError) -> dict:
     """The table of TOML ``text``; ``error`` naming ``source`` when it is not valid TOML."""
     try:
         return tomllib.loads(text)
@@ -75,7 +78,7 @@ def parse_toml(text: str, source: str, *, error: type[ConfigError] = ConfigError
 
 
 def load_toml(
-    path: Path | str, what: str, *, error: type[ConfigError] = ConfigError
+    path: Path | str, what: str, *, error: ErrorType = ConfigError
 ) -> tuple[dict[str, Any], str]:
     """(parsed table, raw text) of the TOML file ``path`` (``what`` it is, for errors)."""
     p = Path(path)
@@ -88,9 +91,7 @@ def load_toml(
     return parse_toml(text, str(p), error=error), text
 
 
-def read_file(
-    cls: type[T], path: Path | str, what: str, *, error: type[ConfigError] = ConfigError
-) -> T:
+def read_file(cls: type[T], path: Path | str, what: str, *, error: ErrorType = ConfigError) -> T:
     """The dataclass ``cls`` read from the TOML file ``path``."""
     table, _ = load_toml(path, what, error=error)
     return read_table(cls, table, str(path), error=error)
@@ -102,7 +103,7 @@ def read_table(
     where: str,
     *,
     base: Any = None,
-    error: type[ConfigError] = ConfigError,
+    error: ErrorType = ConfigError,
 ) -> Any:
     """The dataclass ``cls`` (or, for a tagged union of dataclasses, the one its tag names) from a
     parsed TOML ``table``; ``where`` names the file (and table) in errors. With ``base``, keys
@@ -135,7 +136,7 @@ class _Reader:
     """Reads one file's tables; ``where`` names the file (and the table the read began at),
     ``prefix`` is the dotted key of the table being read (``"ptp."``, ``"cameras[1]."``)."""
 
-    def __init__(self, where: str, error: type[ConfigError]) -> None:
+    def __init__(self, where: str, error: ErrorType) -> None:
         self.where, self.error = where, error
 
     def read(self, cls: Any, table: object, prefix: str, base: Any) -> Any:

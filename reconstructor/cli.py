@@ -45,7 +45,7 @@ import numpy as np
 import torch
 
 from protocol.camera import Camera, Intrinsics, Pose
-from protocol.command import CommandArgumentError, command_parser
+from protocol.command import CommandArgumentError, command_parser, parse_size_px
 from protocol.errors import UserError
 from protocol.formats.rig_calibration import RigCalibration
 from reconstructor.config import ReconstructConfig
@@ -276,16 +276,6 @@ def parse_camera(
     raise CommandArgumentError(f"--camera {spec!r} is not a sensor of the calibration: {names}")
 
 
-def _parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-        if w < 8 or h < 8:
-            raise ValueError
-    except ValueError:
-        raise CommandArgumentError(f"--size {text!r}: write it as WxH, e.g. 960x600") from None
-    return w, h
-
-
 def render_camera(
     model_path: Path,
     camera: Camera,
@@ -346,7 +336,8 @@ def main_render(argv: list[str]) -> int:
         raise CommandArgumentError(
             f"--near-m {args.near_m}: give a distance in metres from 0 to 10 (0.2 from an eye)"
         )
-    camera = parse_camera(args.camera, calibration, args.hfov, _parse_size(args.size))
+    size_px = parse_size_px(args.size, "--size", min_px=8, max_px=None)
+    camera = parse_camera(args.camera, calibration, args.hfov, size_px)
     t0 = time.perf_counter()
     rgb = render_camera(model, camera, near_m=args.near_m, device=args.device or "cpu")
     out = Path(args.out)

@@ -24,7 +24,12 @@ import cv2
 import numpy as np
 
 from protocol.camera import Intrinsics, Pose, Resolution
-from protocol.command import CommandArgumentError, add_subcommand, command_parser
+from protocol.command import (
+    CommandArgumentError,
+    add_subcommand,
+    command_parser,
+    parse_size_px,
+)
 from sim.phases import PHASES
 
 log = logging.getLogger(__name__)
@@ -40,16 +45,6 @@ def _vector(text: str, what: str) -> np.ndarray:
     if len(vals) != 3:
         raise CommandArgumentError(f"{what} {text!r} must have three comma-separated numbers")
     return np.asarray(vals)
-
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise CommandArgumentError(f"size {text!r} must look like 960x600") from None
-    if not (16 <= w <= 8192 and 16 <= h <= 8192):
-        raise CommandArgumentError(f"size {text!r} is out of range (16 to 8192 px a side)")
-    return w, h
 
 
 def _world_args(p: argparse.ArgumentParser) -> None:
@@ -159,7 +154,7 @@ def cmd_wand_file(args: argparse.Namespace) -> int:
 
 def cmd_view(args: argparse.Namespace) -> int:
     world = _world(args)
-    w, h = _size(args.size)
+    w, h = parse_size_px(args.size, "--size")
     if args.person:
         heads = world.head_poses(args.t)
         if args.person not in heads:
@@ -220,7 +215,7 @@ def cmd_eval_set(args: argparse.Namespace) -> int:
             sets=args.sets,
             eval_sets=tuple(int(k) for k in args.eval_sets.split(",") if k.strip()),
             jpeg_quality=args.jpeg_quality,
-            view_size_px=_size(args.view_size),
+            view_size_px=parse_size_px(args.view_size, "--view-size"),
             view_hfov_deg=args.view_hfov,
             contact=args.contact,
             instants=args.instants,
@@ -319,10 +314,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--contact", action="store_true", help="script a drape contact (sim/contact.py)")
 
-    from sim.roles import add_parser as add_roles_parser  # egosurg sim roles (issue 21)
+    from sim.roles import add_parser as add_roles_parser  # egosurg sim roles
 
     add_roles_parser(sub)
-    from sim.contact_cli import add_parser as add_contact_parser  # egosurg sim contact (issue 21)
+    from sim.contact_cli import add_parser as add_contact_parser  # egosurg sim contact
 
     add_contact_parser(sub)
     return parser

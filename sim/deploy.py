@@ -29,8 +29,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from protocol.errors import UserError
 from protocol.toml_config import dumps_table
+from sim.errors import SimRigError
 from sim.world import World
 
 if TYPE_CHECKING:
@@ -38,10 +38,6 @@ if TYPE_CHECKING:
 
 # the first lines of every file written here; key paths in them are relative to the file
 _WRITTEN = "the simulated %s: written by sim.deploy (key paths are relative to this file)"
-
-
-class SimRigError(UserError, RuntimeError):
-    pass
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.errors import UserError
+from sim.errors import UnknownPhaseError
 from sim.people import Person, Waypoint
 
 PHASES = ("empty", "setup", "intraoperative", "turnover", "wand")
@@ -36,10 +36,6 @@ SCRUB_CEIL = (0.52, 0.66, 0.86)
 SCRUB_GREEN = (0.35, 0.6, 0.45)
 CAP_BLUE = (0.35, 0.5, 0.85)
 CAP_PRINT = (0.8, 0.35, 0.45)
-
-
-class UnknownPhaseError(UserError, ValueError):
-    pass
 
 
 @dataclass(frozen=True)

@@ -11,12 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from protocol.errors import UserError
+from sim.errors import OutsideRoomError
 from sim.geometry import Mesh, box, cylinder, ellipsoid, room_box, rot_x, rot_z, torus_arc
-
-
-class OutsideRoomError(UserError, ValueError):
-    """A camera or object placed outside the room."""
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -21,13 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from protocol.command import CommandArgumentError
-from protocol.errors import UserError
+from sim.errors import SimTimeError
 
 SIM_EPOCH_UNIX_NS = 1_767_225_600_000_000_000  # 2026-01-01T00:00:00Z: sim time 0
-
-
-class SimTimeError(UserError, ValueError):
-    """A time that the simulation cannot show."""
 
 
 @dataclass(frozen=True, kw_only=True)

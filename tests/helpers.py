@@ -1,5 +1,7 @@
 """Helpers the tests share: the real ``egosurg`` command in a subprocess, simulated sessions
-recorded and cut down to chosen sets, and a calibration with one camera moved."""
+recorded and cut down to chosen sets, a calibration with one camera moved, a recorder's and an
+agent's config on free loopback ports, a frame message as an agent sends it, and which heavy
+modules a fresh interpreter loads."""
 
 from __future__ import annotations
 

@@ -9,27 +9,7 @@ import struct
 import time
 from pathlib import Path
 
-from bench.capture.measure import RESOLUTION, RIG_FPS
-
-
-def _header(seq: int, left: bytes, right: bytes) -> bytes:
-    from protocol.wire import FrameMessage
-
-    return FrameMessage(
-        node_id="bench",
-        camera_serial=1,
-        frame_index=seq,
-        seq=seq,
-        capture_unix_ns=0,
-        host_receive_unix_ns=0,
-        ptp_offset_ns=0,
-        ptp_locked=False,
-        encoding="jpeg",
-        width=1920,
-        height=1200,
-        left=left,
-        right=right,
-    ).header()
+from bench.capture.measure import RESOLUTION, RIG_FPS, pair_header
 
 
 def _zmq_end(ctx, kind: str, endpoint: str, *, sending: bool):
@@ -63,7 +43,7 @@ def _zmq_sender(endpoint: str, kind: str, pairs: list, stop_at: float) -> None:
 
     ctx = zmq.Context()
     sock = _zmq_end(ctx, kind, endpoint, sending=True)
-    headers = [bytearray(_header(0, lft, rgt)) for lft, rgt in pairs]
+    headers = [bytearray(pair_header("bench", 1, lft, rgt, ptp_locked=False)) for lft, rgt in pairs]
     seq = 0
     try:
         while time.monotonic() < stop_at:

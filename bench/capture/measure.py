@@ -25,6 +25,28 @@ BUSY_OTHER_CPU = 50.0  # % of one core used by the rest of the machine: the step
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 
 
+def pair_header(node_id: str, serial: int, left: bytes, right: bytes, *, ptp_locked: bool) -> bytes:
+    """The frame header of the HD1200 JPEG pair ``left``, ``right``, its index, seq and times 0:
+    a sender stamps its own into a copy before each send."""
+    from protocol.wire import FrameMessage
+
+    return FrameMessage(
+        node_id=node_id,
+        camera_serial=serial,
+        frame_index=0,
+        seq=0,
+        capture_unix_ns=0,
+        host_receive_unix_ns=0,
+        ptp_offset_ns=0,
+        ptp_locked=ptp_locked,
+        encoding="jpeg",
+        width=1920,
+        height=1200,
+        left=left,
+        right=right,
+    ).header()
+
+
 def cpu_seconds(pid: int) -> float:
     """utime + stime of a process (all its threads), in seconds."""
     with open(f"/proc/{pid}/stat") as f:

@@ -8,7 +8,7 @@ import struct
 import time
 from pathlib import Path
 
-from bench.capture.measure import JPEG_QUALITY, REPLAY_SERIAL0, RESOLUTION
+from bench.capture.measure import JPEG_QUALITY, REPLAY_SERIAL0, RESOLUTION, pair_header
 
 
 def rig_spec(fps: float, duration_s: float, seed: int = 0, insecure: bool = False):
@@ -176,26 +176,10 @@ def _feeder_sockets(ctx, frames_ep: str, control_ep: str, key_file: str | None) 
 
 def _frame_templates(node_id: str, serials: list, pairs: list) -> list:
     """Per camera: (its frame header to stamp, left JPEG, right JPEG)."""
-    from protocol.wire import FrameMessage
-
     templates = []
     for c, serial in enumerate(serials):
         left, right = pairs[c % len(pairs)]
-        h = FrameMessage(
-            node_id=node_id,
-            camera_serial=serial,
-            frame_index=0,
-            seq=0,
-            capture_unix_ns=0,
-            host_receive_unix_ns=0,
-            ptp_offset_ns=0,
-            ptp_locked=True,
-            encoding="jpeg",
-            width=1920,
-            height=1200,
-            left=left,
-            right=right,
-        ).header()
+        h = pair_header(node_id, serial, left, right, ptp_locked=True)
         templates.append((bytearray(h), left, right))
     return templates
 

@@ -87,8 +87,9 @@ def run_recording(
                 key = None if insecure else str(files.directory / "keys" / f"{node}.key_secret")
                 serials = list(files.serials_by_node[node])
                 args = (node, fr, ct, serials, fps, pairs, stop_at, stop_event, q, key)
-                feeders.append(ctx.Process(target=feeder, args=args, daemon=True))
-                feeders[-1].start()  # one at a time: the finally joins those started
+                p = ctx.Process(target=feeder, args=args, daemon=True)
+                p.start()
+                feeders.append(p)  # the finally joins the feeders started
         _wait_streaming(rig, feeders)
         time.sleep(2.0)  # let every publisher settle after the last camera came up
         rec = rig.procs["recorder"]

@@ -31,11 +31,12 @@ import zmq
 from capture_agent.agent.ptp import PtpMonitor, PtpStatus
 from capture_agent.camera_config import CameraConfig
 from capture_agent.config import NodeConfig
-from capture_agent.control_server import ControlServer, Refused
+from capture_agent.control_server import ControlServer
 from capture_agent.daemon import Progress, run_until_signal
+from capture_agent.errors import CameraUnavailableError, Refused
 from capture_agent.security import CONTROL_MAX_BYTES, SUBSCRIPTION_MAX_BYTES, LinkGuard, harden
 from capture_agent.sources import make_source
-from capture_agent.sources.base import CameraSource, CameraUnavailableError, GrabbedFrame
+from capture_agent.sources.base import CameraSource, GrabbedFrame
 from protocol import __version__
 from protocol.command import command_parser
 from protocol.images import EncodedPair, encode_pair

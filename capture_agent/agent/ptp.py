@@ -1,4 +1,4 @@
-"""PTP state of this node, read from linuxptp's ``pmc``.
+"""PTP state of this node, read from linuxptp's ``pmc`` as the agent's own (unprivileged) user.
 
 Each node runs ``ptp4l`` (PTP on the NIC's hardware clock) and ``phc2sys`` (the system clock
 follows the NIC clock), so the ZED SDK's image stamps, taken on the system clock, are on the rig's
@@ -7,30 +7,31 @@ not step, after a jump.
 
 How the state is read, step by step:
 
-1. run ``pmc -u -b 0 'GET TIME_STATUS_NP'`` (UDS to the local ptp4l, boundary hops 0: this node
-   only) with a timeout;
-2. its answer looks like this (linuxptp; older versions spell ``MANAGMENT``)::
-
-       sending: GET TIME_STATUS_NP
-               90e2ba.fffe.20c7f8-0 seq 0 RESPONSE MANAGEMENT TIME_STATUS_NP
-                       master_offset              310
-                       ingress_time               1361545089345029441
-                       cumulativeScaledRateOffset   +1.000000000
-                       scaledLastGmPhaseChange    0
-                       gmTimeBaseIndicator        0
-                       lastGmPhaseChange          0x0000'0000000000000000.0000
-                       gmPresent                  true
-                       gmIdentity                 00a069.fffe.0b552d
-
+1. run ``pmc -u -b 0 -s SOCKET -i CLIENT 'GET TIME_STATUS_NP' 'GET PORT_PROPERTIES_NP'
+   'GET TIME_PROPERTIES_DATA_SET'`` with a timeout. ``-s`` is ptp4l's ``uds_address``
+   (``[ptp] ptp4l_socket``); ``-i`` is pmc's own reply socket, made in a fresh private folder
+   under the unit's RuntimeDirectory (``/run/egosurg``), because pmc's default,
+   ``/var/run/pmc.<pid>``, only root may create. The service user may write to ptp4l's socket
+   (mode 0660) because ptp4l runs with ``Group=egosurg`` (capture_agent/systemd/
+   egosurg-ptp4l@.service; linuxptp 4 also offers a read-only ``uds_ro_address``);
+2. the answers are parsed by capture_agent/agent/pmc.py (its docstring shows one);
 3. the state is
    - ``no_pmc``: the ``pmc`` binary is missing (install linuxptp);
-   - ``no_ptp4l``: pmc ran but no RESPONSE came (ptp4l not running, or the timeout passed);
-   - ``unlocked``: ``gmPresent false`` (no grandmaster) or ``|master_offset| > lock_threshold_ns``;
+   - ``no_ptp4l``: pmc ran but no RESPONSE came (ptp4l not running, its socket not reachable by
+     this user, or the timeout passed);
+   - ``unlocked``: ``gmPresent false`` (no grandmaster), ``|master_offset| > lock_threshold_ns``
+     (the NIC's clock is off), the port not in SLAVE or UNCALIBRATED (no master heard now:
+     ptp4l 3.1 keeps ``gmPresent true`` and a stale offset then), or the system clock is off
+     the NIC's clock (step 4);
    - ``locked``: otherwise;
    - ``disabled``: ``source = "none"`` in the config (simulation, or a single-node bench).
+4. the system clock: with ``timestamping SOFTWARE`` ptp4l steers CLOCK_REALTIME itself, so
+   ``master_offset`` is the system clock's offset. Otherwise ptp4l steers the NIC's PHC and the
+   PHC is read against CLOCK_REALTIME (capture_agent/agent/phc.py): more than
+   ``system_clock_threshold_ns`` apart means phc2sys is not running or not locked.
 
-``master_offset`` is the last measured offset of the NIC clock from the grandmaster in ns; the
-system clock's own offset (phc2sys) is not in this answer.
+``master_offset`` is the last measured offset of ptp4l's clock from the grandmaster in ns;
+``system_offset_ns`` that of CLOCK_REALTIME from the PHC (None where it is ptp4l's own clock).
 
 Example ``node.toml`` table (``capture_agent.config.PtpConfig``)::
 
@@ -38,27 +39,43 @@ Example ``node.toml`` table (``capture_agent.config.PtpConfig``)::
     source = "pmc"
     lock_threshold_ns = 1000
     require_lock = true
+    # ptp4l_socket = "/var/run/ptp4l"     # ptp4l's uds_address
+    # system_clock_threshold_ns = 20000   # CLOCK_REALTIME vs the PHC
+    # phc_device = ""                     # "": the PHC of ptp4l's interface (ethtool -T)
+    # pmc_client_dir = ""                 # "": $RUNTIME_DIRECTORY, else the temp folder
 """
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
-import re
 import shutil
 import subprocess
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from tempfile import TemporaryDirectory, gettempdir
 from types import TracebackType
+from typing import Any
 
+from capture_agent.agent import phc, pmc
 from capture_agent.config import PtpConfig
 
 log = logging.getLogger(__name__)
 
 PTP_STATES = ("locked", "unlocked", "no_ptp4l", "no_pmc", "disabled")
-PMC_QUERY = "GET TIME_STATUS_NP"
-_RESPONSE = re.compile(r"\sseq\s+\d+\s+RESPONSE\s+(MANAGE?MENT\S*)\s+(\S+)")
+# [ptp] settings that PtpConfig may not have yet: name -> default (see the module docstring)
+_DEFAULTS: dict[str, object] = {
+    "ptp4l_socket": "/var/run/ptp4l",
+    "pmc_client_dir": "",
+    "system_clock_threshold_ns": 20_000,
+    "phc_device": "",
+}
+
+
+def _setting(config: PtpConfig, name: str) -> Any:
+    return getattr(config, name, _DEFAULTS[name])
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -66,6 +83,7 @@ class PtpStatus:
     state: str
     master_offset_ns: int | None = None
     gm_present: bool | None = None
+    system_offset_ns: int | None = None
     checked_unix_ns: int
     detail: str = ""
 
@@ -78,33 +96,10 @@ class PtpStatus:
         return self.state == "locked"
 
 
-def parse_time_status(text: str) -> dict[str, str] | None:
-    """The fields of the first TIME_STATUS_NP response in pmc's output, or None if there is none.
-
-    An error response (``MANAGEMENT_ERROR_STATUS``) gives ``{"error": <its text>}``.
-    """
-    lines = text.splitlines()
-    for i, line in enumerate(lines):
-        m = _RESPONSE.search(line)
-        if m is None or m.group(2) != "TIME_STATUS_NP":
-            continue
-        fields: dict[str, str] = {}
-        for body in lines[i + 1 :]:
-            if _RESPONSE.search(body) or not body[:1].isspace():
-                break
-            parts = body.split(None, 1)
-            if parts:
-                fields[parts[0]] = parts[1].strip() if len(parts) > 1 else ""
-        if "ERROR" in m.group(1):
-            return {"error": " ".join(f"{k} {v}".strip() for k, v in fields.items()) or line}
-        return fields
-    return None
-
-
 def status_from_fields(
     fields: dict[str, str], config: PtpConfig, checked_unix_ns: int
 ) -> PtpStatus:
-    """Decide the state from a parsed TIME_STATUS_NP answer."""
+    """Decide the state of ptp4l's own clock from a parsed TIME_STATUS_NP answer."""
     if "error" in fields:
         return PtpStatus(
             state="unlocked",
@@ -142,6 +137,66 @@ def status_from_fields(
     )
 
 
+def system_clock_status(
+    nic: PtpStatus, answers: dict[str, dict[str, str]], config: PtpConfig
+) -> PtpStatus:
+    """``nic`` (ptp4l's clock locked) checked against the clock the frames are stamped with."""
+    port = answers.get("PORT_PROPERTIES_NP", {})
+    stamping = port.get("timestamping", "").upper()
+    if stamping == "SOFTWARE":  # ptp4l steers CLOCK_REALTIME itself: master_offset is its offset
+        return replace(nic, detail=f"{nic.detail}; system clock steered by ptp4l (software)")
+    device = str(_setting(config, "phc_device"))
+    interface = port.get("interface", "")
+    try:
+        if not device:
+            if not interface:
+                raise OSError(f"ptp4l named no interface (PORT_PROPERTIES_NP: {port})")
+            device = phc.phc_device(interface) or ""
+            if not device:
+                raise OSError(f"{interface} has no PTP hardware clock (ethtool -T {interface})")
+        lead = pmc.utc_lead_ns(answers.get("TIME_PROPERTIES_DATA_SET", {}))
+        offset_ns, _ = phc.system_offset_ns(device, lead)
+    except OSError as exc:
+        why = exc.strerror or str(exc)
+        denied = exc.errno in (errno.EACCES, errno.EPERM)
+        fix = " (install capture_agent/systemd/60-egosurg-ptp.rules, docs/capture.md)"
+        fix = fix if denied else ""
+        return replace(
+            nic,
+            state="unlocked",
+            detail=f"ptp4l is locked but the system clock cannot be compared with the PTP "
+            f"hardware clock {device or '?'}: {why}{fix}",
+        )
+    threshold = int(_setting(config, "system_clock_threshold_ns"))
+    if abs(offset_ns) > threshold:
+        return replace(
+            nic,
+            state="unlocked",
+            system_offset_ns=offset_ns,
+            detail=f"the system clock is {offset_ns} ns off the PTP clock {device} (more than "
+            f"system_clock_threshold_ns {threshold}): is phc2sys running and locked "
+            f"(systemctl status egosurg-phc2sys@{interface or 'IFACE'})?",
+        )
+    return replace(
+        nic,
+        system_offset_ns=offset_ns,
+        detail=f"{nic.detail}; system clock {offset_ns} ns from {device} (phc2sys)",
+    )
+
+
+def _client_folder(config: PtpConfig) -> str:
+    # Under systemd, RuntimeDirectory=egosurg gives /run/egosurg, writable by the service user and
+    # reachable by ptp4l (the host's /run); pmc's default /var/run/pmc.<pid> needs root.
+    configured = str(_setting(config, "pmc_client_dir"))
+    return configured or os.environ.get("RUNTIME_DIRECTORY", "").split(":")[0] or gettempdir()
+
+
+def _run_pmc(argv: list[str], config: PtpConfig) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        argv, capture_output=True, text=True, timeout=config.timeout_s, check=False
+    )
+
+
 def read_ptp_status(config: PtpConfig) -> PtpStatus:
     """Ask the local ptp4l through pmc, once (blocks up to ``config.timeout_s``)."""
     checked = time.time_ns()
@@ -156,11 +211,20 @@ def read_ptp_status(config: PtpConfig) -> PtpStatus:
             detail=f"pmc program {config.pmc_path!r} not found {where}; install linuxptp "
             "(apt install linuxptp) or set [ptp] pmc_path",
         )
-    argv = [exe, "-u", "-b", "0", PMC_QUERY]
     try:
-        proc = subprocess.run(
-            argv, capture_output=True, text=True, timeout=config.timeout_s, check=False
+        folder = TemporaryDirectory(prefix="pmc.", dir=_client_folder(config))
+    except OSError as exc:
+        return PtpStatus(
+            state="no_ptp4l",
+            checked_unix_ns=checked,
+            detail=f"no folder for pmc's reply socket in {_client_folder(config)}: "
+            f"{exc.strerror}; set [ptp] pmc_client_dir or the unit's RuntimeDirectory",
         )
+    try:
+        with folder:
+            socket_path = str(_setting(config, "ptp4l_socket"))
+            argv = pmc.pmc_argv(exe, socket_path, os.path.join(folder.name, "c"))
+            proc = _run_pmc(argv, config)
     except subprocess.TimeoutExpired:
         return PtpStatus(
             state="no_ptp4l",
@@ -171,17 +235,40 @@ def read_ptp_status(config: PtpConfig) -> PtpStatus:
         return PtpStatus(
             state="no_pmc", checked_unix_ns=checked, detail=f"cannot run {exe}: {exc.strerror}"
         )
-    fields = parse_time_status(proc.stdout)
+    answers = pmc.parse_responses(proc.stdout)
+    fields = answers.get("TIME_STATUS_NP")
     if fields is None:
         err = proc.stderr.strip().splitlines()
         why = f": {err[-1]}" if err else ""
+        socket_path = _setting(config, "ptp4l_socket")
         return PtpStatus(
             state="no_ptp4l",
             checked_unix_ns=checked,
             detail=f"pmc (exit {proc.returncode}) got no TIME_STATUS_NP answer{why}; is ptp4l "
-            "running (systemctl status ptp4l), and may this user reach its socket?",
+            f"running (systemctl status egosurg-ptp4l@IFACE), and may this user write to its "
+            f"socket {socket_path} (ptp4l's group, docs/capture.md)?",
         )
-    return status_from_fields(fields, config, checked)
+    nic = port_status(status_from_fields(fields, config, checked), answers)
+    return system_clock_status(nic, answers, config) if nic.locked else nic
+
+
+def port_status(nic: PtpStatus, answers: dict[str, dict[str, str]]) -> PtpStatus:
+    """``nic`` unlocked unless ptp4l's port listens to a master now.
+
+    Seen with linuxptp 3.1: when the grandmaster goes away a slave-only ptp4l keeps saying
+    ``gmPresent true`` and its last ``master_offset`` while its port drops to LISTENING. A port
+    in UNCALIBRATED (servo settling, or ``free_running``) counts: its offset is measured afresh
+    and the threshold judges it.
+    """
+    state = answers.get("PORT_PROPERTIES_NP", {}).get("portState", "").upper()
+    if not nic.locked or state in ("SLAVE", "UNCALIBRATED"):
+        return nic
+    return replace(
+        nic,
+        state="unlocked",
+        detail=f"ptp4l's port is {state or 'unknown'}, not following a master (its last "
+        f"offset, {nic.master_offset_ns} ns, is stale)",
+    )
 
 
 class PtpMonitor:

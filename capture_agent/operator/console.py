@@ -28,6 +28,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from capture_agent.errors import ConsoleError
 from capture_agent.operator.control import format_started, format_status, format_summary
 from capture_agent.operator.rig_client import RigClient
 from protocol.command import command_parser
@@ -141,10 +142,6 @@ class Rig:
 
     def __repr__(self) -> str:
         return f"<rig connected to {self.client.recorder_url}; help(rig) lists its commands>"
-
-
-class ConsoleError(UserError, OSError):
-    """Something the console could not do on this computer (e.g. write a picture)."""
 
 
 def namespace(client: RigClient) -> dict[str, Any]:

@@ -5,9 +5,12 @@ writes ``NAME.key`` (the public key: copy it to whoever must let this process in
 ``NAME.key_secret`` (the secret key: owner-only, mode 0600, in a folder of mode 0700 if it makes
 the folder; it never leaves the machine and is never stored in a session). It refuses to overwrite
 an existing key. Name the files in ``node.toml`` / ``rig.toml`` ``[security]`` (docs/capture.md).
+``--owner USER`` (run as root) hands the two files, and the folder if it makes it, to the user the
+service runs as, so ``User=egosurg`` can read the secret key that ``sudo`` wrote.
 
 Examples::
 
+    sudo egosurg keys generate --owner egosurg --out /etc/egosurg/keys --name orin-a
     egosurg keys generate --out /etc/egosurg/keys --name recorder
     egosurg keys generate --out ~/.egosurg --name operator
     egosurg keys show /etc/egosurg/keys/recorder.key
@@ -16,12 +19,14 @@ Examples::
 from __future__ import annotations
 
 import os
+import pwd
 import re
 import stat
 from pathlib import Path
 
 import zmq.auth
 
+from capture_agent.errors import KeyFileError
 from capture_agent.security import (
     PUBLIC_SUFFIX,
     SECRET_SUFFIX,
@@ -35,14 +40,29 @@ from protocol.errors import UserError
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,31}$")
 
 
-class KeyFileError(UserError, FileExistsError):
-    """A key file that would be overwritten."""
+def _owner_ids(owner: str) -> tuple[int, int]:
+    """(uid, gid) of the user named ``owner``; checked before any file is written."""
+    try:
+        entry = pwd.getpwnam(owner)
+    except KeyError:
+        raise UserError(
+            f"--owner {owner!r}: no such user on this machine; create the service user first "
+            "(docs/capture.md) or name an existing one"
+        ) from None
+    if os.geteuid() != 0 and entry.pw_uid != os.geteuid():
+        raise UserError(f"--owner {owner}: only root may give files to another user; use sudo")
+    return entry.pw_uid, entry.pw_gid
 
 
-def generate(out: Path, name: str) -> tuple[Path, Path]:
-    """Write ``out/name.key`` and ``out/name.key_secret``; (public, secret) paths."""
+def generate(out: Path, name: str, owner: str | None = None) -> tuple[Path, Path]:
+    """Write ``out/name.key`` and ``out/name.key_secret``; (public, secret) paths.
+
+    ``owner``: the user who will own both files (and ``out`` if it is made here), e.g. the
+    service user ``egosurg``; None leaves them to the user running this.
+    """
     if not _NAME.match(name):
         raise KeyFileError(f"key name {name!r}: use letters, digits, - _ . (up to 32 characters)")
+    ids = _owner_ids(owner) if owner is not None else None
     out = out.expanduser()
     public, secret = out / f"{name}{PUBLIC_SUFFIX}", out / f"{name}{SECRET_SUFFIX}"
     for p in (public, secret):
@@ -51,7 +71,8 @@ def generate(out: Path, name: str) -> tuple[Path, Path]:
                 f"{p} exists; keys are never overwritten (every allow-list that holds the old "
                 "public key would lock this process out). Remove it first or pick another --name"
             )
-    if not out.exists():
+    made_folder = not out.exists()
+    if made_folder:
         out.mkdir(mode=0o700, parents=True)
         out.chmod(0o700)  # mkdir's mode is filtered by the umask
     old = os.umask(0o077)  # the secret file is never readable by others, not even for a moment
@@ -61,6 +82,9 @@ def generate(out: Path, name: str) -> tuple[Path, Path]:
         os.umask(old)
     Path(made_secret).chmod(0o600)
     Path(made_public).chmod(0o644)  # a public key is meant to be copied and read
+    if ids is not None:
+        for p in (Path(made_secret), Path(made_public), *((out,) if made_folder else ())):
+            os.chown(p, *ids)
     return Path(made_public), Path(made_secret)
 
 
@@ -85,12 +109,19 @@ def main(argv: list[str]) -> int:
     p = add_subcommand(sub, "generate", "make a keypair (NAME.key and NAME.key_secret)")
     p.add_argument("--out", type=Path, required=True, help="folder for the two files")
     p.add_argument("--name", required=True, help="the process: recorder, orin-a, operator, ...")
+    p.add_argument(
+        "--owner", help="user to own the files (the service's user, e.g. egosurg; needs root)"
+    )
     p = add_subcommand(sub, "show", "print the public key of a .key or .key_secret file")
     p.add_argument("file", type=Path)
     args = parser.parse_args(argv)
     if args.action == "generate":
-        public, secret = generate(args.out, args.name)
-        print(f"public key (share it): {public}\nsecret key (mode 0600, keep it here): {secret}")
+        public, secret = generate(args.out, args.name, args.owner)
+        owned = f", owned by {args.owner}" if args.owner else ""
+        print(
+            f"public key (share it): {public}\n"
+            f"secret key (mode 0600{owned}, keep it here): {secret}"
+        )
     else:
         print(show(args.file))
     return 0

@@ -28,6 +28,7 @@ import numpy as np
 import zmq
 
 from capture_agent.config import RigConfig, connect_address
+from capture_agent.errors import CommandRefusedError, RecorderUnreachableError
 from capture_agent.security import (
     CONTROL_MAX_BYTES,
     LinkSecurity,
@@ -37,7 +38,7 @@ from capture_agent.security import (
     load_public_key,
     make_client,
 )
-from protocol.errors import ConfigError, UserError
+from protocol.errors import ConfigError
 from protocol.images import decode_image
 from protocol.wire import (
     ControlReply,
@@ -49,14 +50,6 @@ from protocol.wire import (
 
 DEFAULT_RECORDER = "tcp://127.0.0.1:5560"
 log = logging.getLogger(__name__)
-
-
-class RecorderUnreachableError(UserError, ConnectionError):
-    pass
-
-
-class CommandRefusedError(UserError, RuntimeError):
-    """The recorder answered, and said no; the message is its reason."""
 
 
 def resolve_recorder(url: str | None = None, config: str | None = None) -> str:

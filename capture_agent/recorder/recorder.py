@@ -79,8 +79,9 @@ from typing import Any
 import zmq
 
 from capture_agent.config import AgentEndpoint, RigConfig
-from capture_agent.control_server import ControlServer, Refused
+from capture_agent.control_server import ControlServer
 from capture_agent.daemon import Progress, run_until_signal
+from capture_agent.errors import Refused
 from capture_agent.recorder import status as recorder_status
 from capture_agent.recorder.disk import DiskBudget
 from capture_agent.recorder.intake import CameraTable, log_due

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from capture_agent.config import RigConfig
-from capture_agent.control_server import Refused
+from capture_agent.errors import Refused
 from capture_agent.recorder.accounting import StreamAccounting
 from capture_agent.recorder.disk import DiskBudget
 from capture_agent.recorder.intake import CameraTable

@@ -71,16 +71,13 @@ from itertools import pairwise
 
 import numpy as np
 
-from protocol.errors import ConfigError, UserError
+from capture_agent.errors import SyncError
+from protocol.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
 MISSING = -1  # the missing marker in the session's set table
 GAIN = 1.0 / 32.0  # steering gain towards each set's midrange
-
-
-class SyncError(UserError, ValueError):
-    """A frame the synchroniser cannot take, e.g. from a camera that is not in the rig."""
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -22,17 +22,10 @@ Example::
 from __future__ import annotations
 
 from capture_agent.camera_config import CameraConfig
-from capture_agent.sources.base import (
-    CameraSource,
-    CameraUnavailableError,
-    EndOfRecordingError,
-    GrabbedFrame,
-)
+from capture_agent.sources.base import CameraSource, GrabbedFrame
 
 __all__ = [
     "CameraSource",
-    "CameraUnavailableError",
-    "EndOfRecordingError",
     "GrabbedFrame",
     "make_source",
 ]
@@ -41,8 +34,8 @@ __all__ = [
 def make_source(config: CameraConfig) -> CameraSource:
     """The source that ``config`` (a ``[[cameras]]`` table, read and checked) describes.
 
-    Raises ``zed_source.SdkMissingError`` (a ``UserError``) for a ZED camera where pyzed is not
-    installed.
+    Raises ``capture_agent.errors.SdkMissingError`` (a ``UserError``) for a ZED camera where
+    pyzed is not installed.
     """
     if config.source == "sim":
         from capture_agent.sources.sim_source import SimSource

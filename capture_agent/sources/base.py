@@ -32,14 +32,6 @@ from protocol.camera import Resolution
 from protocol.images import EncodedPair
 
 
-class CameraUnavailableError(RuntimeError):
-    """The camera is missing or vanished (unplugged, rebooting): close it and reopen it later."""
-
-
-class EndOfRecordingError(CameraUnavailableError):
-    """A finite source (a video file without ``loop``) has no more frames."""
-
-
 @dataclass(frozen=True, kw_only=True)
 class GrabbedFrame:
     """One stereo frame as a source delivers it.
@@ -69,7 +61,7 @@ class CameraSource(abc.ABC):
     ``grab(timeout_s)`` returns the next frame, or ``None`` when none arrived within
     ``timeout_s`` (a hung camera), and raises ``CameraUnavailableError`` when the camera is gone;
     the caller then closes the source and calls ``open()`` again later (``open()`` raises the same
-    error while the camera is still missing).
+    error while the camera is still missing). The seam's errors live in ``capture_agent.errors``.
     """
 
     @property

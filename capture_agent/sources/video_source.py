@@ -36,12 +36,8 @@ import cv2
 import numpy as np
 
 from capture_agent.camera_config import VideoSourceConfig
-from capture_agent.sources.base import (
-    CameraSource,
-    EndOfRecordingError,
-    GrabbedFrame,
-    require_timeout,
-)
+from capture_agent.errors import EndOfRecordingError
+from capture_agent.sources.base import CameraSource, GrabbedFrame, require_timeout
 from protocol.camera import Resolution
 from protocol.errors import ConfigError
 

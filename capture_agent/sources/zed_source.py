@@ -48,14 +48,9 @@ from typing import Any
 import cv2
 
 from capture_agent.camera_config import ZedSourceConfig
-from capture_agent.sources.base import (
-    CameraSource,
-    CameraUnavailableError,
-    GrabbedFrame,
-    require_timeout,
-)
+from capture_agent.errors import CameraUnavailableError, SdkMissingError
+from capture_agent.sources.base import CameraSource, GrabbedFrame, require_timeout
 from protocol.camera import Resolution
-from protocol.errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -65,10 +60,6 @@ INSTALL_HINT = (
     "environment with `python /usr/local/zed/get_python_api.py` using this environment's python; "
     'or use source = "sim" or "video" on a machine without cameras'
 )
-
-
-class SdkMissingError(UserError, ImportError):
-    """The ZED SDK's Python API (pyzed) cannot be imported; the message says what to install."""
 
 
 def import_pyzed() -> ModuleType:

@@ -43,7 +43,6 @@ Poses are in the calibration's world frame (metres, OpenCV axes, ``x_cam = R @ x
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -54,6 +53,7 @@ from protocol.camera import Camera
 from protocol.errors import UserError
 from protocol.formats.camera_toml import camera_lines, read_camera
 from protocol.formats.camera_toml import toml_value as _v
+from protocol.toml_config import load_toml
 
 EVAL_SET_FORMAT_VERSION = 1
 EVAL_SET_FILE = "eval_set.toml"
@@ -169,10 +169,7 @@ class EvalSet:
                 f"{root}: no {EVAL_SET_FILE} there; make an evaluation set with "
                 f"'egosurg sim eval-set --out {root}' or write one (see docs/evaluation.md)"
             )
-        try:
-            data = tomllib.loads(manifest.read_text())
-        except tomllib.TOMLDecodeError as exc:
-            raise EvalSetError(f"{manifest}: not valid TOML: {exc}") from None
+        data, _ = load_toml(manifest, "the evaluation set", error=EvalSetError)
         version = data.get("format_version")
         if version != EVAL_SET_FORMAT_VERSION:
             raise EvalSetError(

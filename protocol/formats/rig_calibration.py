@@ -37,7 +37,6 @@ Every number keeps full precision (``repr`` of the float), so a write-read round
 from __future__ import annotations
 
 import time
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -47,6 +46,7 @@ from protocol.camera import Camera, Intrinsics, Pose, Resolution
 from protocol.errors import UserError
 from protocol.formats.camera_toml import camera_lines, read_camera
 from protocol.formats.camera_toml import toml_value as _v
+from protocol.toml_config import parse_toml
 
 CALIBRATION_FORMAT_VERSION = 1
 
@@ -145,10 +145,7 @@ class RigCalibration:
 
     @classmethod
     def from_toml(cls, text: str, source: str = "<calibration>") -> RigCalibration:
-        try:
-            data = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise CalibrationFileError(f"{source}: not valid TOML: {exc}") from None
+        data = parse_toml(text, source, error=CalibrationFileError)
         version = data.get("format_version")
         if version != CALIBRATION_FORMAT_VERSION:
             raise CalibrationFileError(

@@ -23,13 +23,13 @@ fully visible and "fraction visible" means of what faces the viewer.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from protocol.errors import UserError
+from protocol.toml_config import load_toml, read_table
 
 SITE_FORMAT = "egosurg-site"
 SITE_FORMAT_VERSION = 1
@@ -88,35 +88,25 @@ def surface_points(box: SiteBox, eye_m: np.ndarray, per_face: int = 12) -> np.nd
     return np.concatenate(out) @ R.T + c
 
 
+@dataclass(frozen=True, kw_only=True)
+class _SiteFile:
+    format: str
+    format_version: int
+    boxes: tuple[SiteBox, ...] = ()
+
+
 def read_site(path: Path | str) -> dict[str, SiteBox]:
     path = Path(path)
-    try:
-        table = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise SiteFileError(f"the site file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise SiteFileError(f"{path} is not a readable TOML file: {exc}") from None
+    if not path.exists():
+        raise SiteFileError(f"the site file {path} does not exist")
+    table, _ = load_toml(path, "the site file", error=SiteFileError)
     if table.get("format") != SITE_FORMAT or table.get("format_version") != SITE_FORMAT_VERSION:
         raise SiteFileError(
             f'{path} is not a site file: it needs format = "{SITE_FORMAT}" and format_version = '
             f"{SITE_FORMAT_VERSION} (docs/replay.md has an example)"
         )
     boxes: dict[str, SiteBox] = {}
-    for i, row in enumerate(table.get("boxes") or []):
-        try:
-            box = SiteBox(
-                name=str(row["name"]),
-                centre_m=tuple(float(v) for v in row["centre_m"]),  # type: ignore[arg-type]
-                size_m=tuple(float(v) for v in row["size_m"]),  # type: ignore[arg-type]
-                yaw_deg=float(row.get("yaw_deg", 0.0)),
-                front_only=bool(row.get("front_only", False)),
-            )
-            if len(box.centre_m) != 3 or len(box.size_m) != 3:
-                raise ValueError("centre_m and size_m need three numbers each")
-        except (KeyError, TypeError, ValueError) as exc:
-            raise SiteFileError(
-                f"{path}: boxes[{i}]: {exc!s} (needs name, centre_m, size_m)"
-            ) from None
+    for box in read_table(_SiteFile, table, str(path), error=SiteFileError).boxes:
         if box.name in boxes:
             raise SiteFileError(f"{path}: the box name {box.name!r} repeats")
         boxes[box.name] = box

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,6 +33,7 @@ import numpy as np
 
 from protocol.camera import Pose
 from protocol.errors import UserError
+from protocol.toml_config import load_toml
 
 TRAJECTORY_FORMAT = "egosurg-trajectories"
 TRAJECTORY_FORMAT_VERSION = 1
@@ -153,12 +153,9 @@ def _vec(value: object, n: int, where: str) -> tuple[float, ...]:
 def read_trajectories(path: Path | str) -> tuple[Trajectory, ...]:
     """All trajectories of a file; every problem is a :class:`TrajectoryFileError`."""
     path = Path(path)
-    try:
-        table = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise TrajectoryFileError(f"the trajectory file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise TrajectoryFileError(f"{path} is not a readable TOML file: {exc}") from None
+    if not path.exists():
+        raise TrajectoryFileError(f"the trajectory file {path} does not exist")
+    table, _ = load_toml(path, "the trajectory file", error=TrajectoryFileError)
     if table.get("format") != TRAJECTORY_FORMAT:
         raise TrajectoryFileError(
             f'{path} is not a trajectory file: it needs format = "{TRAJECTORY_FORMAT}" '

@@ -13,11 +13,11 @@ Spacing must be unequal (here 1:2) so the ends can be told apart in an image.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 from protocol.errors import UserError
+from protocol.toml_config import load_toml, read_table
 
 WAND_FORMAT_VERSION = 1
 
@@ -74,25 +74,23 @@ class WandSpec:
     @classmethod
     def read(cls, path: Path | str) -> WandSpec:
         p = Path(path)
-        try:
-            data = tomllib.loads(p.read_text())
-        except FileNotFoundError:
-            raise WandSpecError(
-                f"{p}: no such wand file; 'egosurg sim wand-file' writes one"
-            ) from None
-        except tomllib.TOMLDecodeError as exc:
-            raise WandSpecError(f"{p}: not valid TOML: {exc}") from None
+        if not p.exists():
+            raise WandSpecError(f"{p}: no such wand file; 'egosurg sim wand-file' writes one")
+        data, _ = load_toml(p, "the wand file", error=WandSpecError)
         version = data.get("format_version", WAND_FORMAT_VERSION)
         if version != WAND_FORMAT_VERSION:
             raise WandSpecError(f"{p}: wand format_version {version} is not supported (want 1)")
-        try:
-            return cls(
-                sphere_diameter_mm=float(data["sphere_diameter_mm"]),
-                sphere_positions_mm=tuple(float(v) for v in data["sphere_positions_mm"]),  # type: ignore[arg-type]
-            )
-        except KeyError as exc:
-            raise WandSpecError(f"{p}: missing key {exc.args[0]!r}") from None
-        except (TypeError, ValueError) as exc:
-            if isinstance(exc, WandSpecError):
-                raise
-            raise WandSpecError(f"{p}: {exc}") from None
+        wand = read_table(_WandFile, data, str(p), error=WandSpecError)
+        return cls(
+            sphere_diameter_mm=wand.sphere_diameter_mm,
+            sphere_positions_mm=wand.sphere_positions_mm,
+        )
+
+
+@dataclass(frozen=True, kw_only=True)
+class _WandFile:
+    """What a wand.toml must hold: no default, since a wrong size scales every calibration."""
+
+    format_version: int = WAND_FORMAT_VERSION
+    sphere_diameter_mm: float
+    sphere_positions_mm: tuple[float, float, float]

@@ -25,9 +25,11 @@ import logging
 import os
 import re
 import stat
-import tomllib
 from pathlib import Path
 from typing import Any
+
+from protocol.errors import ConfigError
+from protocol.toml_config import parse_toml
 
 logger = logging.getLogger(__name__)
 
@@ -106,8 +108,8 @@ def _secret_names(table: dict[str, Any], where: str = "") -> list[str]:
 
 def _unquote(token: str) -> str:
     try:
-        return str(tomllib.loads(f"v = {token}")["v"])
-    except tomllib.TOMLDecodeError:
+        return str(parse_toml(f"v = {token}", "a value")["v"])
+    except ConfigError:
         return token
 
 
@@ -116,8 +118,8 @@ def redact_secrets(text: str) -> str:
     if not text:
         return text
     try:
-        names = _secret_names(tomllib.loads(text))
-    except tomllib.TOMLDecodeError:
+        names = _secret_names(parse_toml(text, "the rig config"))
+    except ConfigError:
         logger.warning("the rig config is not valid TOML; it is not stored in the session")
         return "# the rig configuration was not stored: it is not valid TOML\n"
     if not names:
@@ -135,8 +137,8 @@ def redact_secrets(text: str) -> str:
 
     redacted = _STRING.sub(string, _PAIR.sub(pair, text))
     try:
-        left = _secret_names(tomllib.loads(redacted))
-    except tomllib.TOMLDecodeError:
+        left = _secret_names(parse_toml(redacted, "the rig config"))
+    except ConfigError:
         left = names
     if left:
         logger.warning(

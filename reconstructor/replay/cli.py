@@ -16,23 +16,13 @@ import logging
 import math
 from pathlib import Path
 
-from protocol.command import CommandArgumentError, command_parser
+from protocol.command import CommandArgumentError, command_parser, parse_size_px
 from protocol.errors import UserError
 from protocol.formats.trajectory import Trajectory, read_trajectories
 from reconstructor.data.views import EYE_NEAR_M
 from reconstructor.raster.device import add_device_option, check_device
 
 log = logging.getLogger(__name__)
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise CommandArgumentError(f"--size {text!r}: write it as WxH, e.g. 960x600") from None
-    if not (16 <= w <= 8192 and 16 <= h <= 8192) or w % 2 or h % 2:
-        raise CommandArgumentError(f"--size {text!r}: even sides of 16 to 8192 px, e.g. 960x600")
-    return w, h
 
 
 def pick_trajectory(trajectory: str | None, role: str | None, roles: str | None) -> Trajectory:
@@ -109,9 +99,10 @@ def main_replay(argv: list[str]) -> int:
         raise CommandArgumentError(f"--near-m {near}: give 0 to 10 metres")
     try:
         config = ReplayConfig(
-            fps=args.fps, size_px=parse_size(args.size), t_from_s=args.t_from,
-            t_to_s=args.t_to, preload=not args.no_preload, near_m=near, pip=args.pip,
-            allow_gaps=args.allow_gaps, observed=args.observed, device=args.device or "cpu",
+            fps=args.fps, size_px=parse_size_px(args.size, "--size", even=True),
+            t_from_s=args.t_from, t_to_s=args.t_to, preload=not args.no_preload, near_m=near,
+            pip=args.pip, allow_gaps=args.allow_gaps, observed=args.observed,
+            device=args.device or "cpu",
         )  # fmt: skip
     except ValueError as exc:
         if isinstance(exc, UserError):

@@ -84,6 +84,18 @@ def good(rig) -> ReportData:
     return synthetic(rig)
 
 
+def _only(data: ReportData, keep: np.ndarray) -> ReportData:
+    """``data`` with only the observations ``keep`` (M,) marks."""
+    return replace(
+        data,
+        obs_sensor=data.obs_sensor[keep],
+        obs_px=data.obs_px[keep],
+        obs_residual_px=data.obs_residual_px[keep],
+        obs_inlier=data.obs_inlier[keep],
+        obs_set=data.obs_set[keep] if data.obs_set is not None else None,
+    )
+
+
 def test_good_data_passes_and_the_report_is_written(good, tmp_path):
     passed, reasons = verdict(good)
     assert passed, reasons
@@ -127,14 +139,7 @@ def test_a_sensor_seen_in_half_its_image_fails_coverage(good):
     name = good.sensor_names[2]
     w = good.image_size[name][0]
     keep = ~((good.obs_sensor == 2) & (good.obs_px[:, 0] > w / 2))
-    half = replace(
-        good,
-        obs_sensor=good.obs_sensor[keep],
-        obs_px=good.obs_px[keep],
-        obs_residual_px=good.obs_residual_px[keep],
-        obs_inlier=good.obs_inlier[keep],
-        obs_set=good.obs_set[keep] if good.obs_set is not None else None,
-    )
+    half = _only(good, keep)
     passed, reasons = verdict(half)
     assert not passed
     assert len(reasons) == 1, reasons
@@ -145,14 +150,7 @@ def test_a_sensor_seen_in_half_its_image_fails_coverage(good):
 
 def test_a_sensor_that_never_saw_the_wand_is_named(good):
     keep = good.obs_sensor != 5
-    none = replace(
-        good,
-        obs_sensor=good.obs_sensor[keep],
-        obs_px=good.obs_px[keep],
-        obs_residual_px=good.obs_residual_px[keep],
-        obs_inlier=good.obs_inlier[keep],
-        obs_set=None,
-    )
+    none = replace(_only(good, keep), obs_set=None)
     passed, reasons = verdict(none)
     assert not passed
     assert reasons == [

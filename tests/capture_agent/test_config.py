@@ -5,6 +5,7 @@ field; a config built in code is checked the same way; a config written back rea
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -123,7 +124,7 @@ def test_a_config_built_in_code_is_checked():
         SimSourceConfig(drop_probability=0.7)
     insecure = NodeSecurityConfig(insecure=True)
     cams = (SimSourceConfig(),)
-    node = {"node_id": "a", "frames_bind": "tcp://h:1", "control_bind": "tcp://h:2"}
+    node: dict[str, Any] = {"node_id": "a", "frames_bind": "tcp://h:1", "control_bind": "tcp://h:2"}
     with pytest.raises(ConfigError, match="queue_frames = 1"):
         NodeConfig(**node, queue_frames=1, cameras=cams, security=insecure)
     with pytest.raises(ConfigError, match=r"\[\[cameras\]\]"):
@@ -131,7 +132,12 @@ def test_a_config_built_in_code_is_checked():
     with pytest.raises(ConfigError, match="egosurg keys generate"):
         NodeConfig(**node, cameras=cams)
     agent = AgentEndpoint(node_id="a", frames="tcp://h:1", control="tcp://h:2")
-    rig = {"fps": 30, "control_bind": "tcp://h:3", "output_dir": "s", "agents": (agent,)}
+    rig: dict[str, Any] = {
+        "fps": 30,
+        "control_bind": "tcp://h:3",
+        "output_dir": "s",
+        "agents": (agent,),
+    }
     with pytest.raises(ConfigError, match="flush_interval_s = 5"):
         RigConfig(**rig, flush_interval_s=5, security=RigSecurityConfig(insecure=True))
     with pytest.raises(ConfigError, match="public_key"):

@@ -8,7 +8,12 @@ from __future__ import annotations
 
 import logging
 import os
+import pwd
+import shutil
 import stat
+import subprocess
+import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -24,7 +29,7 @@ from capture_agent.security import LinkSecurity
 from protocol.errors import ConfigError
 from protocol.wire import AgentStatus, ControlReply, ControlRequest, PtpState
 from sim.deploy import free_ports
-from tests.conftest import run_egosurg
+from tests.conftest import REPO, run_egosurg
 from tests.helpers import frame_message
 
 NODE = "orin-s"
@@ -336,6 +341,67 @@ def test_a_secret_key_others_can_read_is_refused(tmp_path):
     out = run_egosurg("agent", "--config", str(node), timeout=60)
     assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
     assert "chmod 600" in out.stderr
+
+
+def _has_user(name: str) -> bool:
+    try:
+        pwd.getpwnam(name)
+    except KeyError:
+        return False
+    return True
+
+
+def _as_nobody(argv: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
+    nobody = pwd.getpwnam("nobody")
+    drop = ["setpriv", f"--reuid={nobody.pw_uid}", f"--regid={nobody.pw_gid}", "--clear-groups"]
+    env = {**os.environ, "HOME": "/"}
+    return subprocess.run(
+        drop + argv, capture_output=True, text=True, timeout=120, cwd=cwd, env=env
+    )
+
+
+@pytest.mark.skipif(
+    os.geteuid() != 0 or not _has_user("nobody") or shutil.which("setpriv") is None,
+    reason="needs root, the user 'nobody' and setpriv (util-linux) to act as the service user",
+)
+def test_keys_for_the_service_user_and_an_unreadable_key_is_one_line():
+    """``sudo egosurg keys generate --owner USER``: USER reads its secret; keys root kept are
+    refused in one line that names the file and the fix (exit 2), never a traceback."""
+    base = Path(tempfile.mkdtemp(prefix="egosurg-keys-"))  # not tmp_path: its parents are 0700
+    try:
+        base.chmod(0o755)
+        done = run_egosurg(
+            "keys", "generate", "--owner", "nobody", "--out", str(base / "keys"), "--name", "orin-a"
+        )
+        assert done.returncode == 0 and "owned by nobody" in done.stdout, done.stderr
+        nobody = pwd.getpwnam("nobody").pw_uid
+        for p in (base / "keys", base / "keys" / "orin-a.key_secret"):
+            assert p.stat().st_uid == nobody and stat.S_IMODE(p.stat().st_mode) in (0o700, 0o600)
+        read = "from capture_agent.security import load_keypair as k; k('keys/orin-a.key_secret')"
+        out = _as_nobody([sys.executable, "-c", read], cwd=base)
+        assert out.returncode == 0, out.stderr
+        generate(base / "root-keys", "orin-a")  # as root, without --owner: what went wrong
+        (base / "root-keys").chmod(0o755)  # the file itself, not only its folder, is unreadable
+        node = base / "node.toml"
+        node.write_text(
+            'node_id = "orin-a"\nframes_bind = "tcp://127.0.0.1:1"\ncontrol_bind = '
+            '"tcp://127.0.0.1:2"\n[security]\nsecret_key = "root-keys/orin-a.key_secret"\n'
+            'allowed_keys = ["root-keys/orin-a.key"]\n[ptp]\nsource = "none"\n[[cameras]]\n'
+            'source = "video"\npath = "none.mp4"\nserial = 5\n'
+        )
+        node.chmod(0o644)
+        agent = [sys.executable, "-m", "protocol.cli", "agent", "--config", str(node)]
+        out = _as_nobody(agent, cwd=REPO)
+        assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+        lines = out.stderr.strip().splitlines()
+        assert len(lines) == 1 and "root-keys/orin-a.key_secret" in lines[0], out.stderr
+        assert "cannot be read by user nobody" in lines[0] and "--owner nobody" in lines[0]
+        refused = run_egosurg("keys", "generate", "--owner", "no-such-user-x", "--out",
+                              str(base / "k3"), "--name", "a")  # fmt: skip
+        assert refused.returncode == 2 and "no such user" in refused.stderr
+        assert not (base / "k3").exists()
+    finally:
+        shutil.rmtree(base)
 
 
 NODE_BASE = {

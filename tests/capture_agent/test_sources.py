@@ -17,13 +17,8 @@ import numpy as np
 import pytest
 
 from capture_agent.camera_config import CameraConfig, FaultSpec, SimSourceConfig
-from capture_agent.sources import (
-    CameraSource,
-    CameraUnavailableError,
-    EndOfRecordingError,
-    GrabbedFrame,
-    make_source,
-)
+from capture_agent.errors import CameraUnavailableError, EndOfRecordingError
+from capture_agent.sources import CameraSource, GrabbedFrame, make_source
 from capture_agent.sources.sim_source import DAY_NS, SimSource
 from capture_agent.sources.zed_source import ZedSource
 from protocol.camera import Resolution

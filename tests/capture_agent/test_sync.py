@@ -7,11 +7,11 @@ import time
 import numpy as np
 import pytest
 
+from capture_agent.errors import SyncError
 from capture_agent.recorder.sync import (
     MISSING,
     SyncConfig,
     SyncedSet,
-    SyncError,
     Synchroniser,
     group_offline,
     unassigned_offline,

@@ -18,7 +18,8 @@ import zmq.auth
 
 from capture_agent.camera_config import SimSourceConfig
 from capture_agent.config import NodeConfig, RigConfig
-from capture_agent.operator.rig_client import CommandRefusedError, RigClient
+from capture_agent.errors import CommandRefusedError
+from capture_agent.operator.rig_client import RigClient
 from capture_agent.recorder.recorder import Recorder
 from capture_agent.sources.sim_source import SimSource
 from protocol.session import GapKind, SessionReader

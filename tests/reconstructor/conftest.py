@@ -19,3 +19,16 @@ def one_thread():
     yield
     torch.set_num_threads(before[0])
     numba.set_num_threads(before[1])
+
+
+@pytest.fixture(scope="module")
+def tiny_session(tmp_path_factory):
+    """Six consecutive sets (15 fps, 2.0 s to 2.33 s) of the intraoperative sim, and a tiny
+    config (tests/reconstructor/tiny.py): (the session file, the config file)."""
+    from tests.reconstructor.tiny import tiny_config_toml, tiny_eval_session
+
+    root = tmp_path_factory.mktemp("case")
+    folder = tiny_eval_session(root, sets=6)
+    config = root / "tiny.toml"
+    config.write_text(tiny_config_toml(3))
+    return folder / "session.h5", config

@@ -20,18 +20,7 @@ from reconstructor.case import storage
 from reconstructor.case.index import CaseIndex
 from reconstructor.splats import ply
 from tests.helpers import REPO, run_egosurg
-from tests.reconstructor.tiny import tiny_config_toml, tiny_eval_session
-
-
-@pytest.fixture(scope="module")
-def session(tmp_path_factory) -> tuple[Path, Path]:
-    """Six consecutive sets (15 fps, 2.0 s to 2.33 s) of the intraoperative sim, and a tiny
-    config."""
-    root = tmp_path_factory.mktemp("case")
-    folder = tiny_eval_session(root, sets=6)
-    config = root / "tiny.toml"
-    config.write_text(tiny_config_toml(3))
-    return folder / "session.h5", config
+from tests.reconstructor.tiny import tiny_config_toml
 
 
 def _index(folder: Path) -> dict:
@@ -47,8 +36,10 @@ def _args(session: Path, config: Path, out: Path, *extra: str) -> list[str]:
 
 
 @pytest.mark.slow  # about 45 s on 2 loaded cores: five runs of the command
-def test_a_case_holds_one_checked_model_per_timestamp_and_a_rerun_skips_them(session, tmp_path):
-    h5, config = session
+def test_a_case_holds_one_checked_model_per_timestamp_and_a_rerun_skips_them(
+    tiny_session, tmp_path
+):
+    h5, config = tiny_session
     out = tmp_path / "case"
     done = run_egosurg(*_args(h5, config, out, "--every", "0.1s", "--cold"), timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -102,8 +93,10 @@ def test_a_case_holds_one_checked_model_per_timestamp_and_a_rerun_skips_them(ses
 
 
 @pytest.mark.slow  # about 60 s on 2 loaded cores
-def test_a_run_killed_halfway_resumes_and_the_index_never_names_a_partial_file(session, tmp_path):
-    h5, _ = session
+def test_a_run_killed_halfway_resumes_and_the_index_never_names_a_partial_file(
+    tiny_session, tmp_path
+):
+    h5, _ = tiny_session
     config = tmp_path / "slower.toml"
     config.write_text(tiny_config_toml(40))  # long enough to be caught halfway
     out = tmp_path / "case"
@@ -157,15 +150,15 @@ def test_a_run_killed_halfway_resumes_and_the_index_never_names_a_partial_file(s
         (("--every", "1s", "--cold", "--warm-start"), "not allowed with argument"),
     ],
 )
-def test_bad_case_options_get_one_clear_line(session, tmp_path, extra, message):
-    h5, config = session
+def test_bad_case_options_get_one_clear_line(tiny_session, tmp_path, extra, message):
+    h5, config = tiny_session
     done = run_egosurg(*_args(h5, config, tmp_path / "case", *extra), timeout=120)
     assert done.returncode == 2 and "Traceback" not in done.stderr
     assert message in done.stderr
 
 
-def test_a_folder_that_is_not_a_case_is_refused_untouched(session, tmp_path):
-    h5, config = session
+def test_a_folder_that_is_not_a_case_is_refused_untouched(tiny_session, tmp_path):
+    h5, config = tiny_session
     foreign = tmp_path / "photos"
     foreign.mkdir()
     (foreign / "holiday.jpg").write_bytes(b"jpeg")
@@ -178,9 +171,9 @@ def test_a_folder_that_is_not_a_case_is_refused_untouched(session, tmp_path):
 
 @pytest.mark.slow  # about 20 s on 2 loaded cores
 def test_warm_start_chains_each_timestamp_to_the_one_before_and_keyframes_start_cold(
-    session, tmp_path
+    tiny_session, tmp_path
 ):
-    h5, config = session
+    h5, config = tiny_session
     out = tmp_path / "case"
     extra = ("--every", "0.1s", "--warm-start", "--warm-steps", "2", "--keyframe-every", "3")
     done = run_egosurg(*_args(h5, config, out, *extra), timeout=300)

@@ -14,7 +14,6 @@ import pytest
 from reconstructor.case.index import CaseIndex
 from reconstructor.case.storage import load_model
 from tests.helpers import run_egosurg
-from tests.reconstructor.test_case import session  # noqa: F401  (the fixture)
 
 ray = pytest.importorskip("ray")
 
@@ -26,10 +25,10 @@ def _models(folder: Path) -> dict[str, dict]:
 
 
 @pytest.mark.slow  # starting Ray takes 10-30 s on 2 loaded cores
-def test_ray_tasks_make_the_same_models_as_the_local_pool(session, tmp_path):  # noqa: F811
+def test_ray_tasks_make_the_same_models_as_the_local_pool(tiny_session, tmp_path):
     from reconstructor.cli import main_reconstruct
 
-    h5, config = session
+    h5, config = tiny_session
     common = ["--config", str(config), "--every", "0.1s", "--to", "2.2", "--workers", "2",
               "--warm-steps", "3", "--keyframe-every", "2"]  # fmt: skip
     pool = tmp_path / "pool"

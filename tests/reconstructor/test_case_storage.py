@@ -24,7 +24,6 @@ from reconstructor.pipeline import reconstruct
 from reconstructor.replay.models import CaseModels
 from reconstructor.splats import ply
 from tests.helpers import run_egosurg
-from tests.reconstructor.test_case import session  # noqa: F401  (the module's fixture)
 from tests.reconstructor.test_ply import random_gaussians
 from tests.reconstructor.tiny import tiny_config_toml
 
@@ -38,10 +37,10 @@ def _psnr(g, view, raster) -> float:
 
 
 def test_a_stored_warm_chain_renders_within_a_tenth_of_a_db_of_the_trained_models(
-    session,  # noqa: F811
+    tiny_session,
     tmp_path,
 ):
-    h5, _ = session
+    h5, _ = tiny_session
     calibration = RigCalibration.read(h5.parent / "calibration.toml")
     cold = ReconstructConfig.from_toml(tiny_config_toml(4))
     wcfg = WarmStartConfig(steps=3, keyframe_every=3)
@@ -82,10 +81,10 @@ def test_a_stored_warm_chain_renders_within_a_tenth_of_a_db_of_the_trained_model
 
 @pytest.mark.slow  # two runs of the real command, as test_case.py's case runs
 def test_a_warm_case_exports_unit_quaternion_plys_and_a_damaged_change_file_is_named(
-    session,  # noqa: F811
+    tiny_session,
     tmp_path,
 ):
-    h5, config = session
+    h5, config = tiny_session
     out = tmp_path / "case"
     argv = [
         "reconstruct",

@@ -13,9 +13,9 @@ import pytest
 
 from protocol.camera import Intrinsics, Pose, Resolution, ResolutionError
 from sim import World
+from sim.errors import OutsideRoomError, SimTimeError
 from sim.phases import PHASES
-from sim.room import OutsideRoomError
-from sim.timing import ClockSpec, FrameClock, SimTimeError
+from sim.timing import ClockSpec, FrameClock
 
 HASH_SNIPPET = """
 import hashlib, sys
