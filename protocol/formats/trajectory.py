@@ -33,7 +33,7 @@ import numpy as np
 
 from protocol.camera import Pose
 from protocol.errors import UserError
-from protocol.toml_config import load_toml
+from protocol.toml_config import load_toml, read_table
 
 TRAJECTORY_FORMAT = "egosurg-trajectories"
 TRAJECTORY_FORMAT_VERSION = 1
@@ -141,13 +141,11 @@ class Trajectory:
         return self.keyframes[0].time_s, self.keyframes[-1].time_s
 
 
-def _vec(value: object, n: int, where: str) -> tuple[float, ...]:
-    if not (isinstance(value, list) and len(value) == n):
-        raise TrajectoryFileError(f"{where} must be a list of {n} numbers, got {value!r}")
-    try:
-        return tuple(float(v) for v in value)
-    except (TypeError, ValueError):
-        raise TrajectoryFileError(f"{where} must be a list of {n} numbers, got {value!r}") from None
+@dataclass(frozen=True, kw_only=True)
+class _TrajectoryFile:
+    format: str
+    format_version: int
+    trajectories: tuple[Trajectory, ...] = ()
 
 
 def read_trajectories(path: Path | str) -> tuple[Trajectory, ...]:
@@ -166,41 +164,7 @@ def read_trajectories(path: Path | str) -> tuple[Trajectory, ...]:
             f"{path} has format_version {table.get('format_version')!r}; this egosurg reads "
             f"{TRAJECTORY_FORMAT_VERSION}"
         )
-    out = []
-    for i, tr in enumerate(table.get("trajectories") or []):
-        where = f"{path}: trajectories[{i}]"
-        try:
-            keys = []
-            for j, kf in enumerate(tr.get("keyframes") or []):
-                w = f"{where}.keyframes[{j}]"
-                unknown = set(kf) - {"time_s", "eye_m", "look_at_m", "orientation_wxyz", "fov_deg"}
-                if unknown:
-                    raise TrajectoryFileError(f"{w}: unknown keys {sorted(unknown)}")
-                if "time_s" not in kf or "eye_m" not in kf:
-                    raise TrajectoryFileError(f"{w}: needs time_s and eye_m")
-                look = kf.get("look_at_m")
-                quat = kf.get("orientation_wxyz")
-                try:
-                    keys.append(
-                        Keyframe(
-                            time_s=float(kf["time_s"]),
-                            eye_m=_vec(kf["eye_m"], 3, f"{w}.eye_m"),  # type: ignore[arg-type]
-                            look_at_m=None if look is None else _vec(look, 3, f"{w}.look_at_m"),  # type: ignore[arg-type]
-                            orientation_wxyz=None
-                            if quat is None
-                            else _vec(quat, 4, f"{w}.orientation_wxyz"),  # type: ignore[arg-type]
-                            fov_deg=float(kf.get("fov_deg", 90.0)),
-                        )
-                    )
-                except (TypeError, ValueError) as exc:
-                    if isinstance(exc, TrajectoryFileError):
-                        raise
-                    raise TrajectoryFileError(f"{w}: {exc}") from None
-            out.append(Trajectory(name=str(tr.get("name", "")), keyframes=tuple(keys)))
-        except (AttributeError, TypeError, ValueError) as exc:
-            if isinstance(exc, TrajectoryFileError):
-                raise
-            raise TrajectoryFileError(f"{where}: {exc}") from None
+    out = read_table(_TrajectoryFile, table, str(path), error=TrajectoryFileError).trajectories
     if not out:
         raise TrajectoryFileError(f"{path} holds no [[trajectories]]")
     names = [t.name for t in out]
