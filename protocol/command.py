@@ -6,7 +6,8 @@ with :func:`add_subcommand` and its one-line summary. A usage mistake (a missing
 option, a bad choice or number) raises :class:`CommandArgumentError` instead of argparse's usage
 dump and ``SystemExit``: the ``egosurg`` dispatcher prints any ``UserError`` as one line and exits
 with code 2, so a user mistake found by argparse and one found by the command's own checks read
-the same. This module needs only the standard library: the edge's commands use it.
+the same. :func:`parse_size_px` reads a ``WxH`` option the same way in every command. This module
+needs only the standard library: the edge's commands use it.
 
 Example::
 
@@ -21,7 +22,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
-from typing import Any, NoReturn
+from typing import NoReturn
 
 from protocol.errors import UserError
 
@@ -37,11 +38,11 @@ class CommandParser(argparse.ArgumentParser):
         raise CommandArgumentError(f"{message} (see '{self.prog} --help')")
 
 
-def command_parser(prog: str, doc: str | None, **kwargs: Any) -> CommandParser:
+def command_parser(prog: str, doc: str | None) -> CommandParser:
     """The parser of command ``prog`` (e.g. ``"egosurg session"``), its help text ``doc`` as
     written: the module docstring keeps its example's line breaks."""
     return CommandParser(
-        prog=prog, description=doc, formatter_class=argparse.RawDescriptionHelpFormatter, **kwargs
+        prog=prog, description=doc, formatter_class=argparse.RawDescriptionHelpFormatter
     )
 
 

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import re
 import sys
 import typing
 from collections.abc import Callable
@@ -243,11 +244,22 @@ def dumps(obj: Any, *, comment: str = "", head: dict[str, Any] | None = None) ->
     return dumps_table({**(head or {}), **to_table(obj)}, comment=comment)
 
 
+# tomli-w writes every array one item a line; an array of scalars is kept on one line, as people
+# write them (and as the reconstructor's config.toml, whose text is hashed to resume a case, was
+# always written).
+_INLINE_ARRAY = re.compile(r"= \[\n((?:    [^\n\[\]{}]+,\n)+)\]")
+
+
+def _inline(match: re.Match[str]) -> str:
+    items = [line.strip().rstrip(",") for line in match.group(1).splitlines()]
+    return "= [" + ", ".join(items) + "]"
+
+
 def dumps_table(table: dict[str, Any], *, comment: str = "") -> str:
     """A table as TOML text (for a writer that cannot import the dataclass that reads it);
     enums, tuples and paths are written as their values, ``None`` left out."""
     import tomli_w  # writing is rarer than reading: the daemons never need it
 
-    text = tomli_w.dumps(_plain(table))
+    text = _INLINE_ARRAY.sub(_inline, tomli_w.dumps(_plain(table)))
     lines = "".join(f"# {line}\n" if line else "#\n" for line in comment.splitlines())
     return lines + text

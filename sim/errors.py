@@ -8,7 +8,7 @@ from protocol.errors import UserError
 
 
 class UnknownPhaseError(UserError, ValueError):
-    pass
+    """A workflow phase the simulator does not know; the message lists the ones it does."""
 
 
 class OutsideRoomError(UserError, ValueError):
@@ -20,4 +20,4 @@ class SimTimeError(UserError, ValueError):
 
 
 class SimRigError(UserError, RuntimeError):
-    pass
+    """A simulated rig that cannot be deployed or run; the message says what to check."""

@@ -168,3 +168,14 @@ def test_the_module_imports_nothing_heavy():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == ""
+
+
+def test_arrays_of_scalars_are_written_on_one_line_and_read_back():
+    """As people write them, and as a case's config.toml (whose text is hashed to decide whether
+    a case folder may resume) has always been written: one line per array of numbers."""
+    from protocol.toml_config import dumps_table, parse_toml
+
+    table = {"room_bounds_m": [-3.0, -3.0, 0.0, 3.0, 3.0, 3.0], "names": ["a, b", "c]"]}
+    text = dumps_table(table)
+    assert "room_bounds_m = [-3.0, -3.0, 0.0, 3.0, 3.0, 3.0]\n" in text
+    assert parse_toml(text, "written") == table
