@@ -10,7 +10,7 @@ STAMP  := $(VENV)/.egosurg-installed
 TORCH  := torch==2.13.0
 PYTEST_MARKERS ?= not hardware and not gpu
 
-.PHONY: demo test lint typecheck bench system-deps clean
+.PHONY: demo test lint typecheck bench edge-check system-deps clean
 
 demo: $(STAMP)
 	$(BIN)/egosurg demo --out out/demo
@@ -29,6 +29,37 @@ typecheck: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python bench/bench_sim.py
+
+# The edge as a node installs it (README, "Installing on the rig"): a clean Python 3.10 venv
+# (JetPack 6's Python) with the base dependencies only, the node's commands, and the edge's tests
+# that need no simulator, so a construct newer than 3.10 in the edge fails here. The files that
+# build a simulated node (sim/ needs open3d and numba) run in `make test` only.
+EDGE_PYTHON ?= $(shell for p in python3.10 "$$(pyenv prefix 3.10 2>/dev/null)/bin/python3.10"; do \
+	"$$p" -c '' 2>/dev/null && { command -v "$$p"; break; }; done)
+EDGE_VENV  := .venv-edge
+EDGE_BIN   := $(EDGE_VENV)/bin
+EDGE_STAMP := $(EDGE_VENV)/.egosurg-edge-installed
+EDGE_WORK  := $(EDGE_VENV)/check
+EDGE_TESTS := tests/test_edge_install.py tests/protocol/test_messages.py \
+	tests/protocol/test_toml_config.py tests/protocol/test_command.py \
+	tests/protocol/test_encode.py tests/protocol/test_intrinsics.py tests/protocol/test_session.py \
+	tests/protocol/test_session_damage.py tests/capture_agent/test_config.py \
+	tests/capture_agent/test_ptp.py tests/capture_agent/test_units.py
+# the one test of the session files that records through a simulated node
+EDGE_SKIP  := tests/protocol/test_session_damage.py::test_a_recorder_killed_mid_take_resumes_into_a_linked_file
+
+edge-check: $(EDGE_STAMP)
+	rm -rf $(EDGE_WORK) && mkdir -p $(EDGE_WORK)
+	$(EDGE_BIN)/egosurg agent --help >/dev/null
+	$(EDGE_BIN)/egosurg recorder --help >/dev/null
+	$(EDGE_BIN)/egosurg shell --help >/dev/null
+	$(EDGE_BIN)/egosurg keys generate --out $(EDGE_WORK)/keys --name node
+	$(EDGE_BIN)/egosurg keys show $(EDGE_WORK)/keys/node.key
+	$(EDGE_BIN)/python -c "import pathlib, tests.protocol.test_session as t; \
+		t._write_session(pathlib.Path('$(EDGE_WORK)/session.h5'))"
+	$(EDGE_BIN)/egosurg session info $(EDGE_WORK)/session.h5
+	$(EDGE_BIN)/python -m pytest -m "$(PYTEST_MARKERS) and not slow" $(EDGE_TESTS) \
+		--deselect $(EDGE_SKIP) $(PYTEST_ARGS)
 
 # libusb-1.0-0: open3d needs it at import. hdf5-tools: h5dump/h5ls/h5clear, to read sessions with
 # the standard tools (and for the test that checks a session opens in h5dump). libfaketime: the
@@ -64,10 +95,25 @@ $(BIN)/python:
 $(STAMP): pyproject.toml | $(BIN)/python system-deps
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q "$(TORCH)"
-	$(BIN)/python -m pip install -q -e ".[dev,bench]"
+	$(BIN)/python -m pip install -q -e ".[workstation,dev,bench]"
 	$(BIN)/python -m pip install -q --no-deps "lpips>=0.1.4"
 	$(BIN)/python -c "import open3d, torch, cv2, zmq, h5py; print('installed: torch', torch.__version__, '| open3d', open3d.__version__)"
 	@touch $(STAMP)
 
+# The node's install is README's one command, `pip install -e .`; the test runner comes after it,
+# and the list of what the node's install resolved is kept beside the venv.
+$(EDGE_STAMP): pyproject.toml
+	@test -n "$(EDGE_PYTHON)" || { echo "make edge-check needs Python 3.10 (JetPack 6's):" \
+		"install python3.10 and python3.10-venv, or run 'pyenv install 3.10'"; exit 1; }
+	rm -rf $(EDGE_VENV)
+	$(EDGE_PYTHON) -m venv $(EDGE_VENV)
+	$(EDGE_BIN)/python -m pip install -q --upgrade pip
+	$(EDGE_BIN)/python -m pip install -q -e .
+	$(EDGE_BIN)/python -m pip list --format=freeze --exclude pip --exclude setuptools \
+		| tee $(EDGE_VENV)/edge-install.txt
+	@echo "the edge install resolved $$(wc -l < $(EDGE_VENV)/edge-install.txt) packages"
+	$(EDGE_BIN)/python -m pip install -q -e ".[test]"
+	@touch $(EDGE_STAMP)
+
 clean:
-	rm -rf $(VENV) out .pytest_cache
+	rm -rf $(VENV) $(EDGE_VENV) out .pytest_cache

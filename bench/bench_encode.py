@@ -43,10 +43,10 @@ import cv2
 import numpy as np
 
 from capture_agent.agent import agent as agent_module
-from capture_agent.camera_config import CameraConfig
-from capture_agent.config import NodeConfig
 from capture_agent.sources.base import CameraSource, GrabbedFrame, require_timeout
 from protocol.camera import Resolution
+from protocol.formats.camera_config import CameraConfig
+from protocol.formats.node_config import NodeConfig
 from protocol.images import encode_pair
 
 FPS = 30.0
@@ -127,7 +127,7 @@ class ClockedPairSource(CameraSource):
 
     def __init__(self, entry: CameraConfig, pair: Pair, t0_unix_ns: int) -> None:
         self._serial = int(getattr(entry, "serial", None) or 1)
-        self._fps = float(entry.fps)
+        self._fps = float(entry.fps or FPS)
         self._buffer = int(getattr(entry, "buffer_frames", 2))
         self._pair = pair
         self._t0 = t0_unix_ns
@@ -209,22 +209,28 @@ def run_agent(pair: Pair, warmup_s: float, window_s: float) -> dict:
             )
         return out
 
+    sources: list[ClockedPairSource] = []  # every one made, a watchdog replacement included
+
+    def make_source(config: CameraConfig) -> CameraSource:
+        sources.append(ClockedPairSource(config, pair, t0_unix_ns))
+        return sources[-1]
+
     saved = agent_module.make_source, agent_module.encode_pair
-    agent_module.make_source = lambda entry: ClockedPairSource(entry, pair, t0_unix_ns)
+    agent_module.make_source = make_source
     agent_module.encode_pair = timed_encode
     agent = agent_module.Agent(node_config())
     try:
         agent.start()
         time.sleep(warmup_s)
         before = [w.status(0) for w in agent.workers]
-        overrun0 = sum(w.source.overrun_frames for w in agent.workers)
+        overrun0 = sum(s.overrun_frames for s in sources)
         cpu0, wall0 = time.process_time(), time.perf_counter()
         recording.set()
         time.sleep(window_s)
         recording.clear()
         cpu_s, wall_s = time.process_time() - cpu0, time.perf_counter() - wall0
         after = [w.status(0) for w in agent.workers]
-        overrun = sum(w.source.overrun_frames for w in agent.workers) - overrun0
+        overrun = sum(s.overrun_frames for s in sources) - overrun0
         pairs = list(zip(after, before, strict=True))
     finally:
         agent.stop()
@@ -317,9 +323,11 @@ def print_budget(cpu_ms: float, bgra_ms: float, x86_ghz: tuple, per_clock: tuple
         slow = [x86_ghz[0] / (ghz * per_clock[1]), x86_ghz[1] / (ghz * per_clock[0])]
         pair_ms = [cpu_ms * s for s in slow]
         used = [CAMERAS * FPS * (cpu_ms + bgra_ms) * s / 1000.0 for s in slow]
+        kept = [min(FPS, 1000.0 / ms) for ms in pair_ms]
         print(
             f"- {name} ({cores} cores at {ghz:g} GHz): {pair_ms[0]:.0f}-{pair_ms[1]:.0f} ms per "
-            f"pair on one core (budget {period_ms:.1f} ms per camera thread); "
+            f"pair on one core (budget {period_ms:.1f} ms per camera thread: it keeps "
+            f"{kept[1]:.0f}-{kept[0]:.0f} fps per camera); "
             f"{need:.0f} images/s need {used[0]:.1f}-{used[1]:.1f} cores of {cores} "
             f"({100 * used[0] / cores:.0f}-{100 * used[1] / cores:.0f} %)"
         )

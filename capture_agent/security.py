@@ -38,13 +38,16 @@ from zmq.utils import z85
 from zmq.utils.monitor import parse_monitor_message
 
 from protocol.errors import ConfigError
-from protocol.wire import FRAME_HEADER_BYTES, MAX_JSON_BYTES, MAX_NODE_ID_BYTES
+from protocol.formats.security_config import (
+    NO_KEYS,
+    PUBLIC_SUFFIX,
+    SECRET_SUFFIX,
+    SecurityConfig,
+)
+from protocol.wire import MAX_JSON_BYTES
 
 log = logging.getLogger(__name__)
 
-PUBLIC_SUFFIX = ".key"
-SECRET_SUFFIX = ".key_secret"
-LARGEST_IMAGE_BYTES = 1920 * 1200 * 3  # raw_bgr8 at HD1200, the largest ZED X mode
 CONTROL_MAX_BYTES = MAX_JSON_BYTES + 64  # one control JSON body (the limit of protocol/messages)
 # What a PUB receives: subscriptions (we subscribe to b"") and the handshake. MAXMSGSIZE applies
 # to ZMTP commands too, and CURVE's INITIATE (the client's vouch and metadata) is ~300 bytes.
@@ -63,17 +66,6 @@ _HANDSHAKE_FAILED = (
     | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
     | zmq.EVENT_HANDSHAKE_FAILED_AUTH
 )
-
-
-def frame_part_max_bytes(max_image_bytes: int = LARGEST_IMAGE_BYTES) -> int:
-    """MAXMSGSIZE of a socket that receives frames: its largest legal part (an image, the
-    frame header or an agent status JSON)."""
-    return max(max_image_bytes, MAX_JSON_BYTES + 16, FRAME_HEADER_BYTES + MAX_NODE_ID_BYTES)
-
-
-def frame_message_max_bytes(max_image_bytes: int = LARGEST_IMAGE_BYTES) -> int:
-    """The largest legal frame message: header and two images (what one queue slot can hold)."""
-    return FRAME_HEADER_BYTES + MAX_NODE_ID_BYTES + 2 * max_image_bytes
 
 
 # -- key files ----------------------------------------------------------------------------------
@@ -196,6 +188,16 @@ class LinkSecurity:
         return cls(
             public_key=public, secret_key=secret, allowed_keys=allowed, key_file=secret_key_file
         )
+
+    @classmethod
+    def from_config(cls, config: SecurityConfig) -> LinkSecurity:
+        """A daemon's ``[security]`` keys, loaded (ConfigError when missing, unreadable or not
+        0600)."""
+        if config.insecure:
+            return cls.plaintext()
+        if not config.secret_key or not config.peer_keys:
+            raise ConfigError(f"{config.where or 'config'}: no CURVE keys; {NO_KEYS}")
+        return cls.load(config.secret_key, config.peer_keys)
 
 
 def warn_insecure(who: str) -> None:
@@ -371,20 +373,3 @@ class LinkGuard:
         if self._auth is not None:
             self._auth.stop()
             self._auth = None
-
-
-def secure_bind_check(address: str, links_insecure: bool, allow_all: bool, where: str) -> None:
-    """Refuse a bind on every interface unless the config says so out loud."""
-    host = address.split("://", 1)[-1].rsplit(":", 1)[0]
-    if host in ("*", "0.0.0.0", "[::]", "::") and not (links_insecure or allow_all):
-        raise ConfigError(
-            f"{where}: binding {address} listens on every interface; bind the rig network's "
-            "address (e.g. tcp://10.10.0.11:5550), or set allow_all_interfaces = true in "
-            "[security]"
-        )
-
-
-def key_path(value: str, base_dir: Path) -> str:
-    """A key file path from a config: relative paths are relative to the config's folder."""
-    p = Path(os.path.expanduser(value))
-    return str(p if p.is_absolute() else base_dir / p)

@@ -96,7 +96,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ImportError as exc:
         print(
             f"egosurg {name}: cannot load {module_name}: {exc}. Install the full product with "
-            "'pip install egosurg' (the edge-only 'egosurg[agent]' lacks this command).",
+            "\"pip install 'egosurg[workstation]'\" (a node's edge install, plain "
+            "'pip install egosurg', lacks this command).",
             file=sys.stderr,
         )
         return 2

@@ -2,7 +2,9 @@
 
 ``write_sim_rig`` writes the ``node.toml`` of each simulated Jetson (two ZED X each, as on the
 real rig) and a ``rig.toml`` for the recorder, with CURVE keys for every link (``keys/``: the
-recorder, each node and an operator, whose key the rig's clients use); ``SimRig`` starts them as
+recorder, each node and an operator, whose key the rig's clients use). It builds the configs the
+agent and the recorder read (``protocol/formats/``: ``NodeConfig``, ``RigConfig``), so a bad
+value fails here, and writes them with the house's TOML writer. ``SimRig`` starts them as
 separate ``egosurg`` processes, waits until every camera streams, and can kill and restart them
 for fault tests. The demo and the integration tests use it; it talks to the processes only
 through the ``egosurg`` command and the control protocol, as an operator would.
@@ -29,7 +31,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from protocol.toml_config import dumps_table
+from protocol.camera import Resolution
+from protocol.formats.camera_config import FaultSpec, SimSourceConfig
+from protocol.formats.node_config import EncodingName, NodeConfig, PtpConfig
+from protocol.formats.rig_config import AgentEndpoint, RigConfig
+from protocol.formats.security_config import NodeSecurityConfig, RigSecurityConfig
+from protocol.toml_config import dumps
 from sim.errors import SimRigError
 from sim.world import World
 
@@ -56,7 +63,7 @@ class SimRigSpec:
     prerender_s: float = 6.0
     drop_probability: float = 0.002
     jitter_ns_std: float = 150_000.0
-    encoding: str = "jpeg"
+    encoding: EncodingName = "jpeg"
     jpeg_quality: int = 85
     pre_encode: bool = True
     flush_interval_s: float = 0.2
@@ -64,10 +71,9 @@ class SimRigSpec:
     disk_reserve_gb: float = 0.5
     planned_duration_min: float = 1.0
     require_ptp_lock: bool = False
-    ptp_table: dict[str, Any] = field(
-        default_factory=lambda: {"source": "none", "require_lock": False}
-    )
-    faults: dict[int, list[dict[str, Any]]] = field(default_factory=dict)  # camera k -> faults
+    # no PTP on loopback: the agents' clocks are the simulator's
+    ptp: PtpConfig = field(default_factory=lambda: PtpConfig(source="none", require_lock=False))
+    faults: dict[int, tuple[FaultSpec, ...]] = field(default_factory=dict)  # camera k -> faults
     insecure: bool = False  # plaintext links (insecure = true): only to measure CURVE's cost
 
     def __post_init__(self) -> None:
@@ -152,70 +158,75 @@ def _camera_units(spec: SimRigSpec) -> tuple[World, list[tuple[int, ZedUnit]]]:
     return world, units
 
 
-def _camera(spec: SimRigSpec, k: int, seed: int, unit: ZedUnit, epoch: int) -> dict[str, Any]:
-    """Camera ``k``'s ``[[cameras]]`` table (capture_agent's SimSourceConfig reads it)."""
-    table: dict[str, Any] = {
-        "source": "sim",
-        "seed": seed,
-        "phase": spec.phase,
-        "camera_index": unit.index,
-        "resolution": spec.resolution,
-        "fps": spec.fps,
-        "epoch_unix_ns": epoch,
-        "content_fps": spec.content_fps,
-        "prerender_s": spec.prerender_s,
-        "drop_probability": spec.drop_probability,
-        "jitter_ns_std": spec.jitter_ns_std,
-    }
+def _camera(spec: SimRigSpec, k: int, seed: int, unit: ZedUnit, epoch: int) -> SimSourceConfig:
+    """Camera ``k``'s ``[[cameras]]`` table."""
+    encoded: dict[str, Any] = {}
     if spec.pre_encode and spec.encoding == "jpeg":
-        table |= {"pre_encode": "jpeg", "jpeg_quality": spec.jpeg_quality}
-    if spec.faults.get(k):
-        table["faults"] = list(spec.faults[k])
-    return table
+        encoded = {"pre_encode": "jpeg", "jpeg_quality": spec.jpeg_quality}
+    return SimSourceConfig(
+        seed=seed,
+        phase=spec.phase,
+        camera_index=unit.index,
+        resolution=Resolution.parse(spec.resolution),
+        fps=spec.fps,
+        epoch_unix_ns=epoch,
+        content_fps=spec.content_fps,
+        prerender_s=spec.prerender_s,
+        drop_probability=spec.drop_probability,
+        jitter_ns_std=spec.jitter_ns_std,
+        faults=spec.faults.get(k, ()),
+        **encoded,
+    )
 
 
-def _node_table(
-    spec: SimRigSpec, node: str, binds: tuple[str, str], cameras: list[dict[str, Any]]
-) -> dict[str, Any]:
-    """A node.toml (capture_agent's NodeConfig reads it)."""
-    keys = {
-        "secret_key": f"keys/{node}.key_secret",
-        "allowed_keys": ["keys/recorder.key", "keys/operator.key"],
-    }
-    return {
-        "node_id": node,
-        "frames_bind": binds[0],
-        "control_bind": binds[1],
-        "encoding": spec.encoding,
-        "jpeg_quality": spec.jpeg_quality,
-        "ptp": dict(spec.ptp_table),
-        "security": {"insecure": True} if spec.insecure else keys,
-        "cameras": cameras,
-    }
+def _node_config(
+    spec: SimRigSpec, node: str, binds: tuple[str, str], cameras: list[SimSourceConfig]
+) -> NodeConfig:
+    """A node's node.toml; key paths relative to the file."""
+    keys = NodeSecurityConfig(
+        secret_key=f"keys/{node}.key_secret",
+        allowed_keys=("keys/recorder.key", "keys/operator.key"),
+    )
+    return NodeConfig(
+        node_id=node,
+        frames_bind=binds[0],
+        control_bind=binds[1],
+        encoding=spec.encoding,
+        jpeg_quality=spec.jpeg_quality,
+        ptp=spec.ptp,
+        security=NodeSecurityConfig(insecure=True) if spec.insecure else keys,
+        cameras=tuple(cameras),
+    )
 
 
-def _rig_table(
-    spec: SimRigSpec, agents: list[dict[str, Any]], control_bind: str, sessions: Path
-) -> dict[str, Any]:
-    """The rig.toml (capture_agent's RigConfig reads it)."""
-    keys = {
-        "secret_key": "keys/recorder.key_secret",
-        "operator_keys": ["keys/operator.key"],
-        "operator_key": "keys/operator.key_secret",
-    }
-    return {
-        "rig_name": "sim-or",
-        "fps": spec.fps,
-        "control_bind": control_bind,
-        "output_dir": str(sessions),
-        "require_ptp_lock": spec.require_ptp_lock,
-        "flush_interval_s": spec.flush_interval_s,
-        "max_wait_ms": spec.max_wait_ms,
-        "disk_reserve_gb": spec.disk_reserve_gb,
-        "planned_duration_min": spec.planned_duration_min,
-        "security": {"insecure": True} if spec.insecure else keys,
-        "agents": agents,
-    }
+def rig_config(
+    spec: SimRigSpec,
+    agents: list[AgentEndpoint],
+    control_bind: str,
+    sessions: Path,
+    *,
+    rig_name: str = "sim-or",
+) -> RigConfig:
+    """The recorder's rig.toml for ``agents``, with ``spec``'s recorder settings and the keys
+    ``write_keys`` makes (paths relative to the file); the capture bench's replay rig uses it."""
+    keys = RigSecurityConfig(
+        secret_key="keys/recorder.key_secret",
+        operator_keys=("keys/operator.key",),
+        operator_key="keys/operator.key_secret",
+    )
+    return RigConfig(
+        rig_name=rig_name,
+        fps=spec.fps,
+        control_bind=control_bind,
+        output_dir=str(sessions),
+        require_ptp_lock=spec.require_ptp_lock,
+        flush_interval_s=spec.flush_interval_s,
+        max_wait_ms=spec.max_wait_ms,
+        disk_reserve_gb=spec.disk_reserve_gb,
+        planned_duration_min=spec.planned_duration_min,
+        security=RigSecurityConfig(insecure=True) if spec.insecure else keys,
+        agents=tuple(agents),
+    )
 
 
 def write_sim_rig(directory: Path | str, spec: SimRigSpec | None = None) -> SimRigFiles:
@@ -234,26 +245,26 @@ def write_sim_rig(directory: Path | str, spec: SimRigSpec | None = None) -> SimR
         write_keys(out / "keys", ["recorder", "operator", *sorted(nodes)])
     node_paths: dict[str, Path] = {}
     serials_by_node: dict[str, tuple[int, ...]] = {}
-    agents: list[dict[str, Any]] = []
+    agents: list[AgentEndpoint] = []
     for n, (node, indices) in enumerate(sorted(nodes.items())):
         binds = (f"tcp://127.0.0.1:{ports[2 * n]}", f"tcp://127.0.0.1:{ports[2 * n + 1]}")
         cameras = [_camera(spec, k, *units[k], epoch) for k in indices]
         node_paths[node] = out / f"{node}.toml"
-        table = _node_table(spec, node, binds, cameras)
-        node_paths[node].write_text(dumps_table(table, comment=_WRITTEN % f"node {node}"))
+        cfg = _node_config(spec, node, binds, cameras)
+        node_paths[node].write_text(dumps(cfg, comment=_WRITTEN % f"node {node}"))
         serials_by_node[node] = tuple(units[k][1].serial for k in indices)
         agents.append(
-            {
-                "node_id": node,
-                "frames": binds[0],
-                "control": binds[1],
-                "cameras": list(serials_by_node[node]),
-            }
-            | ({} if spec.insecure else {"public_key": f"keys/{node}.key"})
+            AgentEndpoint(
+                node_id=node,
+                frames=binds[0],
+                control=binds[1],
+                cameras=serials_by_node[node],
+                public_key="" if spec.insecure else f"keys/{node}.key",
+            )
         )
     control_bind = f"tcp://127.0.0.1:{ports[-1]}"
-    rig = _rig_table(spec, agents, control_bind, out / "sessions")
-    (out / "rig.toml").write_text(dumps_table(rig, comment=_WRITTEN % "rig's recorder"))
+    rig = rig_config(spec, agents, control_bind, out / "sessions")
+    (out / "rig.toml").write_text(dumps(rig, comment=_WRITTEN % "rig's recorder"))
     return SimRigFiles(
         directory=out,
         node_configs=node_paths,

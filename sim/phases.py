@@ -19,10 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from protocol.formats.camera_config import SIM_PHASES
 from sim.errors import UnknownPhaseError
 from sim.people import Person, Waypoint
 
-PHASES = ("empty", "setup", "intraoperative", "turnover", "wand")
+PHASES = SIM_PHASES  # a sim camera table names one of them (node.toml's contract)
 
 TABLE = (0.0, 0.0, 0.95)
 BACK_TABLE = (-1.3, 1.95, 0.9)

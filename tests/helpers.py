@@ -119,8 +119,8 @@ def loopback_rig_config(
 ):
     """A recorder's config on free loopback ports: one agent ``n0`` with ``cameras``, plaintext
     links (CURVE is tests/capture_agent/test_security.py's), no PTP or disk-reserve checks."""
-    from capture_agent.config import AgentEndpoint, RigConfig
-    from capture_agent.security_config import RigSecurityConfig
+    from protocol.formats.rig_config import AgentEndpoint, RigConfig
+    from protocol.formats.security_config import RigSecurityConfig
     from sim.deploy import free_ports
 
     control, frames_port, agent_control = free_ports(3)
@@ -200,7 +200,7 @@ def loopback_sim_node(
     streaming pre-rendered JPEG content with no random drops, the cameras' clocks starting at the
     last whole second; no PTP, plaintext links (CURVE is tests/capture_agent/test_security.py's).
     ``options`` add node options (``status_interval_s``, ``watchdog_timeout_s``, ...)."""
-    from capture_agent.config import NodeConfig
+    from protocol.formats.node_config import NodeConfig
     from sim.deploy import free_ports
 
     frames_port, control_port = free_ports(2)

@@ -53,60 +53,45 @@ def make_replay_rig(
 ):
     """A rig.toml whose two "agents" are replay feeders; the same recorder settings and keys as
     the sim rig (written as ``write_sim_rig`` does, then pointed at the feeders' ports)."""
-    from sim.deploy import SimRigFiles, free_ports, write_keys
+    from protocol.formats.rig_config import AgentEndpoint
+    from protocol.toml_config import dumps
+    from sim.deploy import SimRigFiles, free_ports, rig_config, write_keys
 
     if cameras < 2 or cameras % 2:
         raise SystemExit(f"replay cameras must be even and >= 2, got {cameras}")
     spec = rig_spec(fps, duration_s, insecure=insecure)
     ports = free_ports(5)
-    nodes = {"replay-a": [], "replay-b": []}
+    nodes: dict[str, list[int]] = {"replay-a": [], "replay-b": []}
     for k in range(cameras):
         nodes["replay-a" if k % 2 == 0 else "replay-b"].append(REPLAY_SERIAL0 + k)
-    lines = [
-        "# bench_capture replay rig: the recorder settings of sim.deploy.write_sim_rig",
-        'rig_name = "bench-replay"',
-        f"fps = {fps!r}",
-        f'control_bind = "tcp://127.0.0.1:{ports[-1]}"',
-        f'output_dir = "{directory / "sessions"}"',
-        "require_ptp_lock = false",
-        f"flush_interval_s = {spec.flush_interval_s!r}",
-        f"max_wait_ms = {spec.max_wait_ms!r}",
-        f"disk_reserve_gb = {spec.disk_reserve_gb!r}",
-        f"planned_duration_min = {spec.planned_duration_min!r}",
-        "",
-        "[security]",
-    ]
-    if insecure:
-        lines.append("insecure = true")
-    else:
+    if not insecure:
         write_keys(directory / "keys", ["recorder", "operator", *nodes])
-        lines += [
-            'secret_key = "keys/recorder.key_secret"',
-            'operator_keys = ["keys/operator.key"]',
-            'operator_key = "keys/operator.key_secret"',
-        ]
     endpoints = {}
+    agents = []
     for k, (node, serials) in enumerate(nodes.items()):
         fr, ct = f"tcp://127.0.0.1:{ports[2 * k]}", f"tcp://127.0.0.1:{ports[2 * k + 1]}"
         endpoints[node] = (fr, ct)
-        lines += [
-            "",
-            "[[agents]]",
-            f'node_id = "{node}"',
-            f'frames = "{fr}"',
-            f'control = "{ct}"',
-            f"cameras = [{', '.join(map(str, serials))}]",
-            *([] if insecure else [f'public_key = "keys/{node}.key"']),
-        ]
+        agents.append(
+            AgentEndpoint(
+                node_id=node,
+                frames=fr,
+                control=ct,
+                cameras=tuple(serials),
+                public_key="" if insecure else f"keys/{node}.key",
+            )
+        )
+    control_bind = f"tcp://127.0.0.1:{ports[-1]}"
+    rig = rig_config(spec, agents, control_bind, directory / "sessions", rig_name="bench-replay")
     directory.mkdir(parents=True, exist_ok=True)
     rig_path = directory / "rig.toml"
-    rig_path.write_text("\n".join(lines) + "\n")
+    comment = "bench_capture replay rig: the recorder settings of sim.deploy.write_sim_rig"
+    rig_path.write_text(dumps(rig, comment=comment))
     files = SimRigFiles(
         directory=directory,
         node_configs={},
         rig_config=rig_path,
         session_dir=directory / "sessions",
-        recorder_url=f"tcp://127.0.0.1:{ports[-1]}",
+        recorder_url=control_bind,
         epoch_unix_ns=0,
         serials_by_node={n: tuple(s) for n, s in nodes.items()},
         camera_index_by_serial={},

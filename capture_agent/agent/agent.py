@@ -29,16 +29,22 @@ from dataclasses import dataclass, field
 import zmq
 
 from capture_agent.agent.ptp import PtpMonitor, PtpStatus
-from capture_agent.camera_config import CameraConfig
-from capture_agent.config import NodeConfig
 from capture_agent.control_server import ControlServer
 from capture_agent.daemon import Progress, run_until_signal
 from capture_agent.errors import CameraUnavailableError, Refused
-from capture_agent.security import CONTROL_MAX_BYTES, SUBSCRIPTION_MAX_BYTES, LinkGuard, harden
+from capture_agent.security import (
+    CONTROL_MAX_BYTES,
+    SUBSCRIPTION_MAX_BYTES,
+    LinkGuard,
+    LinkSecurity,
+    harden,
+)
 from capture_agent.sources import make_source
 from capture_agent.sources.base import CameraSource, GrabbedFrame
 from protocol import __version__
 from protocol.command import command_parser
+from protocol.formats.camera_config import CameraConfig
+from protocol.formats.node_config import NodeConfig
 from protocol.images import EncodedPair, encode_pair
 from protocol.os_thread import NamedThread
 from protocol.wire import (
@@ -334,7 +340,7 @@ class Agent:
     def start(self) -> None:
         # Its own context: one ZAP authenticator per context, with this agent's allow-list.
         # Keys are loaded first, so a missing or unprotected key stops the start cleanly.
-        links = self.config.security.links()
+        links = LinkSecurity.from_config(self.config.security)
         self._ctx = zmq.Context()
         self.guard = LinkGuard(self._ctx, links, f"agent {self.config.node_id}")
         pub = self._ctx.socket(zmq.PUB)

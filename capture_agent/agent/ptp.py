@@ -33,7 +33,7 @@ How the state is read, step by step:
 ``master_offset`` is the last measured offset of ptp4l's clock from the grandmaster in ns;
 ``system_offset_ns`` that of CLOCK_REALTIME from the PHC (None where it is ptp4l's own clock).
 
-Example ``node.toml`` table (``capture_agent.config.PtpConfig``)::
+Example ``node.toml`` table (``protocol.formats.node_config.PtpConfig``)::
 
     [ptp]
     source = "pmc"
@@ -60,7 +60,7 @@ from types import TracebackType
 from typing import Any
 
 from capture_agent.agent import phc, pmc
-from capture_agent.config import PtpConfig
+from protocol.formats.node_config import PtpConfig
 
 log = logging.getLogger(__name__)
 

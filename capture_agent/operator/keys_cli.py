@@ -27,15 +27,10 @@ from pathlib import Path
 import zmq.auth
 
 from capture_agent.errors import KeyFileError
-from capture_agent.security import (
-    PUBLIC_SUFFIX,
-    SECRET_SUFFIX,
-    check_secret_mode,
-    load_keypair,
-    load_public_key,
-)
+from capture_agent.security import check_secret_mode, load_keypair, load_public_key
 from protocol.command import add_subcommand, command_parser
 from protocol.errors import UserError
+from protocol.formats.security_config import PUBLIC_SUFFIX, SECRET_SUFFIX
 
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,31}$")
 

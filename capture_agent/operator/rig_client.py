@@ -27,18 +27,17 @@ from typing import Any
 import numpy as np
 import zmq
 
-from capture_agent.config import RigConfig, connect_address
 from capture_agent.errors import CommandRefusedError, RecorderUnreachableError
 from capture_agent.security import (
     CONTROL_MAX_BYTES,
     LinkSecurity,
-    frame_part_max_bytes,
     harden,
     load_keypair,
     load_public_key,
     make_client,
 )
 from protocol.errors import ConfigError
+from protocol.formats.rig_config import RigConfig, connect_address
 from protocol.images import decode_image
 from protocol.wire import (
     ControlReply,
@@ -47,6 +46,7 @@ from protocol.wire import (
     MalformedMessageError,
     decode_published,
 )
+from protocol.wire.frame_limits import frame_part_max_bytes
 
 DEFAULT_RECORDER = "tcp://127.0.0.1:5560"
 log = logging.getLogger(__name__)

@@ -15,7 +15,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 
-from capture_agent.config import AgentEndpoint, RigConfig
+from protocol.formats.rig_config import AgentEndpoint, RigConfig
 from protocol.safe_text import safe_text
 from protocol.wire import (
     AgentStatus,

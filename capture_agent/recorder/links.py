@@ -14,19 +14,18 @@ from pathlib import Path
 
 import zmq
 
-from capture_agent.config import AgentEndpoint, RigConfig
 from capture_agent.security import (
     CONTROL_MAX_BYTES,
     LinkGuard,
     LinkSecurity,
-    frame_message_max_bytes,
-    frame_part_max_bytes,
     harden,
     load_public_key,
     make_client,
 )
+from protocol.formats.rig_config import AgentEndpoint, RigConfig
 from protocol.wire import ControlReply, ControlRequest, MalformedMessageError
 from protocol.wire.agent_info import AgentReplyError
+from protocol.wire.frame_limits import frame_message_max_bytes, frame_part_max_bytes
 
 RECEIVE_QUEUE_S = 2.0  # the SUB socket's high-water mark, in seconds of one agent's frames
 
@@ -45,7 +44,7 @@ class AgentLinks:
         """One SUB socket per agent and the control REP."""
         config = self.config
         Path(config.output_dir).mkdir(parents=True, exist_ok=True)
-        self.security: LinkSecurity = config.security.links()
+        self.security: LinkSecurity = LinkSecurity.from_config(config.security)
         self.guard = LinkGuard(self.ctx, self.security, f"recorder {config.rig_name}")
         for a in config.agents:
             if not self.security.insecure:

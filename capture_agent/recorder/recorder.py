@@ -78,7 +78,6 @@ from typing import Any
 
 import zmq
 
-from capture_agent.config import AgentEndpoint, RigConfig
 from capture_agent.control_server import ControlServer
 from capture_agent.daemon import Progress, run_until_signal
 from capture_agent.errors import Refused
@@ -90,6 +89,7 @@ from capture_agent.recorder.recording import Recording
 from capture_agent.recorder.start import StartRefused, start_take
 from capture_agent.recorder.take import StopLimits, TakeState, drain_to_stop
 from protocol.command import command_parser
+from protocol.formats.rig_config import AgentEndpoint, RigConfig
 from protocol.os_thread import NamedThread
 from protocol.safe_text import brief
 from protocol.session import SessionWriteError

@@ -14,7 +14,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-from capture_agent.config import RigConfig
 from capture_agent.errors import Refused
 from capture_agent.recorder.accounting import StreamAccounting
 from capture_agent.recorder.disk import DiskBudget
@@ -25,6 +24,7 @@ from capture_agent.recorder.sync import SyncConfig, Synchroniser
 from capture_agent.recorder.take import TakeState
 from capture_agent.recorder.write_queue import open_writer
 from protocol import __version__
+from protocol.formats.rig_config import RigConfig
 from protocol.safe_text import brief, unsafe_character
 from protocol.session import CameraInfo, SessionWriter
 from protocol.wire.agent_info import AgentReplyError, AgentStatusReply

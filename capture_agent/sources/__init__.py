@@ -8,12 +8,12 @@
 libraries runs ``zed``, and a laptop without the ZED SDK runs ``sim``; a missing SDK fails with
 a message that names what to install.
 
-A source takes its checked config (``capture_agent/camera_config.py``: one dataclass per backend,
+A source takes its checked config (``protocol/formats/camera_config.py``: one dataclass per backend,
 read from node.toml's ``[[cameras]]`` tables when the node config loads).
 
 Example::
 
-    from capture_agent.camera_config import SimSourceConfig
+    from protocol.formats.camera_config import SimSourceConfig
     from capture_agent.sources import make_source
     with make_source(SimSourceConfig(camera_index=1)) as cam:
         frame = cam.grab(timeout_s=1.0)
@@ -21,8 +21,8 @@ Example::
 
 from __future__ import annotations
 
-from capture_agent.camera_config import CameraConfig
 from capture_agent.sources.base import CameraSource, GrabbedFrame
+from protocol.formats.camera_config import CameraConfig
 
 __all__ = [
     "CameraSource",

@@ -57,11 +57,11 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from capture_agent.camera_config import FaultSpec, SimSourceConfig
 from capture_agent.errors import CameraUnavailableError
 from capture_agent.sources.base import CameraSource, GrabbedFrame, require_timeout
 from protocol.camera import Resolution
 from protocol.errors import ConfigError
+from protocol.formats.camera_config import FaultSpec, SimSourceConfig
 from protocol.images import EncodedPair, encode_pair
 
 if TYPE_CHECKING:

@@ -35,11 +35,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from capture_agent.camera_config import VideoSourceConfig
 from capture_agent.errors import EndOfRecordingError
 from capture_agent.sources.base import CameraSource, GrabbedFrame, require_timeout
 from protocol.camera import Resolution
 from protocol.errors import ConfigError
+from protocol.formats.camera_config import VideoSourceConfig
 
 log = logging.getLogger(__name__)
 

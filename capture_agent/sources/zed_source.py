@@ -47,10 +47,10 @@ from typing import Any
 
 import cv2
 
-from capture_agent.camera_config import ZedSourceConfig
 from capture_agent.errors import CameraUnavailableError, SdkMissingError
 from capture_agent.sources.base import CameraSource, GrabbedFrame, require_timeout
 from protocol.camera import Resolution
+from protocol.formats.camera_config import ZedSourceConfig
 
 log = logging.getLogger(__name__)
 

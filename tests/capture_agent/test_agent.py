@@ -10,8 +10,8 @@ import pytest
 import zmq
 
 from capture_agent.agent.agent import Agent
-from capture_agent.config import NodeConfig
 from protocol.errors import ConfigError
+from protocol.formats.node_config import NodeConfig
 from protocol.wire import (
     AgentStatus,
     ControlReply,

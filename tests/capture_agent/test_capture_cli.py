@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from capture_agent.config import RigConfig
 from protocol.errors import ConfigError
+from protocol.formats.rig_config import RigConfig
 from sim.deploy import free_ports
 from tests.conftest import run_egosurg
 

@@ -1,6 +1,7 @@
-"""node.toml and rig.toml as typed configs (capture_agent/config.py, camera_config.py): a typo or
-a bad value in any table fails when the file loads, in one line naming the file, the table and the
-field; a config built in code is checked the same way; a config written back reads the same."""
+"""node.toml and rig.toml as typed configs (protocol/formats/: node_config.py, rig_config.py,
+camera_config.py): a typo or a bad value in any table fails when the file loads, in one line naming
+the file, the table and the field; a config built in code is checked the same way; a config
+written back reads the same."""
 
 from __future__ import annotations
 
@@ -9,16 +10,17 @@ from typing import Any
 
 import pytest
 
-from capture_agent.camera_config import (
+from protocol.camera import Resolution
+from protocol.errors import ConfigError
+from protocol.formats.camera_config import (
     FaultSpec,
     SimSourceConfig,
     VideoSourceConfig,
     ZedSourceConfig,
 )
-from capture_agent.config import AgentEndpoint, NodeConfig, PtpConfig, RigConfig
-from capture_agent.security_config import NodeSecurityConfig, RigSecurityConfig
-from protocol.camera import Resolution
-from protocol.errors import ConfigError
+from protocol.formats.node_config import NodeConfig, PtpConfig
+from protocol.formats.rig_config import AgentEndpoint, RigConfig
+from protocol.formats.security_config import NodeSecurityConfig, RigSecurityConfig
 from protocol.toml_config import dumps
 
 NODE = """\

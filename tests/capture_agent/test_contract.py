@@ -19,12 +19,12 @@ import zmq.auth
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from capture_agent.config import RigConfig
 from capture_agent.errors import CommandRefusedError
 from capture_agent.operator.console import Rig, namespace
 from capture_agent.operator.keys_cli import generate
 from capture_agent.operator.rig_client import RigClient
 from capture_agent.recorder.recorder import Recorder
+from protocol.formats.rig_config import RigConfig
 from protocol.session import SessionReader
 from protocol.wire.agent_info import AgentReplyError, AgentStatusReply
 from sim.deploy import free_ports

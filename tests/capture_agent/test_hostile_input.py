@@ -31,14 +31,15 @@ import pytest
 import zmq
 
 from capture_agent.agent.agent import Agent
-from capture_agent.config import AgentEndpoint, NodeConfig, RigConfig
 from capture_agent.daemon import Progress, run_until_signal
 from capture_agent.operator.control import format_status, format_summary
 from capture_agent.recorder.intake import MAX_UNLISTED_CAMERAS
 from capture_agent.recorder.recorder import Recorder
 from capture_agent.recorder.start import StartRefused, start_args
 from capture_agent.recorder.sync import SyncConfig, Synchroniser, group_offline
-from capture_agent.security_config import RigSecurityConfig
+from protocol.formats.node_config import NodeConfig
+from protocol.formats.rig_config import AgentEndpoint, RigConfig
+from protocol.formats.security_config import RigSecurityConfig
 from protocol.session import SessionReader
 from protocol.toml_config import dumps
 from protocol.wire import MAX_JSON_BYTES, ControlReply, ControlRequest

@@ -19,8 +19,8 @@ import pytest
 from capture_agent.agent import phc
 from capture_agent.agent.pmc import PMC_QUERIES, parse_responses, parse_time_status, utc_lead_ns
 from capture_agent.agent.ptp import PtpMonitor, PtpStatus, read_ptp_status
-from capture_agent.config import PtpConfig
 from protocol.errors import ConfigError
+from protocol.formats.node_config import PtpConfig
 from protocol.toml_config import read_table
 
 HEADER = "".join(f"sending: {q}\n" for q in PMC_QUERIES)

@@ -65,7 +65,7 @@ MONITOR = """
 import json, sys, time
 from dataclasses import dataclass
 from capture_agent.agent.ptp import PtpMonitor, read_ptp_status
-from capture_agent.config import PtpConfig
+from protocol.formats.node_config import PtpConfig
 
 @dataclass(frozen=True, kw_only=True)
 class Config(PtpConfig):

@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 import zmq
 
-from capture_agent.config import RigConfig
 from capture_agent.operator.control import format_status, format_summary
 from capture_agent.recorder.accounting import StreamAccounting
 from capture_agent.recorder.intake import CameraLive, CameraTable
@@ -21,6 +20,7 @@ from capture_agent.recorder.recorder import Recorder
 from capture_agent.recorder.recording import Recording
 from capture_agent.recorder.sync import SyncConfig, Synchroniser
 from capture_agent.recorder.write_queue import WriteQueue
+from protocol.formats.rig_config import RigConfig
 from protocol.session import CameraInfo, SessionReader, SessionWriter, chunk_sink
 from protocol.wire import ControlReply, ControlRequest, FrameMessage
 from tests.helpers import frame_message, loopback_rig_config

@@ -21,12 +21,13 @@ import pytest
 import zmq
 
 from capture_agent.agent.agent import Agent
-from capture_agent.config import NodeConfig, RigConfig
 from capture_agent.operator.keys_cli import generate
 from capture_agent.operator.rig_client import RigClient
 from capture_agent.recorder.recorder import Recorder
 from capture_agent.security import LinkSecurity
 from protocol.errors import ConfigError
+from protocol.formats.node_config import NodeConfig
+from protocol.formats.rig_config import RigConfig
 from protocol.wire import AgentStatus, ControlReply, ControlRequest, PtpState
 from sim.deploy import free_ports
 from tests.conftest import REPO, run_egosurg

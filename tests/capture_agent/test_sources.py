@@ -16,13 +16,13 @@ import cv2
 import numpy as np
 import pytest
 
-from capture_agent.camera_config import CameraConfig, FaultSpec, SimSourceConfig
 from capture_agent.errors import CameraUnavailableError, EndOfRecordingError
 from capture_agent.sources import CameraSource, GrabbedFrame, make_source
 from capture_agent.sources.sim_source import DAY_NS, SimSource
 from capture_agent.sources.zed_source import ZedSource
 from protocol.camera import Resolution
 from protocol.errors import ConfigError, UserError
+from protocol.formats.camera_config import CameraConfig, FaultSpec, SimSourceConfig
 from protocol.formats.zed_conf import ZedFactoryCalibration
 from protocol.images import decode_image
 from protocol.toml_config import read_table

@@ -16,12 +16,13 @@ import pytest
 import zmq
 import zmq.auth
 
-from capture_agent.camera_config import SimSourceConfig
-from capture_agent.config import NodeConfig, RigConfig
 from capture_agent.errors import CommandRefusedError
 from capture_agent.operator.rig_client import RigClient
 from capture_agent.recorder.recorder import Recorder
 from capture_agent.sources.sim_source import SimSource
+from protocol.formats.camera_config import SimSourceConfig
+from protocol.formats.node_config import NodeConfig
+from protocol.formats.rig_config import RigConfig
 from protocol.session import GapKind, SessionReader
 from protocol.wire import (
     Encoding,
@@ -258,8 +259,8 @@ def test_recording_stops_cleanly_before_the_disk_fills(rig, tmp_path, small_disk
 
 
 def test_malformed_messages_are_counted_and_the_receiver_keeps_going(rig, tmp_path):
-    from capture_agent.config import AgentEndpoint
     from capture_agent.operator.keys_cli import generate
+    from protocol.formats.rig_config import AgentEndpoint
 
     ctx = zmq.Context.instance()
     rogue = ctx.socket(zmq.PUB)

@@ -1,18 +1,24 @@
-"""sim/deploy.py writes the simulated rig's node.toml and rig.toml with the house's TOML writer;
-the files read back, through capture_agent's typed configs, with the spec's values."""
+"""sim/deploy.py builds the simulated rig's node and rig configs (protocol/formats/) and writes
+them with the house's TOML writer; the files read back with the spec's values, and the simulator
+is the rig its camera tables name."""
 
 from __future__ import annotations
 
-from typing import Any
+import pytest
 
-from capture_agent.camera_config import FaultSpec, SimSourceConfig
-from capture_agent.config import NodeConfig, PtpConfig, RigConfig
+from protocol.errors import ConfigError
+from protocol.formats.camera_config import SIM_PHASES, SIM_RIG_CAMERAS, FaultSpec, SimSourceConfig
+from protocol.formats.node_config import NodeConfig, PtpConfig
+from protocol.formats.rig_config import RigConfig
 from sim.deploy import SimRigSpec, write_sim_rig
+from sim.phases import PHASES
+from sim.rig import MOUNTS_M
+from sim.world import World
 
 
 def test_the_written_configs_read_back_with_the_spec_values(tmp_path):
-    hang: dict[str, Any] = {"kind": "hang", "at_s": 1.0, "duration_s": 2.0}
-    spec = SimRigSpec(seed=0, cameras=3, fps=15.0, jpeg_quality=80, faults={2: [hang]})
+    hang = FaultSpec(kind="hang", at_s=1.0, duration_s=2.0)
+    spec = SimRigSpec(seed=0, cameras=3, fps=15.0, jpeg_quality=80, faults={2: (hang,)})
     files = write_sim_rig(tmp_path, spec)
     rig = RigConfig.from_toml(files.rig_config)
     assert rig.fps == 15.0 and rig.disk_reserve_gb == 0.5 and not rig.require_ptp_lock
@@ -29,7 +35,7 @@ def test_the_written_configs_read_back_with_the_spec_values(tmp_path):
     assert len(cameras) == 3
     by_index = {c.camera_index: c for c in cameras}
     assert {c.epoch_unix_ns for c in cameras} == {files.epoch_unix_ns}
-    assert by_index[2].faults == (FaultSpec(**hang),)
+    assert by_index[2].faults == (hang,)
     assert by_index[0].pre_encode == "jpeg" and by_index[0].jpeg_quality == 80
     assert files.node_configs["orin-a"].read_text().startswith("# the simulated node orin-a")
 
@@ -41,3 +47,14 @@ def test_an_insecure_rig_says_so_in_every_file(tmp_path):
     cfg = NodeConfig.from_toml(path)
     assert cfg.security.insecure and cfg.cameras[0].pre_encode is None  # type: ignore[union-attr]
     assert not (tmp_path / "keys").exists()
+
+
+def test_the_simulator_is_the_rig_a_sim_camera_table_names():
+    """protocol/ states a sim camera's phases and camera count (it may not import sim/)."""
+    assert PHASES == SIM_PHASES
+    assert len(MOUNTS_M) == SIM_RIG_CAMERAS == len(World.from_seed(0).rig)
+
+
+def test_a_bad_value_in_the_spec_fails_when_the_rig_is_written(tmp_path):
+    with pytest.raises(ConfigError, match="jpeg_quality = 0"):
+        write_sim_rig(tmp_path, SimRigSpec(seed=0, cameras=1, jpeg_quality=0))

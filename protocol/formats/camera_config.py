@@ -3,9 +3,11 @@
 ``CameraConfig`` is the tagged union of ``SimSourceConfig`` (``source = "sim"``),
 ``ZedSourceConfig`` (``"zed"``) and ``VideoSourceConfig`` (``"video"``); node.toml's tables are
 read into them when the node config loads, so a typo in a camera table fails at load, naming the
-file, the table and the field. The sources (``capture_agent/sources/``) take these objects; this
-module imports neither OpenCV nor the simulator (a sim camera's phase and index are checked
-against ``sim`` only when one is configured).
+file, the table and the field. The sources (``capture_agent/sources/``) take these objects, and
+the simulator's deploy (``sim/deploy.py``) builds them. A sim camera's phase and index are checked
+against the simulated rig's names stated here (``SIM_PHASES``, ``SIM_RIG_CAMERAS``), which the
+simulator implements (``sim.phases.PHASES`` is ``SIM_PHASES``; tests/sim/test_deploy.py checks
+the mounts).
 
 Example::
 
@@ -25,6 +27,10 @@ from protocol.errors import ConfigError
 
 FaultKind = Literal["hang", "vanish"]
 DEFAULT_SETTINGS_DIR = "/usr/local/zed/settings"
+# What a sim camera table may name: the simulator's workflow phases and its rig's camera count.
+# They are the table's contract, so they live with it (protocol/ may not import sim/).
+SIM_PHASES = ("empty", "setup", "intraoperative", "turnover", "wand")
+SIM_RIG_CAMERAS = 4
 
 
 def zed_fps_modes(resolution: Resolution) -> tuple[int, ...]:
@@ -68,14 +74,16 @@ class SimSourceConfig:
     faults: tuple[FaultSpec, ...] = ()
 
     def __post_init__(self) -> None:
-        from sim.phases import PHASES
-        from sim.rig import MOUNTS_M
-
         validate(self)
         if self.pre_encode == "none":
             object.__setattr__(self, "pre_encode", None)
-        check(self.phase in PHASES, "phase", self.phase, f"choose one of {', '.join(PHASES)}")
-        n = len(MOUNTS_M)
+        check(
+            self.phase in SIM_PHASES,
+            "phase",
+            self.phase,
+            f"choose one of {', '.join(SIM_PHASES)}",
+        )
+        n = SIM_RIG_CAMERAS
         check(
             0 <= self.camera_index < n,
             "camera_index",

@@ -1,24 +1,31 @@
 """The ``[security]`` table of node.toml and rig.toml: which key files a daemon uses, checked
 when the config is read and loaded only when the daemon starts (``capture_agent/security.py``
-does the loading and the CURVE setup; docs/capture.md, "Security", is the operator's guide).
+does the loading and the CURVE setup: ``LinkSecurity.from_config``; docs/capture.md,
+"Security", is the operator's guide).
 
 A node's table lists the keys allowed to connect (``allowed_keys``: the recorder's and the
 operators'); a rig's lists the operators allowed on the control socket (``operator_keys``), the
 recorder's public key clients connect to, and the key ``egosurg record``/``status`` use. Key paths
-are kept as written; ``resolved`` makes the relative ones relative to the config's folder.
+are kept as written; ``resolved`` makes the relative ones relative to the config's folder. The key
+files' names (``PUBLIC_SUFFIX``, ``SECRET_SUFFIX``) and the rule against binding every interface
+live here too: they are what a config may say, and the simulator's deploy writes such configs.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-from capture_agent.security import SECRET_SUFFIX, LinkSecurity, key_path, secure_bind_check
 from protocol.config_fields import internal, validate
 from protocol.errors import ConfigError
 
+# pyzmq's certificate files (egosurg keys generate): NAME.key holds the public key, NAME.key_secret
+# both; only the secret file is private
+PUBLIC_SUFFIX = ".key"
+SECRET_SUFFIX = ".key_secret"
 _S = TypeVar("_S", bound="SecurityConfig")
 NO_KEYS = (
     "make keys with 'egosurg keys generate --out DIR --name NAME' and name them in [security] "
@@ -29,8 +36,8 @@ NO_KEYS = (
 @dataclass(frozen=True, kw_only=True)
 class SecurityConfig:
     """What node.toml's and rig.toml's ``[security]`` share: key file paths, not keys (a client
-    reading rig.toml need not be able to read the recorder's secret key). ``links()`` loads them
-    when a daemon starts."""
+    reading rig.toml need not be able to read the recorder's secret key).
+    ``LinkSecurity.from_config`` (capture_agent/security.py) loads them when a daemon starts."""
 
     insecure: bool = False  # plaintext links: only for a bench, warns at every start
     allow_all_interfaces: bool = False  # allow binding tcp://* / 0.0.0.0
@@ -50,14 +57,6 @@ class SecurityConfig:
         rig configs ask last, so a file's other mistakes are named first)."""
         if not self.insecure and not self.secret_key:
             raise ConfigError(f"[security]: 'secret_key' is required; {NO_KEYS}")
-
-    def links(self) -> LinkSecurity:
-        """This daemon's keys, loaded (ConfigError when missing, unreadable or not 0600)."""
-        if self.insecure:
-            return LinkSecurity.plaintext()
-        if not self.secret_key or not self.peer_keys:
-            raise ConfigError(f"{self.where or 'config'}: no CURVE keys; {NO_KEYS}")
-        return LinkSecurity.load(self.secret_key, self.peer_keys)
 
     def check_bind(self, address: str, name: str) -> None:
         where = f"{self.where} ({name})" if self.where else name
@@ -122,3 +121,20 @@ class RigSecurityConfig(SecurityConfig):
     @property
     def peer_keys(self) -> tuple[str, ...]:
         return self.operator_keys
+
+
+def secure_bind_check(address: str, links_insecure: bool, allow_all: bool, where: str) -> None:
+    """Refuse a bind on every interface unless the config says so out loud."""
+    host = address.split("://", 1)[-1].rsplit(":", 1)[0]
+    if host in ("*", "0.0.0.0", "[::]", "::") and not (links_insecure or allow_all):
+        raise ConfigError(
+            f"{where}: binding {address} listens on every interface; bind the rig network's "
+            "address (e.g. tcp://10.10.0.11:5550), or set allow_all_interfaces = true in "
+            "[security]"
+        )
+
+
+def key_path(value: str, base_dir: Path) -> str:
+    """A key file path from a config: relative paths are relative to the config's folder."""
+    p = Path(os.path.expanduser(value))
+    return str(p if p.is_absolute() else base_dir / p)
