@@ -122,7 +122,7 @@ def _cover_px(
 
 
 @njit(cache=True, error_model="numpy")
-def edge_points_nb(
+def edge_points_nb(  # noqa: C901, PLR0912, PLR0915
     roi: np.ndarray,
     bg: np.ndarray,
     has_bg: bool,

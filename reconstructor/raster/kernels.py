@@ -454,7 +454,7 @@ def _draw_block(
 
 
 @njit(cache=True, fastmath=True, error_model="numpy", inline="always")
-def _composite_tile(
+def _composite_tile(  # noqa: C901, PLR0912, PLR0915
     t, proj, pairs, offsets, width, height, tile, ntx, bg, amin, amax, tmin, image, t_final,
     depth, n_used, drawn, record,
 ):  # fmt: skip

@@ -141,7 +141,7 @@ def _cov2d(j00, j02, j11, j12, c):
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def project_forward(
+def project_forward(  # noqa: PLR0915
     means, quats, scales, opacity, log_ratio, colors, viewmat, intr, lims, width, height, tile,
     near, far, eps2d, sigma_extent,
 ):  # fmt: skip
@@ -243,7 +243,7 @@ def project_forward(
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def project_backward(
+def project_backward(  # noqa: PLR0915
     means, quats, scales, opacity, viewmat, intr, lims, eps2d, records, goffsets,
 ):  # fmt: skip
     """Sum each Gaussian's per-pair records, then chain them back to its parameters.
