@@ -94,3 +94,16 @@ def test_the_installed_edge_pulls_in_no_heavy_package():
         assert not needs & HEAVY, f"{name} pulls in {sorted(needs & HEAVY)}"
         todo.extend(sorted(needs - seen))
         seen |= needs
+
+
+def test_a_workstation_command_on_a_node_names_the_extra_to_install(monkeypatch, capsys):
+    """On a node, `egosurg calibrate` cannot import open3d: one line that says what to install."""
+    from protocol import cli
+
+    def missing(name: str) -> None:
+        raise ModuleNotFoundError("No module named 'open3d'", name="open3d")
+
+    monkeypatch.setattr(cli.importlib, "import_module", missing)
+    assert cli.main(["calibrate", "--help"]) == 2
+    err = capsys.readouterr().err
+    assert "open3d" in err and "pip install 'egosurg[workstation]'" in err, err

@@ -3,6 +3,7 @@
 Example::
 
     egosurg agent --config /etc/egosurg/node.toml
+    sudo -u egosurg egosurg agent --check --config /etc/egosurg/node.toml   # install-day check
 
 Per camera, a worker thread grabs frames (stamped by the source with the PTP-disciplined capture
 time), encodes them (unless the source already did) and queues them. One publisher thread owns the
@@ -28,6 +29,7 @@ from dataclasses import dataclass, field
 
 import zmq
 
+from capture_agent.agent.preflight import check_node
 from capture_agent.agent.ptp import PtpMonitor, PtpStatus
 from capture_agent.control_server import ControlServer
 from capture_agent.daemon import Progress, run_until_signal
@@ -493,8 +495,18 @@ class Agent:
 def main(argv: list[str]) -> int:
     parser = command_parser("egosurg agent", __doc__)
     parser.add_argument("--config", required=True, help="node.toml")
+    parser.add_argument(
+        "--check",
+        action="store_true",
+        help="check this node (SDK, cameras, PTP, clock, keys, ports ...), print a table and "
+        "exit: 0 when it can record",
+    )
     args = parser.parse_args(argv)
     config = NodeConfig.from_toml(args.config)
+    if args.check:
+        code, table = check_node(config)
+        print(table)
+        return code
     agent = Agent(config)
     return run_until_signal(
         agent.start,

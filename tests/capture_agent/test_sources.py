@@ -1,14 +1,11 @@
-"""Camera sources: the sim backend against its own truth, the ZED backend through a fake pyzed
-(the SDK's module replaced at its import, replaying PNG frames), and the video backend on real
-video files written here. Timing assertions leave generous slack."""
+"""Camera sources: the sim backend against its own truth and the video backend on real video files
+written here (the ZED backend is test_zed_source.py's). Timing assertions leave generous slack."""
 
 from __future__ import annotations
 
 import itertools
-import json
 import math
 import re
-import sys
 import time
 from pathlib import Path
 
@@ -19,16 +16,14 @@ import pytest
 from capture_agent.errors import CameraUnavailableError, EndOfRecordingError
 from capture_agent.sources import CameraSource, GrabbedFrame, make_source
 from capture_agent.sources.sim_source import DAY_NS, SimSource
-from capture_agent.sources.zed_source import ZedSource
 from protocol.camera import Resolution
-from protocol.errors import ConfigError, UserError
+from protocol.errors import ConfigError
 from protocol.formats.camera_config import CameraConfig, FaultSpec, SimSourceConfig
 from protocol.formats.zed_conf import ZedFactoryCalibration
 from protocol.images import decode_image
 from protocol.toml_config import read_table
 from tests.helpers import heavy_modules_after
 
-FAKES = Path(__file__).resolve().parents[1] / "fakes"
 WHERE = "node.toml [[cameras]] #1"
 # One epoch for every sim source here, as every agent of a rig shares one; an hour ago keeps
 # sim times small.
@@ -277,123 +272,6 @@ def test_sources_import_without_the_simulator_or_the_sdk():
         "from capture_agent.sources import zed_source, video_source"
     )
     assert heavy_modules_after(imports, ("sim", "numba", "torch", "open3d", "pyzed")) == []
-
-
-# ---- zed (fake pyzed) --------------------------------------------------------------------------
-SERIAL = 41234567
-T0_NS = 1_767_225_600_008_000_000
-PERIOD_NS = 33_333_333
-
-
-@pytest.fixture
-def fake_sl(monkeypatch, tmp_path):
-    """Put tests/fakes first on sys.path, so ``import pyzed.sl`` finds the replaying fake."""
-    monkeypatch.syspath_prepend(str(FAKES))
-    for name in ("pyzed.sl", "pyzed"):
-        monkeypatch.delitem(sys.modules, name, raising=False)
-    import pyzed.sl as sl
-
-    assert Path(sl.__file__).is_relative_to(FAKES)
-    monkeypatch.setattr(sl, "REPLAY_DIR", tmp_path / "replay")
-    yield sl
-    for name in ("pyzed.sl", "pyzed"):
-        sys.modules.pop(name, None)
-
-
-def write_replay(directory: Path, events: list) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """PNG frames (SVGA BGR, a different colour per side and frame) plus ``replay.json``."""
-    directory.mkdir(parents=True, exist_ok=True)
-    images = {}
-    out = []
-    for i, event in enumerate(events):
-        if isinstance(event, str):
-            out.append({"error": event})
-            continue
-        left = np.zeros((600, 960, 3), np.uint8)
-        left[:] = (200, 40 + 10 * i, 10)  # blue-ish: a BGR/RGB swap would show
-        left[:100, :100] = (0, 0, 255)
-        right = np.zeros_like(left)
-        right[:] = (10, 40 + 10 * i, 200)
-        cv2.imwrite(str(directory / f"l{i}.png"), left)
-        cv2.imwrite(str(directory / f"r{i}.png"), right)
-        out.append({"timestamp_ns": event, "left": f"l{i}.png", "right": f"r{i}.png"})
-        images[event] = (left, right)
-    replay = {"serial": SERIAL, "resolution": "SVGA", "fps": 30, "events": out}
-    (directory / "replay.json").write_text(json.dumps(replay))
-    return images
-
-
-def zed_table(tmp_path: Path, **kw) -> dict:
-    table = {"serial": SERIAL, "resolution": "SVGA", "fps": 30, "settings_dir": str(tmp_path)}
-    table.update(kw)
-    return table
-
-
-def test_zed_frames_and_stamps_flow_through(fake_sl, tmp_path):
-    stamps = [T0_NS, T0_NS + PERIOD_NS, T0_NS + 3 * PERIOD_NS, T0_NS + 4 * PERIOD_NS]
-    events = [stamps[0], stamps[1], stamps[2], "CORRUPTED_FRAME", stamps[3], "CAMERA_NOT_DETECTED"]
-    images = write_replay(tmp_path / "replay", events)
-    (tmp_path / f"SN{SERIAL}.conf").write_text("[STEREO]\nBaseline=120.0\n")
-    src = source_from_table("zed", zed_table(tmp_path), WHERE)
-    with src:
-        assert src.serial == SERIAL and src.is_open
-        before = time.time_ns()
-        frames = [must(src.grab(2.0)) for _ in range(4)]
-        # a frame the camera lost (between stamps 1 and 2) shows as an index gap
-        assert [f.frame_index for f in frames] == [0, 1, 3, 4]
-        assert [f.capture_unix_ns for f in frames] == stamps
-        for f in frames:
-            want_left, want_right = images[f.capture_unix_ns]
-            assert left(f).shape == (600, 960, 3) and left(f).dtype == np.uint8
-            np.testing.assert_array_equal(left(f), want_left)  # BGRA from the SDK -> BGR
-            np.testing.assert_array_equal(right(f), want_right)
-            assert before - 10**9 <= f.host_receive_unix_ns <= time.time_ns()
-        with pytest.raises(CameraUnavailableError, match="CAMERA_NOT_DETECTED"):
-            src.grab(2.0)
-        with pytest.raises(CameraUnavailableError):  # stays gone until reopened
-            src.grab(0.1)
-        src.close()
-        src.open()  # the camera is back (the fake replays from its first frame)
-        assert must(src.grab(2.0)).frame_index == 0
-    assert isinstance(src, ZedSource) and src.corrupted_frames == 1
-    assert src.factory_conf_text() == "[STEREO]\nBaseline=120.0\n"
-
-
-def test_zed_grab_times_out_when_no_frame_comes(fake_sl, tmp_path):
-    write_replay(tmp_path / "replay", [T0_NS])
-    src = source_from_table("zed", zed_table(tmp_path, settings_dir=str(tmp_path / "none")), WHERE)
-    src.open()
-    try:
-        assert src.grab(2.0) is not None
-        t0 = time.monotonic()
-        assert src.grab(0.2) is None
-        assert 0.15 < time.monotonic() - t0 < 2.0
-        assert src.factory_conf_text() == ""  # no SN<serial>.conf in settings_dir
-    finally:
-        t0 = time.monotonic()
-        src.close()
-        assert time.monotonic() - t0 < 3.0
-
-
-def test_zed_open_failure_is_camera_unavailable(fake_sl, tmp_path):
-    write_replay(tmp_path / "replay", [T0_NS])
-    src = source_from_table("zed", zed_table(tmp_path, serial=SERIAL + 1), WHERE)
-    with pytest.raises(CameraUnavailableError, match=rf"SN{SERIAL + 1}.*CAMERA_NOT_DETECTED"):
-        src.open()
-    assert not src.is_open
-
-
-def test_zed_without_pyzed_says_what_to_install(monkeypatch):
-    monkeypatch.setitem(sys.modules, "pyzed", None)  # as on a machine without the ZED SDK
-    monkeypatch.delitem(sys.modules, "pyzed.sl", raising=False)
-    with pytest.raises(UserError) as info:
-        source_from_table("zed", {"serial": SERIAL}, WHERE)
-    message = str(info.value)
-    assert "pyzed" in message and "ZED SDK" in message and "get_python_api.py" in message
-    assert isinstance(info.value, ImportError)
-    # a bad option is reported before the SDK is even needed
-    with pytest.raises(ConfigError, match=r"fps = 120.*15, 30, 60"):
-        source_from_table("zed", {"serial": SERIAL, "resolution": "HD1200", "fps": 120}, WHERE)
 
 
 # ---- video -------------------------------------------------------------------------------------
