@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import errno
 import getpass
-import importlib.metadata
+import importlib
 import os
 import platform
 import shutil
@@ -44,7 +44,7 @@ from protocol.formats.node_config import NodeConfig
 SERVICE_USER = "egosurg"  # capture_agent/systemd/egosurg-agent.service's User=
 ARGUS_SOCKET = "/tmp/argus_socket"
 MIN_FREE_DISK_BYTES = 1 << 30  # SDK calibration downloads, logs and the journal
-EDGE_PACKAGES = ("numpy", "pyzmq", "opencv-python-headless", "opencv-python")
+EDGE_MODULES = (("numpy", "numpy"), ("zmq", "pyzmq"), ("cv2", "opencv"))  # what the agent imports
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -88,19 +88,21 @@ def check_python() -> Check:
 
 def check_packages() -> Check:
     found, missing = [], []
-    for dist in EDGE_PACKAGES:
+    for module, label in EDGE_MODULES:
         try:
-            found.append(f"{dist} {importlib.metadata.version(dist)}")
-        except importlib.metadata.PackageNotFoundError:
-            missing.append(dist)
-    has_opencv = any(d.startswith("opencv") for d in found)
-    lacking = [d for d in ("numpy", "pyzmq") if d in missing] + ([] if has_opencv else ["opencv"])
-    if lacking:
+            mod = importlib.import_module(module)
+        except ImportError:
+            missing.append(label)
+            continue
+        version = mod.pyzmq_version() if module == "zmq" else getattr(mod, "__version__", "?")
+        found.append(f"{label} {version}")
+    if missing:
         return Check(
             name="packages",
             ok=False,
             found=", ".join(found) or "none",
-            fix=f"install the edge into this Python ({', '.join(lacking)} missing; docs/jetson.md)",
+            fix=f"install the edge into this Python ({', '.join(missing)} missing): "
+            "docs/capture.md",
         )
     return Check(name="packages", ok=True, found=", ".join(found))
 
@@ -208,7 +210,7 @@ def ptp_fix(state: str) -> str:
         "ptp4l's group",
         "unlocked": "wait for lock, or check the grandmaster, the VLAN and phc2sys "
         "(systemctl status egosurg-phc2sys@IFACE)",
-    }.get(state, "see docs/jetson.md")
+    }.get(state, "see docs/capture.md")
 
 
 def check_disk(config: NodeConfig) -> Check:
@@ -236,13 +238,14 @@ def check_keys(config: NodeConfig) -> Check:
             name="keys",
             ok=False,
             found=str(exc).splitlines()[0],
-            fix=f"egosurg keys generate --owner {SERVICE_USER} (docs/jetson.md)",
+            fix=f"sudo egosurg keys generate --owner {SERVICE_USER} (docs/capture.md)",
         )
     return Check(name="keys", ok=True, found=f"readable by {current_user()}")
 
 
 def check_ports(config: NodeConfig) -> Check:
-    problems, bound = [], []
+    problems: list[str] = []
+    bound: list[str] = []
     for endpoint in (config.frames_bind, config.control_bind):
         why = bind_problem(endpoint)
         (problems if why else bound).append(f"{endpoint}{': ' + why if why else ''}")

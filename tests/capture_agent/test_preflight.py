@@ -75,7 +75,7 @@ def test_a_zed_node_with_its_camera_and_sdk_5(fake_sl, argus, tmp_path):
     "case, row, found, fix",
     [
         ("missing sdk", "zed sdk", "needs pyzed", "get_python_api.py"),
-        ("old sdk", "zed sdk", "ZED SDK 4.2.5 found", "ZED SDK for its JetPack"),
+        ("old sdk", "zed sdk", "ZED SDK 4.2.5 found", "the SDK for its JetPack"),
         ("camera absent", f"camera SN{SERIAL + 1}", "CAMERA_NOT_DETECTED", "ZED_Explorer"),
         ("wrong mode", f"camera SN{SERIAL}", "opened at 960x600 15 fps", "ZED_Explorer"),
         ("no argus", "argus socket", "No such file", "nvargus-daemon"),

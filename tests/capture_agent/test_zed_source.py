@@ -10,6 +10,7 @@ import json
 import logging
 import queue
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -92,7 +93,7 @@ def write_replay(directory: Path, events: list, **camera) -> dict[int, tuple[np.
     warning name (no image), or ``"wedge"`` (grab() hangs until close())."""
     directory.mkdir(parents=True, exist_ok=True)
     (directory / f"SN{SERIAL}.conf").write_text(CONF_TEXT)
-    images = {}
+    images: dict[int, tuple[np.ndarray, ...]] = {}
     out: list[dict] = []
     for i, event in enumerate(events):
         if event == "wedge":
@@ -258,6 +259,37 @@ def test_zed_open_failure_is_camera_unavailable(fake_sl, tmp_path):
     with pytest.raises(CameraUnavailableError, match=rf"SN{SERIAL + 1}.*CAMERA_NOT_DETECTED"):
         src.open()
     assert not src.is_open
+
+
+def test_a_wedged_sdk_close_does_not_hold_the_reopen(fake_sl, monkeypatch, tmp_path, caplog):
+    """A wedged GMSL camera can hang in close() as it did in grab(): close() gives up after
+    SDK_CLOSE_TIMEOUT_S, abandons that camera object, and the camera opens again."""
+    write_replay(tmp_path / "replay", [T0_NS, "wedge"])
+    monkeypatch.setattr("capture_agent.sources.zed_source.SDK_CLOSE_TIMEOUT_S", 0.2)
+    release = threading.Event()
+    sdk_close = fake_sl.Camera.close
+
+    def hanging_close(cam):
+        release.wait(10.0)
+        sdk_close(cam)
+
+    monkeypatch.setattr(fake_sl.Camera, "close", hanging_close)
+    src = source_from_table(zed_table(tmp_path))
+    try:
+        src.open()
+        assert must(src.grab(2.0)).frame_index == 0
+        assert src.grab(0.3) is None  # wedged
+        t0 = time.monotonic()
+        with caplog.at_level(logging.ERROR, logger="capture_agent.sources.zed_source"):
+            src.close()
+        assert time.monotonic() - t0 < 3.0
+        assert any("abandoning that camera object" in r.getMessage() for r in caplog.records)
+        monkeypatch.setattr(fake_sl.Camera, "close", sdk_close)
+        src.open()
+        assert must(src.grab(2.0)).frame_index == 0
+    finally:
+        release.set()
+        src.close()
 
 
 def test_a_wedged_camera_is_reopened_by_the_agents_worker(fake_sl, tmp_path):
