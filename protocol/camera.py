@@ -3,8 +3,11 @@
 Conventions (OpenCV throughout):
 - camera frame: x right, y down, z forward; pixel (0, 0) is the centre of the top-left pixel;
 - a pose is world-to-camera: ``x_cam = R @ x_world + t``, translation in metres;
-- distortion is OpenCV's five-term Brown-Conrady model ``k1 k2 p1 p2 k3``, the one ZED factory
-  files use.
+- distortion is OpenCV's five-term Brown-Conrady model ``k1 k2 p1 p2 k3`` or its eight-term
+  rational model ``k1 k2 p1 p2 k3 k4 k5 k6`` (``CALIB_RATIONAL_MODEL`` order, radial factor
+  ``(1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)``). ZED factory files hold
+  the five terms, and the rational ones where Stereolabs calibrated a ZED X lens with them; every
+  OpenCV call that takes ``dist_array`` accepts either length.
 """
 
 from __future__ import annotations
@@ -73,6 +76,10 @@ _SIZES = {
 _CONF_SUFFIX = {Resolution.HD1200: "FHD1200", Resolution.HD1080: "FHD", Resolution.SVGA: "SVGA"}
 
 
+# The lengths of OpenCV's distortion vectors this project uses: Brown-Conrady and rational.
+DIST_TERMS = (5, 8)
+
+
 @dataclass(frozen=True, kw_only=True)
 class Intrinsics:
     """Pinhole intrinsics with OpenCV distortion, for one sensor at one resolution."""
@@ -83,15 +90,18 @@ class Intrinsics:
     fy_px: float
     cx_px: float
     cy_px: float
-    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    dist: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         if self.width_px <= 0 or self.height_px <= 0:
             raise ValueError(f"image size must be positive, got {self.width_px}x{self.height_px}")
         if not (self.fx_px > 0 and self.fy_px > 0):
             raise ValueError(f"focal lengths must be positive, got fx={self.fx_px} fy={self.fy_px}")
-        if len(self.dist) != 5:
-            raise ValueError(f"dist must have 5 terms (k1 k2 p1 p2 k3), got {len(self.dist)}")
+        if len(self.dist) not in DIST_TERMS:
+            raise ValueError(
+                "dist must have 5 terms (k1 k2 p1 p2 k3) or 8 (k1 k2 p1 p2 k3 k4 k5 k6), "
+                f"got {len(self.dist)}"
+            )
         object.__setattr__(self, "dist", tuple(float(d) for d in self.dist))
 
     @property
@@ -104,6 +114,17 @@ class Intrinsics:
     @property
     def dist_array(self) -> np.ndarray:
         return np.asarray(self.dist, dtype=np.float64)
+
+    @property
+    def is_rational(self) -> bool:
+        """Whether the lens uses the 8-term rational model (an 8-term ``dist``)."""
+        return len(self.dist) == 8
+
+    @property
+    def dist8(self) -> tuple[float, ...]:
+        """The distortion as 8 rational terms: a 5-term model is the rational one with
+        k4 = k5 = k6 = 0 (the same radial factor, divided by 1)."""
+        return (*self.dist, 0.0, 0.0, 0.0)[:8]
 
     @property
     def has_distortion(self) -> bool:

@@ -11,14 +11,21 @@ import os
 from pathlib import Path
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
+def atomic_write_bytes(path: Path, data: bytes, *, mode: int | None = None) -> None:
     """Write ``data`` to ``path`` so that a reader sees the old file or the whole new one, even
-    after a crash or SIGKILL: a temp file in the same folder, fsync, rename, fsync the folder."""
+    after a crash or SIGKILL: a temp file in the same folder, fsync, rename, fsync the folder.
+    ``mode``: the file's permissions from its creation on (``0o600`` for anything that names a
+    patient), never wider for a moment; None: the umask's default."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
-    with tmp.open("wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
+    flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC
+    fd = os.open(tmp, flags, 0o666 if mode is None else mode)
+    try:
+        if mode is not None:
+            os.fchmod(fd, mode)  # an earlier partial file of the same name kept its own mode
+        os.write(fd, data)
+        os.fsync(fd)
+    finally:
+        os.close(fd)
     os.replace(tmp, path)
     fsync_dir(path.parent)
 

@@ -2,7 +2,8 @@
 
 Three formats, each with units and conventions written into the file itself:
 
-- **OpenCV YAML** (``cv2.FileStorage``): per sensor ``K`` (3x3), ``D`` (1x5: k1 k2 p1 p2 k3),
+- **OpenCV YAML** (``cv2.FileStorage``): per sensor ``K`` (3x3), ``D`` (1x5: k1 k2 p1 p2 k3, or
+  1x8 with k4 k5 k6 for a rational lens, as ``cv2.calibrateCamera`` writes them),
   ``R`` (3x3) and ``T`` (3x1) with ``x_cam = R @ x_world + T`` in metres, OpenCV camera axes
   (x right, y down, z forward), pixel (0, 0) at the centre of the top-left pixel. Exact.
 - **COLMAP text model** (``cameras.txt``, ``images.txt``, empty ``points3D.txt``): one camera and
@@ -13,8 +14,11 @@ Three formats, each with units and conventions written into the file itself:
   - ``OPENCV`` (default; what gsplat and nerfstudio's COLMAP loaders read):
     ``fx fy cx cy k1 k2 p1 p2``. It has **no k3**. The ZED factory lenses do have a k3, and just
     dropping it moves the image corners by tens of pixels, so for k3 != 0 we refit k1 and k2 to the
-    five-term model over the whole image and log a warning with the worst remaining error.
-  - ``FULL_OPENCV``: ``fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6`` with k4 = k5 = k6 = 0: exact.
+    five-term model over the whole image and log a warning with the worst remaining error. A
+    sensor with the rational model (k4..k6, which no refit of k1 k2 approaches) is written as
+    ``FULL_OPENCV`` instead: COLMAP's models are per camera, so one file may hold both.
+  - ``FULL_OPENCV``: ``fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6``, OpenCV's rational model (k4 = k5 =
+    k6 = 0 for a five-term lens): exact.
   - ``PINHOLE``: ``fx fy cx cy`` for *undistorted* images, the only kind the original 3DGS code
     reads. It builds its projection from the field of view alone, so it also assumes the principal
     point is the image centre. We therefore write :func:`undistorted_pinhole` (same focal lengths,
@@ -30,7 +34,10 @@ Three formats, each with units and conventions written into the file itself:
   ``transform_matrix`` (camera-to-world, OpenGL/nerfstudio camera axes: x right, y up, z back, i.e.
   OpenCV's y and z negated), ``fl_x fl_y cx cy w h k1 k2 k3 k4 p1 p2``, and ``camera_model``
   ``"OPENCV"`` (top level, where nerfstudio reads it, and per frame). nerfstudio's OPENCV model
-  keeps k3 (its radial polynomial runs to k4 r^8), so this export is exact. The world frame is ours
+  keeps k3 (its radial polynomial runs to k4 r^8), so this export is exact for a five-term lens.
+  It has no rational model: for a rational lens k1 k2 k3 are refitted over the whole image (k4 =
+  0, so the file stays readable as OpenCV's five terms) with a warning giving the remaining error.
+  The world frame is ours
   (metres, z up from the floor); nerfstudio may re-centre and re-orient it when it loads.
 
 **Pixel origin.** COLMAP, nerfstudio and gsplat put the *corner* of the top-left pixel at (0, 0),
@@ -50,7 +57,7 @@ from typing import Any
 
 import numpy as np
 
-from protocol.camera import Intrinsics, Pose, Resolution, undistort_to_normalized
+from protocol.camera import DIST_TERMS, Intrinsics, Pose, Resolution, undistort_to_normalized
 from protocol.formats.rig_calibration import CalibrationFileError, RigCalibration, SensorCalibration
 
 log = logging.getLogger(__name__)
@@ -58,7 +65,8 @@ log = logging.getLogger(__name__)
 EXPORT_FORMAT_VERSION = 1
 CONVENTIONS = (
     "units: metres (translations) and pixels (intrinsics); camera axes OpenCV: x right, y down, "
-    "z forward; pose world-to-camera: x_cam = R @ x_world + T; distortion OpenCV k1 k2 p1 p2 k3; "
+    "z forward; pose world-to-camera: x_cam = R @ x_world + T; distortion OpenCV k1 k2 p1 p2 k3 "
+    "(+ k4 k5 k6: rational model); "
     "pixel (0, 0) is the centre of the top-left pixel"
 )
 PIXEL_CENTRE_SHIFT_PX = 0.5  # COLMAP/nerfstudio pixel origin minus OpenCV's
@@ -92,11 +100,19 @@ def fit_without_k3(intr: Intrinsics) -> tuple[tuple[float, float, float, float],
     points, corners included. For a ZED X lens (k3 about -0.004) plainly dropping k3 moves the
     corners by about 130 px; the refit leaves about 1.3 px typical, 2 px at the 95th percentile
     and 6-15 px in the extreme corners."""
-    import cv2
-
-    k1, k2, p1, p2, k3 = intr.dist
-    if k3 == 0.0:
+    k1, k2, p1, p2 = intr.dist[:4]
+    if not any(intr.dist[4:]):
         return (k1, k2, p1, p2), 0.0, 0.0
+    radial, worst, p95 = fit_radial(intr, 2)
+    return (radial[0], radial[1], p1, p2), worst, p95
+
+
+def fit_radial(intr: Intrinsics, terms: int) -> tuple[tuple[float, ...], float, float]:
+    """``terms`` polynomial radial coefficients (k1, k2[, k3]) that, with the lens's own p1 and p2,
+    best reproduce its distortion over the whole image; and the worst and 95th-percentile
+    remaining error in pixels. A linear least-squares fit in pixel units on a grid of image
+    points, corners included, each undistorted through the full model (five terms or rational)."""
+    p1, p2 = intr.dist[2:4]
     u, v = np.meshgrid(
         np.linspace(0, intr.width_px - 1, 49), np.linspace(0, intr.height_px - 1, 31)
     )
@@ -107,19 +123,16 @@ def fit_without_k3(intr: Intrinsics) -> tuple[tuple[float, float, float, float],
     r2 = x * x + y * y
     tx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     ty = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    A = np.vstack(
-        [
-            intr.fx_px * np.column_stack([x * r2, x * r2 * r2]),
-            intr.fy_px * np.column_stack([y * r2, y * r2 * r2]),
-        ]
-    )
+    powers = np.column_stack([r2**j for j in range(1, terms + 1)])
+    A = np.vstack([intr.fx_px * x[:, None] * powers, intr.fy_px * y[:, None] * powers])
     b = np.concatenate([intr.fx_px * (xd - x - tx), intr.fy_px * (yd - y - ty)])
-    (n1, n2), *_ = np.linalg.lstsq(A, b, rcond=None)
-    dist4 = (float(n1), float(n2), p1, p2)
-    rays = np.column_stack([x, y, np.ones_like(x)])
-    px, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), intr.K, np.array(dist4))
-    err = np.linalg.norm(px.reshape(-1, 2) - grid, axis=1)
-    return dist4, float(err.max()), float(np.percentile(err, 95))
+    coeffs, *_ = np.linalg.lstsq(A, b, rcond=None)
+    radial = 1 + powers @ coeffs
+    px = np.column_stack(
+        [intr.fx_px * (x * radial + tx) + intr.cx_px, intr.fy_px * (y * radial + ty) + intr.cy_px]
+    )
+    err = np.linalg.norm(px - grid, axis=1)
+    return tuple(float(c) for c in coeffs), float(err.max()), float(np.percentile(err, 95))
 
 
 # -- OpenCV YAML --------------------------------------------------------------------------------
@@ -134,7 +147,9 @@ def export_opencv_yaml(cal: RigCalibration, path: Path | str) -> Path:
         fs.writeComment(
             f"EgoSurg rig calibration, OpenCV YAML export, format {EXPORT_FORMAT_VERSION}"
         )
-        fs.writeComment("K: 3x3 camera matrix [px]; D: k1 k2 p1 p2 k3; R, T: world-to-camera")
+        fs.writeComment(
+            "K: 3x3 camera matrix [px]; D: k1 k2 p1 p2 k3 [k4 k5 k6]; R, T: world-to-camera"
+        )
         fs.writeComment("x_cam = R @ x_world + T, T in metres, OpenCV camera axes")
         fs.write("format", "egosurg-rig-calibration-opencv")
         fs.write("format_version", EXPORT_FORMAT_VERSION)
@@ -152,7 +167,7 @@ def export_opencv_yaml(cal: RigCalibration, path: Path | str) -> Path:
             fs.write("image_width", i.width_px)
             fs.write("image_height", i.height_px)
             fs.write("K", i.K)
-            fs.write("D", i.dist_array.reshape(1, 5))
+            fs.write("D", i.dist_array.reshape(1, -1))
             fs.write("R", s.pose.R)
             fs.write("T", s.pose.t_m.reshape(3, 1))
             fs.endWriteStruct()
@@ -190,8 +205,8 @@ def read_opencv_yaml(path: Path | str) -> RigCalibration:
 
             K = get("K").mat()
             D = get("D").mat().reshape(-1)
-            if K.shape != (3, 3) or D.size != 5:
-                raise CalibrationFileError(f"{where}: K must be 3x3 and D must have 5 terms")
+            if K.shape != (3, 3) or D.size not in DIST_TERMS:
+                raise CalibrationFileError(f"{where}: K must be 3x3 and D must have 5 or 8 terms")
             intr = Intrinsics(
                 width_px=int(get("image_width").real()),
                 height_px=int(get("image_height").real()),
@@ -244,8 +259,10 @@ def export_colmap(cal: RigCalibration, out_dir: Path | str, model: str = "OPENCV
     ]
     if model == "OPENCV":
         cams.append("# OPENCV params: fx fy cx cy k1 k2 p1 p2 (no k3: k1 k2 refit where k3 != 0)")
+        if any(s.intrinsics.is_rational for s in cal.sensors):
+            cams.append("# FULL_OPENCV for the rational lenses: + k3 k4 k5 k6, exact")
     elif model == "FULL_OPENCV":
-        cams.append("# FULL_OPENCV params: fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6 (k4..k6 = 0)")
+        cams.append("# FULL_OPENCV params: fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6 (0 if not rational)")
     else:
         cams.append("# PINHOLE params: fx fy cx cy; undistort images to this centred pinhole first")
     cams.append(f"# Number of cameras: {len(cal.sensors)}")
@@ -263,16 +280,17 @@ def export_colmap(cal: RigCalibration, out_dir: Path | str, model: str = "OPENCV
             i = undistorted_pinhole(i)
         cx, cy = i.cx_px + PIXEL_CENTRE_SHIFT_PX, i.cy_px + PIXEL_CENTRE_SHIFT_PX
         params = [i.fx_px, i.fy_px, cx, cy]
-        if model == "OPENCV":
+        line_model = "FULL_OPENCV" if model == "OPENCV" and i.is_rational else model
+        if line_model == "OPENCV":
             dist4, worst, p95 = fit_without_k3(i)
             if i.dist[4] != 0.0:
                 refit.append(
                     f"{s.name} (k3={i.dist[4]:g}: error p95 {p95:.1f} px, corners {worst:.1f} px)"
                 )
             params += list(dist4)
-        elif model == "FULL_OPENCV":
-            params += [*i.dist, 0.0, 0.0, 0.0]
-        cams.append(f"{idx} {model} {i.width_px} {i.height_px} " + " ".join(map(repr, params)))
+        elif line_model == "FULL_OPENCV":
+            params += list(i.dist8)
+        cams.append(f"{idx} {line_model} {i.width_px} {i.height_px} " + " ".join(map(repr, params)))
         q = rotation_to_quaternion(s.pose.R)
         vals = [*q, *s.pose.t_m]
         imgs += [f"{idx} " + " ".join(repr(float(v)) for v in vals) + f" {idx} {image_name(s)}", ""]
@@ -368,7 +386,7 @@ def _colmap_intrinsics(model: str, w: int, h: int, p: list[float]) -> Intrinsics
         fx, fy, cx, cy = p[:4]
         dist = [*p[4:9], 0.0, 0.0, 0.0, 0.0, 0.0][:5]  # OPENCV: k1 k2 p1 p2; FULL: + k3
         if any(v != 0.0 for v in p[9:]):
-            raise ValueError("FULL_OPENCV with k4..k6 != 0 (rational model) is not supported")
+            dist += p[9:]  # FULL_OPENCV's k4..k6: OpenCV's rational model
     s = PIXEL_CENTRE_SHIFT_PX
     return Intrinsics(
         width_px=w,
@@ -389,10 +407,14 @@ def export_nerfstudio(cal: RigCalibration, path: Path | str, image_dir: str = "i
         p = p / "transforms.json"
     p.parent.mkdir(parents=True, exist_ok=True)
     frames = []
+    refit = []
     for s in cal.sensors:
         i = s.intrinsics
         c2w = s.pose.inverse().matrix @ _GL_FROM_CV
-        k1, k2, p1, p2, k3 = i.dist
+        k1, k2, p1, p2, k3 = i.dist[:5]
+        if i.is_rational:
+            (k1, k2, k3), worst, p95 = fit_radial(i, 3)
+            refit.append(f"{s.name} (error p95 {p95:.1f} px, corners {worst:.1f} px)")
         frames.append(
             {
                 "file_path": f"{image_dir}/{image_name(s)}",
@@ -428,6 +450,12 @@ def export_nerfstudio(cal: RigCalibration, path: Path | str, image_dir: str = "i
         },
         "frames": frames,
     }
+    if refit:
+        log.warning(
+            "nerfstudio's OPENCV model has no rational terms: refitted k1 k2 k3 for %s. For exact "
+            "geometry undistort the images first, or use the COLMAP FULL_OPENCV export",
+            ", ".join(refit),
+        )
     p.write_text(json.dumps(doc, indent=2) + "\n")
     return p
 

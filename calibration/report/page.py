@@ -220,7 +220,7 @@ _GEOMETRY_HEADER = [
     "fy px",
     "cx px",
     "cy px",
-    "k1 k2 p1 p2 k3",
+    "k1 k2 p1 p2 k3 [k4 k5 k6]",
     "Centre x, y, z (m)",
     "Looks along x, y, z",
 ]

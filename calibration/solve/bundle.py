@@ -59,8 +59,8 @@ class SensorModels:
 
     @property
     def table(self) -> np.ndarray:
-        """(S, 9): fx fy cx cy k1 k2 p1 p2 k3."""
-        return np.array([[i.fx_px, i.fy_px, i.cx_px, i.cy_px, *i.dist] for i in self.intrinsics])
+        """(S, 12): fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6 (a five-term lens has k4 = k5 = k6 = 0)."""
+        return np.array([[i.fx_px, i.fy_px, i.cx_px, i.cy_px, *i.dist8] for i in self.intrinsics])
 
 
 @dataclass(frozen=True)
@@ -107,20 +107,25 @@ class RigState:
 def project(
     Xs: np.ndarray, table: np.ndarray, *, with_jacobian: bool = True
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """(M, 3) sensor-frame points and (M, 9) per-point intrinsics -> (M, 2) distorted pixels and
-    (M, 2, 3) d(pixel)/d(point). Matches ``cv2.projectPoints`` (OpenCV's 5-term model)."""
-    fx, fy, cx, cy, k1, k2, p1, p2, k3 = table.T
+    """(M, 3) sensor-frame points and (M, 12) per-point intrinsics -> (M, 2) distorted pixels and
+    (M, 2, 3) d(pixel)/d(point). Matches ``cv2.projectPoints`` with OpenCV's rational model
+    (k4 = k5 = k6 = 0 is the five-term one: the denominator is exactly 1)."""
+    fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6 = table.T
     z = Xs[:, 2]
     iz = 1.0 / z
     x, y = Xs[:, 0] * iz, Xs[:, 1] * iz
     r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    radial = num / den
     xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
     px = np.stack([fx * xd + cx, fy * yd + cy], axis=1)
     if not with_jacobian:
         return px, None
-    dr = 2 * (k1 + r2 * (2 * k2 + 3 * k3 * r2))  # d radial / d r2, times 2
+    dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
+    dr = 2 * (dnum - radial * dden) / den  # d radial / d r2, times 2 (quotient rule)
     dxd_dx = radial + x * x * dr + 2 * p1 * y + 6 * p2 * x
     dxd_dy = x * y * dr + 2 * p1 * x + 2 * p2 * y
     dyd_dx = x * y * dr + 2 * p1 * x + 2 * p2 * y

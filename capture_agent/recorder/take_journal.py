@@ -22,12 +22,12 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from protocol.durable import atomic_write_bytes, fsync_dir
 from protocol.session.privacy import FILE_MODE
 
 log = logging.getLogger(__name__)
@@ -49,18 +49,8 @@ class TakeJournal:
 
     def write(self, directory: Path | str) -> None:
         """Replace the folder's journal with this one, atomically and durably."""
-        folder = Path(directory)
-        tmp = folder / f".{JOURNAL_NAME}.{os.getpid()}.tmp"
         data = json.dumps({"version": JOURNAL_VERSION, **asdict(self)}, sort_keys=True).encode()
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, FILE_MODE)
-        try:
-            os.fchmod(fd, FILE_MODE)
-            os.write(fd, data)
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, folder / JOURNAL_NAME)
-        _fsync_dir(folder)
+        atomic_write_bytes(Path(directory) / JOURNAL_NAME, data, mode=FILE_MODE)
 
     @classmethod
     def read(cls, directory: Path | str) -> TakeJournal | None:
@@ -89,15 +79,7 @@ def remove(directory: Path | str) -> None:
         path.unlink()
     except FileNotFoundError:
         return
-    _fsync_dir(Path(directory))
-
-
-def _fsync_dir(folder: Path) -> None:
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    fsync_dir(Path(directory))
 
 
 class TakeResume:

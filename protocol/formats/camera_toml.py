@@ -9,7 +9,8 @@ keys, so both files read and write them here::
     fy_px = 480.0
     cx_px = 479.5
     cy_px = 299.5
-    dist = [0.0, 0.0, 0.0, 0.0, 0.0]      # only where the camera has a lens model (sensors)
+    dist = [0.0, 0.0, 0.0, 0.0, 0.0]      # only where the camera has a lens model (sensors);
+                                          # 8 terms for OpenCV's rational model
     rotation = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]   # world-to-camera
     translation_m = [0.0, 0.0, 0.0]
 

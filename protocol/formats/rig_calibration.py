@@ -24,14 +24,16 @@ Human-readable TOML, one ``[[sensors]]`` table per sensor (8 for four ZED X)::
     fy_px = 741.0
     cx_px = 958.3
     cy_px = 601.1
-    dist = [-0.042, 0.018, 0.0001, -0.0001, -0.004]   # OpenCV k1 k2 p1 p2 k3
+    dist = [-0.042, 0.018, 0.0001, -0.0001, -0.004]   # OpenCV k1 k2 p1 p2 k3 [k4 k5 k6]
     rotation = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
     translation_m = [0.0, 0.0, 0.0]
 
     [sensors.stats]                  # per-sensor statistics (optional)
     reprojection_px_mean = 0.19
 
-Every number keeps full precision (``repr`` of the float), so a write-read round trip is exact.
+``dist`` has five terms, or eight for a lens on OpenCV's rational model (as ZED X factory files
+may give it). Every number keeps full precision (``repr`` of the float), so a write-read round
+trip is exact.
 """
 
 from __future__ import annotations

@@ -11,8 +11,16 @@ Stereo convention, checked by a round trip in the tests: with ``R = Rodrigues([R
 as ``x_right = R @ x_left + T`` (OpenCV ``stereoCalibrate``'s R, T). The right sensor therefore
 sits ``Baseline`` mm to the right (+x) of the left one.
 
-Sections and keys the ZED SDK writes that EgoSurg does not use (``[MISC]``, ``k4``, ...) are kept
-out of the model but tolerated on reading. A missing ``FHD`` or ``SVGA`` section is derived from
+Lens model: five terms ``k1 k2 p1 p2 k3`` (OpenCV's Brown-Conrady), or the eight-term rational
+model (``k1 k2 p1 p2 k3 k4 k5 k6``, OpenCV's ``CALIB_RATIONAL_MODEL``) that Stereolabs uses for
+the ZED X where the file has it: either ``k4 k5 k6`` next to the five in a ``[<SIDE>_CAM_<RES>]``
+section (that resolution only), or a complete ``[LEFT_DISTO]`` / ``[RIGHT_DISTO]`` section (all
+resolutions of that sensor, as the SDK reads it; distortion acts on normalized coordinates, so it
+does not change with the mode). A five-term file writes back as it was read; an eight-term sensor
+is written with ``k4 k5 k6`` in its camera sections.
+
+Sections and keys the ZED SDK writes that EgoSurg does not use (``[MISC]``, ...) are kept out of
+the model but tolerated on reading. A missing ``FHD`` or ``SVGA`` section is derived from
 ``FHD1200`` as the ZED X does it: ``FHD`` is ``FHD1200`` with ``cy - 60`` (a centre crop), ``SVGA``
 is ``FHD1200`` halved (2x2 binning).
 """
@@ -30,6 +38,9 @@ from protocol.camera import Intrinsics, Pose, Resolution
 from protocol.errors import UserError
 
 INTRINSIC_KEYS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+# The rational model's extra terms, after k3 (OpenCV's order), and the whole rational table.
+RATIONAL_KEYS = ("k4", "k5", "k6")
+DISTO_KEYS = ("k1", "k2", "p1", "p2", "k3", *RATIONAL_KEYS)
 
 
 class ConfFormatError(UserError, ValueError):
@@ -96,7 +107,8 @@ class ZedFactoryCalibration:
                 intr = table[res]
                 values = (intr.fx_px, intr.fy_px, intr.cx_px, intr.cy_px, *intr.dist)
                 lines.append(f"[{side}_CAM_{res.conf_suffix}]")
-                lines += [f"{k}={_fmt(v)}" for k, v in zip(INTRINSIC_KEYS, values, strict=True)]
+                keys = (*INTRINSIC_KEYS, *RATIONAL_KEYS) if intr.is_rational else INTRINSIC_KEYS
+                lines += [f"{k}={_fmt(v)}" for k, v in zip(keys, values, strict=True)]
                 lines.append("")
         lines.append("[STEREO]")
         lines += [
@@ -148,7 +160,8 @@ class ZedFactoryCalibration:
         left: dict[Resolution, Intrinsics] = {}
         right: dict[Resolution, Intrinsics] = {}
         for side, table in (("LEFT", left), ("RIGHT", right)):
-            base = _read_intrinsics(parser, f"{side}_CAM_FHD1200", Resolution.HD1200, source)
+            disto = _read_disto(parser, f"{side}_DISTO", source)
+            base = _read_intrinsics(parser, f"{side}_CAM_FHD1200", Resolution.HD1200, source, disto)
             if base is None:
                 raise ConfFormatError(
                     f"{source}: section [{side}_CAM_FHD1200] is missing; this is not a ZED X "
@@ -156,7 +169,8 @@ class ZedFactoryCalibration:
                 )
             table[Resolution.HD1200] = base
             for res in (Resolution.HD1080, Resolution.SVGA):
-                read = _read_intrinsics(parser, f"{side}_CAM_{res.conf_suffix}", res, source)
+                section = f"{side}_CAM_{res.conf_suffix}"
+                read = _read_intrinsics(parser, section, res, source, disto)
                 table[res] = read if read is not None else derive_intrinsics(base, res)
         if not parser.has_section("STEREO"):
             raise ConfFormatError(f"{source}: section [STEREO] is missing; re-copy the file")
@@ -214,13 +228,30 @@ def derive_intrinsics(hd1200: Intrinsics, res: Resolution) -> Intrinsics:
     )
 
 
+def _read_disto(
+    parser: configparser.ConfigParser, section: str, source: str
+) -> tuple[float, ...] | None:
+    """A complete ``[<SIDE>_DISTO]`` rational table, or None (absent or partial: the SDK then
+    falls back to the camera sections' five terms, and so do we)."""
+    if not parser.has_section(section) or not all(k in parser[section] for k in DISTO_KEYS):
+        return None
+    return tuple(_number(parser[section], k, section, source) for k in DISTO_KEYS)
+
+
 def _read_intrinsics(
-    parser: configparser.ConfigParser, section: str, res: Resolution, source: str
+    parser: configparser.ConfigParser,
+    section: str,
+    res: Resolution,
+    source: str,
+    disto: tuple[float, ...] | None = None,
 ) -> Intrinsics | None:
     if not parser.has_section(section):
         return None
     sec = parser[section]
     vals = [_number(sec, k, section, source) for k in INTRINSIC_KEYS]
+    if all(k in sec for k in RATIONAL_KEYS):
+        vals += [_number(sec, k, section, source) for k in RATIONAL_KEYS]
+    dist = disto if disto is not None else tuple(vals[4:])
     fx, fy, cx, cy = vals[:4]
     if fx <= 0 or fy <= 0:
         raise ConfFormatError(f"{source}: [{section}] focal lengths must be positive (fx={fx})")
@@ -237,7 +268,7 @@ def _read_intrinsics(
         fy_px=fy,
         cx_px=cx,
         cy_px=cy,
-        dist=(vals[4], vals[5], vals[6], vals[7], vals[8]),
+        dist=dist,
     )
 
 

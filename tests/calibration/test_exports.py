@@ -15,6 +15,7 @@ from calibration.report.exports import (
     export_colmap,
     export_nerfstudio,
     export_opencv_yaml,
+    fit_radial,
     fit_without_k3,
     quaternion_to_rotation,
     read_colmap,
@@ -267,3 +268,76 @@ def test_nerfstudio_refuses_what_opencv_cannot_express(rig, tmp_path):
     path.write_text(json.dumps(doc))
     with pytest.raises(CalibrationFileError, match="k4"):
         read_nerfstudio(path)
+
+
+# -- the rational lens model (ZED X: k1 k2 p1 p2 k3 k4 k5 k6) -----------------------------------
+RATIONAL = (-0.05, 0.1, 1e-4, -1e-4, 0.01, 0.3, 0.05, 0.02)
+
+
+@pytest.fixture(scope="module")
+def rational_rig(rig: RigCalibration) -> RigCalibration:
+    """The rig with its first camera's two sensors on the rational model."""
+    sensors = tuple(
+        replace(s, intrinsics=replace(s.intrinsics, dist=RATIONAL)) if k < 2 else s
+        for k, s in enumerate(rig.sensors)
+    )
+    return replace(rig, sensors=sensors)
+
+
+def test_rational_lenses_round_trip_exactly_through_opencv_yaml(rational_rig, points, tmp_path):
+    back = read_opencv_yaml(export_opencv_yaml(rational_rig, tmp_path / "rig.yaml"))
+    assert (
+        back.sensors[0].intrinsics.dist == RATIONAL and not back.sensors[2].intrinsics.is_rational
+    )
+    assert reprojection_gap(rational_rig, back, points).max() < EXACT_PX
+
+
+def test_colmap_writes_rational_lenses_as_full_opencv(rational_rig, points, tmp_path, caplog):
+    """COLMAP's models are per camera: the rational sensors become FULL_OPENCV (exact), the
+    others stay OPENCV (refitted, named in the warning); FULL_OPENCV reads back exactly."""
+    with caplog.at_level(logging.WARNING, logger="calibration.report.exports"):
+        export_colmap(rational_rig, tmp_path)
+    models = [
+        ln.split()[1]
+        for ln in (tmp_path / "cameras.txt").read_text().splitlines()
+        if ln and not ln.startswith("#")
+    ]
+    assert models == ["FULL_OPENCV"] * 2 + ["OPENCV"] * 6
+    message = " ".join(r.getMessage() for r in caplog.records)
+    assert rational_rig.sensors[0].name not in message and rational_rig.sensors[2].name in message
+    back = read_colmap(tmp_path)
+    assert back.sensors[1].intrinsics.dist == RATIONAL
+    two = replace(rational_rig, sensors=rational_rig.sensors[:2])
+    assert reprojection_gap(two, replace(back, sensors=back.sensors[:2]), points).max() < EXACT_PX
+    export_colmap(rational_rig, tmp_path, model="FULL_OPENCV")
+    assert reprojection_gap(rational_rig, read_colmap(tmp_path), points).max() < EXACT_PX
+
+
+def test_nerfstudio_refits_rational_lenses_with_a_warning(rational_rig, points, tmp_path, caplog):
+    """nerfstudio's OPENCV model is polynomial: a rational lens is refitted to k1 k2 k3 over the
+    whole image, the warning names the sensor and the error, and the file reads back."""
+    with caplog.at_level(logging.WARNING, logger="calibration.report.exports"):
+        path = export_nerfstudio(rational_rig, tmp_path)
+    message = " ".join(r.getMessage() for r in caplog.records)
+    assert rational_rig.sensors[0].name in message and "rational" in message
+    assert rational_rig.sensors[2].name not in message
+    back = read_nerfstudio(path)
+    assert not back.sensors[0].intrinsics.is_rational
+    exact = replace(rational_rig, sensors=rational_rig.sensors[2:])
+    assert reprojection_gap(exact, replace(back, sensors=back.sensors[2:]), points).max() < 1e-6
+    _, worst, p95 = fit_radial(rational_rig.sensors[0].intrinsics, 3)
+    gap = reprojection_gap(
+        replace(rational_rig, sensors=rational_rig.sensors[:2]),
+        replace(back, sensors=back.sensors[:2]),
+        points,
+    )
+    print(
+        f"rational -> k1 k2 k3: grid p95 {p95:.2f} px, worst {worst:.2f} px, room {gap.max():.2f}"
+    )
+    assert gap.max() <= worst + 1e-6
+
+
+def test_the_rig_calibration_file_round_trips_rational_lenses(rational_rig, points, tmp_path):
+    back = RigCalibration.read(rational_rig.write(tmp_path / "calibration.toml"))
+    assert [s.intrinsics for s in back.sensors] == [s.intrinsics for s in rational_rig.sensors]
+    assert reprojection_gap(rational_rig, back, points).max() == 0.0

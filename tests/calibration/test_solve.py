@@ -105,7 +105,15 @@ def session(wand_world):
 # ---- the numeric core against slow twins ----------------------------------------------------
 
 
-def test_projection_and_its_jacobian_match_opencv():
+@pytest.mark.parametrize(
+    "dist",
+    [
+        (-0.043, 0.019, 1.5e-4, -1.2e-4, -0.0041),  # five-term Brown-Conrady
+        (-0.05, 0.1, 1.5e-4, -1.2e-4, 0.01, 0.3, 0.05, 0.02),  # eight-term rational (ZED X)
+    ],
+    ids=["five-term", "rational"],
+)
+def test_projection_and_its_jacobian_match_opencv(dist):
     intr = Intrinsics(
         width_px=1920,
         height_px=1200,
@@ -113,11 +121,11 @@ def test_projection_and_its_jacobian_match_opencv():
         fy_px=740.2,
         cx_px=955.0,
         cy_px=603.0,
-        dist=(-0.043, 0.019, 1.5e-4, -1.2e-4, -0.0041),
+        dist=dist,
     )
     rng = np.random.default_rng(1)
     X = rng.uniform([-2, -1.5, 1.0], [2, 1.5, 5.0], size=(200, 3))
-    table = np.tile([741.0, 740.2, 955.0, 603.0, *intr.dist], (len(X), 1))
+    table = np.tile([741.0, 740.2, 955.0, 603.0, *intr.dist8], (len(X), 1))
     px, J = bundle.project(X, table)
     assert J is not None
     ref, cvJ = cv2.projectPoints(X, np.zeros(3), np.zeros(3), intr.K, intr.dist_array)

@@ -123,3 +123,33 @@ def test_malformed_files_name_the_problem(text, words):
 def test_missing_file_says_where_to_get_it(tmp_path):
     with pytest.raises(ConfFormatError, match="settings"):
         ZedFactoryCalibration.read(tmp_path / "SN123.conf")
+
+
+def test_a_five_term_file_writes_back_as_it_was():
+    text = ZedFactoryCalibration.parse(REAL_LAYOUT, serial=1).to_text()
+    assert "k4" not in text and "k6" not in text  # the stray k4 k5 above are no rational model
+
+
+def test_reads_the_rational_model_from_the_camera_sections_and_writes_it_back():
+    rational = REAL_LAYOUT.replace("k4=0\nk5=0\n", "k4=0.31\nk5=0.052\nk6=0.021\n")
+    cal = ZedFactoryCalibration.parse(rational, serial=1)
+    left = cal.left[Resolution.HD1200]
+    assert left.is_rational and left.dist == (-0.0412, 0.0169, 0.00011, -0.00007, -0.0043,
+                                              0.31, 0.052, 0.021)  # fmt: skip
+    assert cal.left[Resolution.SVGA].dist == left.dist  # derived modes keep the lens
+    assert not cal.right[Resolution.HD1200].is_rational
+    again = ZedFactoryCalibration.parse(cal.to_text(), serial=1)
+    assert again == cal
+
+
+def test_a_complete_disto_section_is_the_sensors_rational_model_in_every_mode():
+    """As the ZED SDK reads it: [LEFT_DISTO] with all eight terms overrides the camera sections'
+    five, in every mode (distortion acts on normalized coordinates); a partial one is ignored."""
+    disto = "[LEFT_DISTO]\nk1=-0.05\nk2=0.1\nk3=0.01\nk4=0.3\nk5=0.05\nk6=0.02\np1=0.0\np2=0.0\n"
+    cal = ZedFactoryCalibration.parse(REAL_LAYOUT + disto, serial=1)
+    for res in Resolution:
+        assert cal.left[res].dist == (-0.05, 0.1, 0.0, 0.0, 0.01, 0.3, 0.05, 0.02)
+        assert not cal.right[res].is_rational
+    assert ZedFactoryCalibration.parse(cal.to_text(), serial=1) == cal
+    partial = ZedFactoryCalibration.parse(REAL_LAYOUT + disto.replace("k6=0.02\n", ""), serial=1)
+    assert not partial.left[Resolution.HD1200].is_rational
