@@ -13,8 +13,8 @@
 
 protocol/ imports none of the other four packages. Its third-party needs are the edge's: numpy,
 OpenCV (the camera model and the image codec), h5py and xxhash (the session file), pyzmq (the
-wire's socket checks), tomli-w (writing TOML) and tomli on Python 3.10 (3.11 has tomllib). It never imports torch,
-open3d, numba, scipy or matplotlib, so it runs on a Jetson node
+wire's socket checks), tomli-w (writing TOML) and tomli on Python 3.10 (3.11 has tomllib). It
+never imports torch, open3d, numba, scipy or matplotlib, so it runs on a Jetson node
 (``tests/test_package_rules.py::test_the_edge_imports_without_heavy_libraries``).
 """
 
