@@ -102,7 +102,7 @@ def check_packages() -> Check:
             ok=False,
             found=", ".join(found) or "none",
             fix=f"install the edge into this Python ({', '.join(missing)} missing): "
-            "docs/capture.md",
+            "docs/jetson.md, step 3",
         )
     return Check(name="packages", ok=True, found=", ".join(found))
 
@@ -210,7 +210,7 @@ def ptp_fix(state: str) -> str:
         "ptp4l's group",
         "unlocked": "wait for lock, or check the grandmaster, the VLAN and phc2sys "
         "(systemctl status egosurg-phc2sys@IFACE)",
-    }.get(state, "see docs/capture.md")
+    }.get(state, "see docs/jetson.md, step 6")
 
 
 def check_disk(config: NodeConfig) -> Check:
@@ -238,7 +238,7 @@ def check_keys(config: NodeConfig) -> Check:
             name="keys",
             ok=False,
             found=str(exc).splitlines()[0],
-            fix=f"sudo egosurg keys generate --owner {SERVICE_USER} (docs/capture.md)",
+            fix=f"sudo egosurg keys generate --owner {SERVICE_USER} (docs/jetson.md, step 5)",
         )
     return Check(name="keys", ok=True, found=f"readable by {current_user()}")
 
