@@ -270,7 +270,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from sim import World
-    from sim.eval_set import _room_bounds
+    from sim.eval_set import room_bounds
 
     base = StereoConfig()
     selected = rows(base)
@@ -279,7 +279,7 @@ def main() -> None:
     results = []  # (phase, serial, row name, scores)
     for phase in args.phases.split(","):
         world = World.from_seed(args.seed, phase=phase)
-        b = _room_bounds(world)
+        b = room_bounds(world)
         room_box = (np.array(b[:3]), np.array(b[3:]))
         for unit in world.rig:
             left, right = world.render_stereo(unit.index, args.t_s, args.resolution)

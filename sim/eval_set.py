@@ -159,7 +159,7 @@ def _write_scene(root: Path, phase: str, world: World, spec: EvalSetSpec) -> Eva
         eval_sets=tuple(spec.eval_sets),
         temporal_sets=tuple(range(spec.sets)),
         views=tuple(views),
-        room_bounds_m=_room_bounds(world),
+        room_bounds_m=room_bounds(world),
     )
 
 
@@ -179,7 +179,7 @@ def _write_later_scene(root: Path, phase: str, world: World, spec: EvalSetSpec) 
         eval_sets=tuple(range(min(spec.near_field_instants, spec.instants) - 1)),
         temporal_sets=(),
         views=tuple(views),
-        room_bounds_m=_room_bounds(world),
+        room_bounds_m=room_bounds(world),
     )
 
 
@@ -252,7 +252,7 @@ def _write_session(
     return views
 
 
-def _room_bounds(world: World) -> tuple[float, ...]:
+def room_bounds(world: World) -> tuple[float, ...]:
     room = world.config.room
     (x0, x1), (y0, y1) = room.x_range_m, room.y_range_m
     return (x0, y0, 0.0, x1, y1, room.height_z_m)

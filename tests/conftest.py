@@ -37,7 +37,8 @@ def wand_world():
 
 @pytest.fixture(scope="session")
 def sim_true_rig():
-    """The simulator's true rig as a calibration: 4 ZED X, 8 sensors, lenses with k3 != 0."""
+    """The simulator's true rig as a calibration: 4 ZED X, 8 sensors, lenses with k3 != 0, one
+    of them on the rational model (k4..k6, ``sim.rig.RATIONAL_SENSOR``)."""
     from sim import World
     from sim.truth import true_rig_calibration
 

@@ -292,3 +292,22 @@ def test_the_rules_see_imports_only_a_type_checker_reads():
     )
     found = _imported_by("protocol.probe", "protocol", source, _all_modules())
     assert found == {"protocol.camera"}
+
+
+def test_no_module_imports_another_modules_private_names():
+    """A leading underscore says "mine": a module that needs a helper of another asks for it to be
+    made public (or moved to where both can use it) rather than reaching in. A private module
+    (``detect/_reference.py``, the slow twins) may be imported whole by its package."""
+    modules = _all_modules()
+    reached = []
+    for name, path in modules.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, ast.ImportFrom) or node.level or not node.module:
+                continue
+            if node.module.split(".")[0] not in PACKAGES:
+                continue
+            for alias in node.names:
+                private = alias.name.startswith("_") and not alias.name.startswith("__")
+                if private and f"{node.module}.{alias.name}" not in modules:
+                    reached.append(f"{name} imports {node.module}.{alias.name}")
+    assert not reached, "; ".join(reached)

@@ -214,7 +214,7 @@ def read_opencv_yaml(path: Path | str) -> RigCalibration:
                 fy_px=float(K[1, 1]),
                 cx_px=float(K[0, 2]),
                 cy_px=float(K[1, 2]),
-                dist=tuple(float(d) for d in D),  # type: ignore[arg-type]
+                dist=tuple(float(d) for d in D),
             )
             sensors.append(
                 _sensor(
@@ -395,7 +395,7 @@ def _colmap_intrinsics(model: str, w: int, h: int, p: list[float]) -> Intrinsics
         fy_px=fy,
         cx_px=cx - s,
         cy_px=cy - s,
-        dist=tuple(dist),  # type: ignore[arg-type]
+        dist=tuple(dist),
     )
 
 

@@ -35,7 +35,7 @@ from protocol.session.recover import recover_session
 from protocol.set_counts import missing_in_sets
 
 # What reading a damaged file may still raise past the reader's own checks (h5py, numpy, cv2).
-_READ_ERRORS = (OSError, RuntimeError, KeyError, ValueError, TypeError, IndexError, MemoryError)
+READ_ERRORS = (OSError, RuntimeError, KeyError, ValueError, TypeError, IndexError, MemoryError)
 _CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f\u200e\u200f\u202a-\u202e\u2066-\u2069]")
 
 
@@ -269,7 +269,7 @@ def main(argv: list[str]) -> int:
         return int(args.func(args))
     except (UserError, BrokenPipeError):
         raise
-    except _READ_ERRORS as exc:  # a damaged file must give one line (exit 2), not a traceback
+    except READ_ERRORS as exc:  # a damaged file must give one line (exit 2), not a traceback
         raise SessionFormatError(
             f"{args.file}: cannot {args.command} it ({type(exc).__name__}: {exc}); the file may be "
             "damaged: 'egosurg session recover' copies what is intact"

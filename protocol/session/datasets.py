@@ -1,6 +1,6 @@
-"""The HDF5 datasets a session file is made of, for ``protocol.session.write``: ``_Blob``, an
+"""The HDF5 datasets a session file is made of, for ``protocol.session.write``: ``Blob``, an
 append-only byte dataset written one whole chunk at a time through the file's ``ChunkSink``;
-``_CameraWriter``, one camera's frame tables and its two blobs; and the helpers that create the
+``CameraWriter``, one camera's frame tables and its two blobs; and the helpers that create the
 tables and blobs and append a flush's rows with low-level calls (``docs/session.md``, layout).
 """
 
@@ -25,7 +25,7 @@ _MAX_BLOB_GROWTH = 64 << 20
 _MAX_LENGTH = int(np.iinfo(np.uint32).max)
 
 
-class _Blob:
+class Blob:
     """An append-only byte dataset, written one whole chunk at a time; its extent is a capacity.
 
     A chunk is assembled in a buffer lent by the file's ``ChunkSink``; when it is full, the
@@ -109,16 +109,16 @@ class _Blob:
         return int(info.byte_offset)
 
 
-class _CameraWriter:
+class CameraWriter:
     def __init__(
         self, group: h5py.Group, info: CameraInfo, blob_chunk_bytes: int, sink: ChunkSink
     ) -> None:
         self.info = info
         self.tables = {
-            name: _create_table(group, name, dtype) for name, dtype in FRAME_COLUMNS.items()
+            name: create_table(group, name, dtype) for name, dtype in FRAME_COLUMNS.items()
         }
-        self.left = _Blob(_create_blob(group, "left_bytes", blob_chunk_bytes), sink)
-        self.right = _Blob(_create_blob(group, "right_bytes", blob_chunk_bytes), sink)
+        self.left = Blob(_create_blob(group, "left_bytes", blob_chunk_bytes), sink)
+        self.right = Blob(_create_blob(group, "right_bytes", blob_chunk_bytes), sink)
         self.pending: list[tuple[int, ...]] = []
         self.rows = 0  # appended
         self.rows_in_file = 0
@@ -130,7 +130,7 @@ def _round_up(n: int, multiple: int) -> int:
     return -(-n // multiple) * multiple
 
 
-def _create_table(group: h5py.Group, name: str, dtype: type[np.generic]) -> h5py.Dataset:
+def create_table(group: h5py.Group, name: str, dtype: type[np.generic]) -> h5py.Dataset:
     return group.create_dataset(
         name, shape=(0,), maxshape=(None,), chunks=(TABLE_CHUNK_ROWS,), dtype=dtype
     )
@@ -148,7 +148,7 @@ def _create_blob(group: h5py.Group, name: str, chunk_bytes: int) -> h5py.Dataset
     return group[name]
 
 
-def _append_rows(ds: h5py.Dataset, start: int, end: int, values: np.ndarray) -> None:
+def append_rows(ds: h5py.Dataset, start: int, end: int, values: np.ndarray) -> None:
     """Grow a table to ``end`` rows and write ``values`` (its dtype) into rows ``start:end``.
 
     Low-level calls: for a flush's few rows, h5py's slicing costs more than the write.

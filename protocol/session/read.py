@@ -50,7 +50,7 @@ logger = logging.getLogger(__name__)
 READ_CACHE_BYTES = 16 << 20  # per dataset: a few chunks of the byte datasets
 # What reading a damaged file can raise, from h5py (OSError, RuntimeError, KeyError, ...), numpy
 # (ValueError, IndexError, MemoryError for an absurd shape) and json (ValueError).
-_READ_ERRORS = (
+READ_ERRORS = (
     OSError,
     RuntimeError,
     KeyError,
@@ -82,7 +82,7 @@ def _guarded(what: str) -> Callable[[_F], _F]:
                 return method(self, *args, **kwargs)
             except (SessionFormatError, UnknownCameraError, FrameRowError):
                 raise
-            except _READ_ERRORS as exc:
+            except READ_ERRORS as exc:
                 raise SessionFormatError(
                     f"{self.path}: cannot read {what} ({type(exc).__name__}: {exc}); the file is "
                     "damaged. 'egosurg session recover' copies what is still intact"
@@ -316,7 +316,7 @@ class SessionReader:
                 previous_session_file=_str_attr(a, "previous_session_file", ""),
                 take_part=int(a.get("take_part", 1)),
             )
-        except _READ_ERRORS as exc:
+        except READ_ERRORS as exc:
             raise SessionFormatError(
                 f"{self._path}: an EgoSurg session (format_version {version}) with a missing or "
                 f"bad part: {type(exc).__name__}: {exc}; the file is damaged or was not written "
@@ -341,7 +341,7 @@ class SessionReader:
                 if not isinstance(ds, h5py.Dataset):
                     raise TypeError("is not a dataset")
                 shape, dtype = ds.shape, ds.dtype
-            except _READ_ERRORS as exc:
+            except READ_ERRORS as exc:
                 raise SessionFormatError(
                     f"{self._path}: a session with a missing or bad part: no readable {name} "
                     f"({exc}); the file is "
@@ -369,7 +369,7 @@ class SessionReader:
                 try:
                     ds = self._f[name]
                     ok = isinstance(ds, h5py.Dataset) and ds.ndim == 1 and ds.dtype.itemsize == 1
-                except _READ_ERRORS:
+                except READ_ERRORS:
                     ok = False
                 if not ok:
                     raise SessionFormatError(
@@ -442,7 +442,7 @@ def _open_session(path: Path, allow_truncated: bool = False) -> tuple[h5py.File,
     try:
         try:
             fmt = f.attrs.get("format")
-        except _READ_ERRORS as exc:
+        except READ_ERRORS as exc:
             raise SessionFormatError(
                 f"{path}: HDF5 cannot read its root attributes ({exc}); the file is damaged"
             ) from None
@@ -455,7 +455,7 @@ def _open_session(path: Path, allow_truncated: bool = False) -> tuple[h5py.File,
             )
         try:
             version = int(f.attrs["format_version"])
-        except _READ_ERRORS:
+        except READ_ERRORS:
             raise SessionFormatError(
                 f"{path}: an EgoSurg session without a valid format_version; the file is "
                 "damaged, copy it again from the recorder"

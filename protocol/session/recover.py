@@ -31,7 +31,7 @@ import numpy as np
 import xxhash
 
 from protocol.session.format import GAP_COLUMNS, GapKind, SessionFormatError
-from protocol.session.read import _READ_ERRORS, SessionReader
+from protocol.session.read import READ_ERRORS, SessionReader
 from protocol.session.write import SessionWriter
 
 logger = logging.getLogger(__name__)
@@ -79,7 +79,7 @@ def _prefix(ds: h5py.Dataset, rows: int, failures: list[tuple[str, int, str]]) -
     for start in range(0, rows, _BLOCK_ROWS):
         try:
             parts.append(np.asarray(ds[start : min(start + _BLOCK_ROWS, rows)]))
-        except _READ_ERRORS as exc:
+        except READ_ERRORS as exc:
             failures.append((str(ds.name).rsplit("/", 1)[-1], start, str(exc)))
             break
     if not parts:
@@ -106,7 +106,7 @@ def _image(ds: h5py.Dataset, offset: int, length: int) -> bytes | None:
         return None
     try:
         return np.asarray(ds[offset : offset + length]).tobytes()
-    except _READ_ERRORS:
+    except READ_ERRORS:
         return None
 
 
@@ -168,17 +168,17 @@ def _recover(reader: SessionReader, target: Path, report: RecoveryReport) -> Non
             row_maps[serial], captures[serial] = {}, np.empty(0, np.int64)
             try:
                 row_maps[serial], captures[serial] = _copy_frames(reader, writer, cam, report)
-            except _READ_ERRORS as exc:
+            except READ_ERRORS as exc:
                 report.frames_kept.setdefault(serial, 0)
                 report.frames_lost.setdefault(serial, 0)
                 report.problems.append(f"camera {serial}: cannot be read ({exc})")
         try:
             _copy_sets(f, writer, info.camera_serials, row_maps, captures, report)
-        except _READ_ERRORS as exc:
+        except READ_ERRORS as exc:
             report.problems.append(f"the synchronised sets cannot be read ({exc})")
         try:
             _copy_gaps(f, writer, info.camera_serials, report)
-        except _READ_ERRORS as exc:
+        except READ_ERRORS as exc:
             report.problems.append(f"the gap records cannot be read ({exc})")
         stopped = info.stopped_unix_ns or max(
             (int(c.max()) for c in captures.values() if c.size), default=time.time_ns()

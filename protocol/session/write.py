@@ -34,11 +34,10 @@ import numpy as np
 
 from protocol.session.chunk_sink import DIRECT_ALIGN_BYTES, ChunkSink
 from protocol.session.datasets import (
-    _append_rows,
-    _CameraWriter,
-    _create_table,
+    CameraWriter,
+    append_rows,
+    create_table,
 )
-from protocol.session.datasets import _Blob as _Blob  # where tests and profiles look for it
 from protocol.session.format import (
     BLOB_CHUNK_BYTES,
     FORMAT,
@@ -150,7 +149,7 @@ class SessionWriter:
         blob_chunk_bytes: int,
         previous_session_file: str,
         take_part: int,
-    ) -> dict[int, _CameraWriter]:
+    ) -> dict[int, CameraWriter]:
         f = self._f
         a = f.attrs
         a["format"] = FORMAT
@@ -166,7 +165,7 @@ class SessionWriter:
         a["closed_cleanly"] = np.uint8(0)
         a["previous_session_file"] = previous_session_file
         a["take_part"] = np.int64(take_part)
-        cams: dict[int, _CameraWriter] = {}
+        cams: dict[int, CameraWriter] = {}
         for info in cameras:
             g = f.create_group(f"cameras/{info.camera_serial}")
             g.attrs["camera_serial"] = np.int64(info.camera_serial)
@@ -177,10 +176,10 @@ class SessionWriter:
             g.attrs["fps_nominal"] = np.float64(info.fps_nominal)
             g.attrs["encoding"] = info.encoding
             g.attrs["factory_conf"] = info.factory_conf_text
-            cams[info.camera_serial] = _CameraWriter(g, info, blob_chunk_bytes, self._sink)
+            cams[info.camera_serial] = CameraWriter(g, info, blob_chunk_bytes, self._sink)
         n_cams = len(self._serials)
         sets = f.create_group("sets")
-        self._set_time = _create_table(sets, "set_unix_ns", np.int64)
+        self._set_time = create_table(sets, "set_unix_ns", np.int64)
         self._set_members = sets.create_dataset(
             "members",
             shape=(0, n_cams),
@@ -188,9 +187,9 @@ class SessionWriter:
             chunks=(max(1, TABLE_CHUNK_ROWS // n_cams), n_cams),
             dtype=np.int64,
         )
-        self._set_spread = _create_table(sets, "spread_ns", np.int64)
+        self._set_spread = create_table(sets, "spread_ns", np.int64)
         gaps = f.create_group("gaps")
-        self._gap_tables = {name: _create_table(gaps, name, dt) for name, dt in GAP_COLUMNS.items()}
+        self._gap_tables = {name: create_table(gaps, name, dt) for name, dt in GAP_COLUMNS.items()}
         summary = f.create_group("summary")
         summary.create_dataset("camera_serial", data=np.asarray(self._serials, dtype=np.int64))
         for name in SUMMARY_COLUMNS:
@@ -365,7 +364,7 @@ class SessionWriter:
                 columns = list(zip(*cam.pending, strict=True))
                 start, end = cam.rows_in_file, cam.rows_in_file + len(cam.pending)
                 for (name, dtype), col in zip(FRAME_COLUMNS.items(), columns, strict=True):
-                    _append_rows(cam.tables[name], start, end, np.asarray(col, dtype=dtype))
+                    append_rows(cam.tables[name], start, end, np.asarray(col, dtype=dtype))
                 cam.pending.clear()
                 cam.rows_in_file = end
             for ds in cam.tables.values():
@@ -374,9 +373,9 @@ class SessionWriter:
             start = self._sets_rows - len(self._sets_pending)
             end = start + len(self._sets_pending)
             times, members, spreads = zip(*self._sets_pending, strict=True)
-            _append_rows(self._set_members, start, end, np.asarray(members, dtype=np.int64))
-            _append_rows(self._set_spread, start, end, np.asarray(spreads, dtype=np.int64))
-            _append_rows(self._set_time, start, end, np.asarray(times, dtype=np.int64))
+            append_rows(self._set_members, start, end, np.asarray(members, dtype=np.int64))
+            append_rows(self._set_spread, start, end, np.asarray(spreads, dtype=np.int64))
+            append_rows(self._set_time, start, end, np.asarray(times, dtype=np.int64))
             self._sets_pending.clear()
         for ds in (self._set_members, self._set_spread, self._set_time):
             ds.flush()
@@ -385,7 +384,7 @@ class SessionWriter:
             end = start + len(self._gaps_pending)
             columns = list(zip(*self._gaps_pending, strict=True))
             for (name, dtype), col in zip(GAP_COLUMNS.items(), columns, strict=True):
-                _append_rows(self._gap_tables[name], start, end, np.asarray(col, dtype=dtype))
+                append_rows(self._gap_tables[name], start, end, np.asarray(col, dtype=dtype))
             self._gaps_pending.clear()
         for ds in self._gap_tables.values():
             ds.flush()
@@ -458,7 +457,7 @@ class SessionWriter:
         if self._closed:
             raise ValueError(f"{self._path}: the session writer is closed")
 
-    def _camera(self, serial: int) -> _CameraWriter:
+    def _camera(self, serial: int) -> CameraWriter:
         self._check_open()
         try:
             return self._cams[serial]

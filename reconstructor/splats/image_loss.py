@@ -40,7 +40,15 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from reconstructor.splats.ssim import _C1, _C2, SSIM_SIGMA_PX, SSIM_WINDOW_PX, _gauss_1d, l1, ssim
+from reconstructor.splats.ssim import (
+    SSIM_C1,
+    SSIM_C2,
+    SSIM_SIGMA_PX,
+    SSIM_WINDOW_PX,
+    gauss_1d,
+    l1,
+    ssim,
+)
 
 LossBackend = Literal["numba", "torch"]
 BACKENDS: tuple[LossBackend, ...] = typing.get_args(LossBackend)
@@ -154,7 +162,7 @@ _STRIP_MIN_ROWS = 32  # each strip blurs 2 * _RAD rows beyond its own: keep that
 
 def _window() -> np.ndarray:
     """``metrics.blur``'s 1-D window, float32 (11,)."""
-    return _gauss_1d(SSIM_WINDOW_PX, SSIM_SIGMA_PX).numpy().astype(np.float32)
+    return gauss_1d(SSIM_WINDOW_PX, SSIM_SIGMA_PX).numpy().astype(np.float32)
 
 
 def _n_strips(h: int) -> int:
@@ -231,7 +239,7 @@ def _ssim_rows(x, y, mask, fill, has_fill, g, inv_norm, want_grad, n_strips, d_m
     rows of interleaved channels, so they vectorise."""
     h, w = mask.shape
     n = _CH * w
-    c1, c2 = np.float32(_C1), np.float32(_C2)
+    c1, c2 = np.float32(SSIM_C1), np.float32(SSIM_C2)
     one, two = np.float32(1.0), np.float32(2.0)
     size = (h + n_strips - 1) // n_strips
     for s in prange(n_strips):

@@ -19,12 +19,12 @@ import torch.nn.functional as F
 
 SSIM_WINDOW_PX = 11
 SSIM_SIGMA_PX = 1.5
-_C1 = 0.01**2
-_C2 = 0.03**2
+SSIM_C1 = 0.01**2
+SSIM_C2 = 0.03**2
 
 
 @functools.lru_cache(maxsize=4)
-def _gauss_1d(size: int, sigma: float) -> torch.Tensor:
+def gauss_1d(size: int, sigma: float) -> torch.Tensor:
     x = torch.arange(size, dtype=torch.float32) - (size - 1) / 2
     g = torch.exp(-(x**2) / (2 * sigma**2))
     return g / g.sum()
@@ -33,7 +33,7 @@ def _gauss_1d(size: int, sigma: float) -> torch.Tensor:
 def blur_reference(x: torch.Tensor) -> torch.Tensor:
     """Separable Gaussian blur of (B, C, H, W) with zero padding (3DGS's conv2d), by torch's
     grouped convolution: the slow, obvious twin of ``blur``."""
-    g = _gauss_1d(SSIM_WINDOW_PX, SSIM_SIGMA_PX).to(x.device, x.dtype)
+    g = gauss_1d(SSIM_WINDOW_PX, SSIM_SIGMA_PX).to(x.device, x.dtype)
     c = x.shape[1]
     pad = SSIM_WINDOW_PX // 2
     x = F.conv2d(x, g.view(1, 1, 1, -1).expand(c, 1, 1, -1), padding=(0, pad), groups=c)
@@ -42,7 +42,7 @@ def blur_reference(x: torch.Tensor) -> torch.Tensor:
 
 def _blur_hwc(x: np.ndarray) -> np.ndarray:
     """OpenCV's separable filter on (H, W, C) float32, zero borders, all channels at once."""
-    g = _gauss_1d(SSIM_WINDOW_PX, SSIM_SIGMA_PX).numpy().astype(np.float32)
+    g = gauss_1d(SSIM_WINDOW_PX, SSIM_SIGMA_PX).numpy().astype(np.float32)
     return cv2.sepFilter2D(x, -1, g, g, borderType=cv2.BORDER_CONSTANT)
 
 
@@ -77,8 +77,8 @@ def ssim_map(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     mu_x, mu_y, xx, yy, xy = stack.split(c, dim=2)
     mu_xy = mu_x * mu_y
     mu_x2, mu_y2 = mu_x * mu_x, mu_y * mu_y
-    num = (2 * mu_xy + _C1) * (2 * (xy - mu_xy) + _C2)
-    den = (mu_x2 + mu_y2 + _C1) * (xx - mu_x2 + yy - mu_y2 + _C2)
+    num = (2 * mu_xy + SSIM_C1) * (2 * (xy - mu_xy) + SSIM_C2)
+    den = (mu_x2 + mu_y2 + SSIM_C1) * (xx - mu_x2 + yy - mu_y2 + SSIM_C2)
     return (num / den).mean(dim=2)
 
 

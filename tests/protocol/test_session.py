@@ -621,9 +621,9 @@ def test_a_file_system_that_refuses_direct_io_gets_the_bytes_through_the_cache(
 def test_a_dataset_that_cannot_grow_loses_that_frames_row_and_nothing_else(tmp_path, monkeypatch):
     """Growing a byte dataset fails (the file system refuses HDF5's allocation): that append
     raises SessionWriteError and its frame gets no row; later frames are stored right."""
-    from protocol.session import write as session_write
+    from protocol.session.datasets import Blob
 
-    real = session_write._Blob._file_offset
+    real = Blob._file_offset
     failures = iter([True])
 
     def fail_once(blob: Any) -> int:
@@ -634,7 +634,7 @@ def test_a_dataset_that_cannot_grow_loses_that_frames_row_and_nothing_else(tmp_p
     frames = [(_image(1, row, 0), _image(1, row, 1)) for row in range(8)]
     with _writer(tmp_path / "s.h5", _cameras(1), blob_chunk_bytes=4096) as w:
         _append(w, 1, 0, frames[0])
-        monkeypatch.setattr(session_write._Blob, "_file_offset", fail_once)
+        monkeypatch.setattr(Blob, "_file_offset", fail_once)
         with pytest.raises(SessionWriteError, match="check free disk space"):
             _append(w, 1, 1, frames[1])
         for row in range(1, 8):

@@ -104,7 +104,8 @@ def test_rectified_rows_agree_and_maps_invert_the_projection(world):
     """A 3D point lands on the same row in both rectified images, and the rectified disparity
     gives back its depth; the cached maps send each rectified pixel to where the point really
     is in the distorted sensor image. No matching involved."""
-    st = world.unit(0).factory.stereo("HD1200")  # distorted lenses, k3 != 0
+    st = world.unit(0).factory.stereo("HD1200")  # distorted lenses: rational left, k3 != 0 right
+    assert st.left.is_rational and not st.right.is_rational
     rect = StereoRectifier(st.left, st.right, st.right_from_left)
     rng = np.random.default_rng(0)
     n = 400
@@ -158,6 +159,22 @@ def test_svga_depth_is_accurate_where_it_is_valid(svga):
     assert depth.depth_m.dtype == np.float32
     assert np.isnan(depth.depth_m[~depth.valid]).all()
     assert (depth.depth_m[depth.valid] >= 0.4).all() and (depth.depth_m[depth.valid] <= 8).all()
+
+
+def test_svga_depth_through_the_rational_lens_is_as_accurate(world):
+    """The sim's unit 0 has a left sensor on the 8-term rational model (k4..k6): rectification
+    and depth through it meet the same bars, against the same truth."""
+    left, right = world.render_stereo(0, T_S, "SVGA")
+    stereo = world.unit(0).factory.stereo("SVGA")
+    assert stereo.left.is_rational
+    depth = compute_depth(
+        left.image_rgb, right.image_rgb, stereo.left, stereo.right, stereo.right_from_left
+    )
+    rel, z_true = _relative_errors(depth, stereo.left, left.depth_m)
+    near = (z_true >= 1.0) & (z_true <= 4.0)
+    assert near.sum() > 50_000
+    assert np.median(rel[near]) < 0.015
+    assert np.mean(rel > 0.05) < 0.10
 
 
 def test_svga_depth_covers_textured_surfaces_and_rejects_blank_walls(svga, world):

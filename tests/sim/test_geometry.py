@@ -29,13 +29,39 @@ def _rectify(st):
 
 
 def test_ray_directions_invert_the_lens_model(world):
-    """Every pixel's ray projects back onto that pixel, corners of the wide lens included."""
+    """Every pixel's ray projects back onto that pixel, corners of the wide lens included (this
+    sensor has the rational model, k4..k6)."""
     intr = world.sensor(0, "left", "SVGA").intrinsics
+    assert intr.is_rational
     dirs = ray_directions(intr)
     pick = [(0, 0), (0, intr.width_px - 1), (intr.height_px - 1, 0), (300, 480), (599, 959)]
     pts = np.array([dirs[v, u] for v, u in pick], np.float64)
     px, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), intr.K, intr.dist_array)
     np.testing.assert_allclose(px.reshape(-1, 2), [(u, v) for v, u in pick], atol=1e-3)
+
+
+def test_one_sensor_renders_the_rational_model_its_factory_file_carries(world, tmp_path):
+    """Unit 0's left sensor is on the 8-term rational model in every mode (the others keep five
+    terms); its SN<serial>.conf carries k4..k6 and reads back to the lens the sim renders, which
+    images the scene within about a pixel of a five-term ZED X lens."""
+    from sim.rig import RATIONAL_FIT_MAX_R2
+
+    unit = world.rig[0]
+    cal = ZedFactoryCalibration.read(unit.factory.write(tmp_path))
+    assert cal == unit.factory
+    for res in Resolution:
+        assert cal.left[res].is_rational and not cal.right[res].is_rational
+    assert not any(u.factory.left[Resolution.HD1200].is_rational for u in world.rig[1:])
+    k1, k2, _, _, k3, k4, k5, k6 = cal.left[Resolution.HD1200].dist
+    r2 = np.linspace(0.0, RATIONAL_FIT_MAX_R2, 50)
+    radial = (1 + k1 * r2 + k2 * r2**2 + k3 * r2**3) / (1 + k4 * r2 + k5 * r2**2 + k6 * r2**3)
+    # the five-term lens nearest to it is one the sim draws (k1 k2 k3 around -0.042 0.018 -0.004),
+    # within a pixel (fx = 740 px) over the field; without its denominator it would be far off
+    powers = np.column_stack([r2, r2**2, r2**3])
+    five, *_ = np.linalg.lstsq(powers, radial - 1, rcond=None)
+    assert np.abs(five - [-0.042, 0.018, -0.004]).max() < 0.0045
+    assert np.abs(np.sqrt(r2) * (radial - 1 - powers @ five)).max() * 740 < 1.0
+    assert np.abs(np.sqrt(r2) * (radial - 1 - powers @ [k1, k2, k3])).max() * 740 > 100
 
 
 def test_known_point_lands_at_disparity_fB_over_Z_after_rectification(world, tmp_path):
