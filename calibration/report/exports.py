@@ -59,6 +59,7 @@ import numpy as np
 
 from protocol.camera import DIST_TERMS, Intrinsics, Pose, Resolution, undistort_to_normalized
 from protocol.formats.rig_calibration import CalibrationFileError, RigCalibration, SensorCalibration
+from protocol.formats.trajectory import matrix_from_quat_wxyz
 
 log = logging.getLogger(__name__)
 
@@ -351,7 +352,7 @@ def read_colmap(out_dir: Path | str) -> RigCalibration:
         cam_id = int(f[8])
         if cam_id not in cameras:
             raise CalibrationFileError(f"{where}: camera {cam_id} is not in cameras.txt")
-        R = quaternion_to_rotation(np.array([float(v) for v in f[1:5]]))
+        R = matrix_from_quat_wxyz(np.array([float(v) for v in f[1:5]]))
         t = np.array([float(v) for v in f[5:8]])
         sensors.append(_sensor(f"SN{serial}-{side}", serial, side, cameras[cam_id], R, t, where))
     if not sensors:
@@ -536,18 +537,6 @@ def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
     qa = np.asarray(q)
     qa /= np.linalg.norm(qa)
     return -qa if qa[0] < 0 else qa
-
-
-def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
-    """Quaternion (w, x, y, z), normalised here -> 3x3 rotation."""
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 def _sensor(

@@ -17,7 +17,6 @@ from calibration.report.exports import (
     export_opencv_yaml,
     fit_radial,
     fit_without_k3,
-    quaternion_to_rotation,
     read_colmap,
     read_nerfstudio,
     read_opencv_yaml,
@@ -26,6 +25,7 @@ from calibration.report.exports import (
 )
 from protocol.camera import Camera, undistort_to_normalized
 from protocol.formats.rig_calibration import CalibrationFileError, RigCalibration
+from protocol.formats.trajectory import matrix_from_quat_wxyz
 
 EXACT_PX = 1e-6
 
@@ -237,7 +237,7 @@ def test_quaternions_round_trip_including_half_turns():
     for R in rots:
         q = rotation_to_quaternion(R)
         assert q[0] >= 0 and abs(np.linalg.norm(q) - 1) < 1e-12
-        assert np.abs(quaternion_to_rotation(q) - R).max() < 1e-12
+        assert np.abs(matrix_from_quat_wxyz(q) - R).max() < 1e-12
 
 
 # -- nerfstudio ---------------------------------------------------------------------------------
