@@ -56,9 +56,9 @@ def rig(tmp_path_factory) -> Iterator[SimRig]:
     # queue is 8) must be shorter than the 10 s cut (300 frames): with the default 120-frame
     # queue (480 + 120 frames) a cut is absorbed whole and delivered late, so whether frames are
     # lost would depend on the kernel's TCP buffers, not on the fault
-    files.node_configs["orin-b"].write_text(
-        node_b.replace('encoding = "jpeg"\n', 'encoding = "jpeg"\nqueue_frames = 8\n', 1)
-    )
+    node_b, n = re.subn(r"(?m)^queue_frames = \d+$", "queue_frames = 8", node_b)
+    assert n == 1, "the deployed node.toml names queue_frames once"
+    files.node_configs["orin-b"].write_text(node_b)
     proxy = TcpProxy(port_b)
     rig_text = files.rig_config.read_text()
     files.rig_config.write_text(
