@@ -297,7 +297,7 @@ def test_the_rules_see_imports_only_a_type_checker_reads():
 def test_no_module_imports_another_modules_private_names():
     """A leading underscore says "mine": a module that needs a helper of another asks for it to be
     made public (or moved to where both can use it) rather than reaching in. A private module
-    (``detect/_reference.py``, the slow twins) may be imported whole by its package."""
+    (``calibration/detect/_reference.py``, the slow twins) may be imported whole by its package."""
     modules = _all_modules()
     reached = []
     for name, path in modules.items():
