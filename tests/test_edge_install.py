@@ -34,6 +34,7 @@ EDGE = frozenset(
         "opencv-contrib-python-headless",
         "h5py",
         "xxhash",
+        "cryptography",
         "ptpython",
         "tomli-w",
         "tomli",

@@ -71,6 +71,7 @@ WINGS: dict[str, dict[str, set[str]]] = {
         # rig.toml's image and buffer limits are the wire's (MAX_FRAME_BYTES, wire/frame_limits)
         "formats": {"top", "wire"},
         "wire": {"top", "session"},  # an agent's status reply names the session's camera info
+        "sealing": {"top"},  # keys and AEAD only: the session will import it, never the reverse
     },
     "calibration": {
         "top": set(),  # errors, and the observations that detection hands to the solver
