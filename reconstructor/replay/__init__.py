@@ -8,7 +8,9 @@ and preloaded in the background), ``video`` (H.264 MP4, time code, picture-in-pi
 (replay), ``sightline`` + ``sightline_run`` (line of sight), ``sterile`` + ``sterile_run`` (the
 static scene, field-box contact events and their renders), ``observed`` + ``observed_case``
 (observed versus inferred per pixel, and its use by replay and sightline), ``view`` +
-``view_scene`` (the browser viewer and the conversions it is handed), ``cli``.
+``view_scene`` (the browser viewer and the conversions it is handed), ``view_boundary``
+(which browser pages may connect: Origin, Host, token) + ``view_inputs`` (control values checked
+before viser stores them), ``cli``.
 
 Reads cases, never sessions' reconstruction (the session only for a picture-in-picture frame).
 May import: protocol/, ``reconstructor.case`` (the index), ``data``, ``splats``, ``raster``,

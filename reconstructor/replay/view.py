@@ -6,8 +6,10 @@ the role cameras at the shown time (drawn as frustums; pick one to look through 
 target and field boxes, and "Save viewpoint", which adds the browser's current camera at the
 shown time to a trajectory file that ``egosurg replay --trajectory`` reads.
 
-Security: the server binds 127.0.0.1 unless told otherwise (viser has no login: whoever reaches
-the port sees the case), and viser's "share" feature, which would tunnel the page through a
+Security: the server binds 127.0.0.1 unless told otherwise, and serves the case only to its own
+page: the right Origin and Host and the token in the URL it prints (``view_boundary``); control
+values are checked before viser stores them (``view_inputs``), and "Save viewpoint" writes only
+for a page that passed. Viser's "share" feature, which would tunnel the page through a
 public relay, is switched off in the page and refused by the server. A client that sends a
 message viser cannot read (garbage, a wrong field, a 50 MB blob: viser's own size limit) loses
 its connection; the server, the shown case and every other browser go on, and the log says so
@@ -16,6 +18,8 @@ in one line instead of a traceback (``OneLineClientErrors``).
 
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 import socket
 import threading
@@ -33,6 +37,7 @@ from reconstructor.case.index import Entry
 from reconstructor.errors import ViewerError
 from reconstructor.replay.models import CaseModels
 from reconstructor.replay.path import CameraPath
+from reconstructor.replay.view_boundary import WILDCARD_HOSTS, Boundary, BrowserGate, netloc
 from reconstructor.replay.view_scene import (
     VIEWER_UNIT_M,
     ViserCamera,
@@ -154,8 +159,13 @@ class CaseViewer:
                 log.warning("refused a request to share the case through a public relay")
                 return None
 
-        self.server = LocalServer(host=config.host, port=config.port, verbose=False)
+        # viser prints its own banner with the page's address and no token, which would not
+        # connect: the viewer prints the address to open (its ``url``) instead
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.server = LocalServer(host=config.host, port=config.port, verbose=False)
         try:
+            self.gate = BrowserGate(Boundary.for_address(config.host, self.server.get_port()))
+            self.gate.install(self.server)
             self._start(first)
         except BaseException:
             self.close()
@@ -180,8 +190,11 @@ class CaseViewer:
 
     @property
     def url(self) -> str:
-        host = self.config.host
-        return f"http://{f'[{host}]' if ':' in host else host}:{self.server.get_port()}/"
+        """The page's address, with the websocket's (and its token) as viser's page reads it.
+        A wildcard bind is shown as 127.0.0.1: 0.0.0.0 is no address to open a page at."""
+        host = "127.0.0.1" if self.config.host in WILDCARD_HOSTS else self.config.host
+        ws_url = self.gate.boundary.websocket_url(host)
+        return f"http://{netloc(host)}:{self.server.get_port()}/?websocket={ws_url}"
 
     @property
     def entry(self) -> Entry:
@@ -347,7 +360,11 @@ class CaseViewer:
     def save_from_client(self, client: Any) -> Keyframe | None:
         """What "Save viewpoint" does: that browser's camera, at the shown time, into the file.
         A camera that is no camera (a forged message: not finite, a zero rotation, a field of
-        view outside 1-179 degrees) is refused and the file left as it was."""
+        view outside 1-179 degrees) is refused and the file left as it was, and so is a browser
+        that did not come through the gate (view_boundary)."""
+        if not self.gate.trusts(client.client_id):
+            log.warning("viewer: not saved: the request came from a page without the token")
+            return None
         try:
             key = self.client_keyframe(client)
         except (ValueError, ZeroDivisionError, np.linalg.LinAlgError) as exc:

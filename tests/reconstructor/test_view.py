@@ -4,7 +4,8 @@ The case is written by hand (as bench/bench_replay.py's ``make_case`` does): two
 wall of about 4,000 Gaussians, each painted with a different random pattern of coarse cells, in
 front of a camera whose pose the test knows. What a user relies on:
 
-- the page is served on 127.0.0.1 only, over HTTP, and never offers a public share link;
+- the page is served on 127.0.0.1 only, over HTTP, at an address that carries its token (who
+  else is refused: test_view_boundary.py), and never offers a public share link;
 - the splats handed to the browser are the case's model, checked against values computed here
   from the PLY file's bytes (not through the project's reader);
 - the time slider switches the model; "Save viewpoint" writes a trajectory file our reader reads;
@@ -24,6 +25,7 @@ import sys
 import tempfile
 import threading
 import time
+import urllib.parse
 import urllib.request
 from pathlib import Path
 
@@ -181,7 +183,8 @@ def listening_addresses(port: int) -> set[str]:
 
 def test_serves_the_page_on_loopback_only(viewer):
     port = viewer.server.get_port()
-    assert viewer.url == f"http://127.0.0.1:{port}/"
+    # the page's address carries the websocket's, with the viewer's token (test_view_boundary.py)
+    assert viewer.url.startswith(f"http://127.0.0.1:{port}/?websocket=ws://127.0.0.1:{port}/")
     with urllib.request.urlopen(viewer.url, timeout=10) as reply:
         assert reply.status == 200
         assert b"<html" in reply.read().lower()
@@ -223,15 +226,36 @@ def test_saved_viewpoint_reads_back_as_a_trajectory(viewer, tmp_path):
     np.testing.assert_allclose(back.centre_m, EYE_M, atol=1e-5)
 
 
+def websocket_url(viewer) -> str:
+    """The websocket address the page connects to: the printed URL's ``websocket`` parameter
+    (viser's page takes its server from it), which carries the viewer's token."""
+    query = urllib.parse.parse_qs(urllib.parse.urlsplit(viewer.url).query)
+    return query["websocket"][0]
+
+
+OWN_ORIGIN = "the viewer's own"
+
+
 class RawBrowser:
     """A websocket client that speaks viser's handshake and then sends what it likes: the
-    hostile (or broken) browser the viewer must survive."""
+    hostile (or broken) browser the viewer must survive. By default it is the viewer's own page
+    (its origin, its host, the token); ``url``, ``origin`` (None: no Origin header) and ``host``
+    (the Host header, as a DNS-rebinding page would send it) make it another."""
 
-    def __init__(self, viewer) -> None:
+    def __init__(
+        self, viewer, *, url: str | None = None, origin: str | None = OWN_ORIGIN,
+        host: str | None = None,
+    ) -> None:  # fmt: skip
         from websockets.sync.client import connect
 
+        port = viewer.server.get_port()
+        parts = urllib.parse.urlsplit(url or websocket_url(viewer))
+        if host is not None:
+            parts = parts._replace(netloc=host)
+        sock = socket.create_connection(("127.0.0.1", port), timeout=10)
         self.ws = connect(
-            f"ws://127.0.0.1:{viewer.server.get_port()}", max_size=None, open_timeout=10,
+            urllib.parse.urlunsplit(parts), sock=sock, max_size=None, open_timeout=10,
+            origin=f"http://127.0.0.1:{port}" if origin == OWN_ORIGIN else origin,
             subprotocols=[f"viser-v{viser.__version__}"],
         )  # fmt: skip
 
@@ -276,9 +300,9 @@ def gui_uuid(viewer, label: str) -> str:
 
 
 def test_a_hostile_browser_is_dropped_and_the_viewer_goes_on(viewer, tmp_path, caplog):
-    """Anyone who reaches the port can send anything: unreadable messages lose their own
-    connection (one warning line each, no traceback), forged controls cannot break the shown
-    case or write a bad viewpoint, and the next browser gets the whole scene as before."""
+    """The viewer's own page, broken or taken over, can send anything: unreadable messages lose
+    their own connection (one warning line each, no traceback), forged controls cannot break
+    the shown case or write a bad viewpoint, and the next browser gets the whole scene."""
     import msgspec
 
     caplog.set_level("INFO")
