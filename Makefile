@@ -65,17 +65,21 @@ edge-check: $(EDGE_STAMP)
 # the standard tools (and for the test that checks a session opens in h5dump). libfaketime: the
 # fault test that steps one agent's clock (tests/e2e/test_faults.py; it skips without it).
 # chromium: the headless browser of egosurg view's page test (tests/reconstructor/test_view.py;
-# it skips without it).
+# it skips without it). opencv-doc: OpenCV's samples hold the Middlebury Aloe stereo pair with its
+# true disparity (bench/bench_stereo_real.py, tests/reconstructor/test_stereo_real.py; they skip
+# without it).
 system-deps:
 	@if ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' && command -v h5dump >/dev/null \
 			&& ls /usr/lib/*/faketime/libfaketime.so.1 >/dev/null 2>&1 && command -v chromium >/dev/null \
-			&& test -x /usr/sbin/ptp4l; then \
-		echo "system: libusb-1.0-0, hdf5-tools, libfaketime, linuxptp and chromium present"; \
+			&& test -x /usr/sbin/ptp4l && test -f /usr/share/doc/opencv-doc/examples/data/aloeGT.png; then \
+		echo "system: libusb-1.0-0, hdf5-tools, libfaketime, linuxptp, chromium and opencv-doc present"; \
 	elif [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
-		echo "system: installing libusb-1.0-0 (for open3d), hdf5-tools (h5dump), libfaketime, linuxptp (PTP) and chromium (tests)"; \
+		echo "system: installing libusb-1.0-0 (for open3d), hdf5-tools (h5dump), libfaketime, linuxptp (PTP), chromium and opencv-doc (tests)"; \
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 hdf5-tools libfaketime linuxptp \
 			&& { DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium \
-				|| echo "system: chromium not installed (optional: the browser test skips)"; }; \
+				|| echo "system: chromium not installed (optional: the browser test skips)"; } \
+			&& { DEBIAN_FRONTEND=noninteractive apt-get install -y -qq opencv-doc \
+				|| echo "system: opencv-doc not installed (optional: the Aloe stereo pair skips)"; }; \
 	elif ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
 		echo "system: hdf5-tools or linuxptp missing (optional: sudo apt-get install hdf5-tools linuxptp)"; \
 	else \

@@ -29,6 +29,7 @@ import hashlib
 import math
 import statistics
 from collections import defaultdict
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import cv2
@@ -117,6 +118,15 @@ class CachedSgbm(SgbmWlsMatcher):
 class Row:
     config: StereoConfig | None  # None: the textbook matcher
     fill: str = ""  # "", "image" or "shell"
+    # builds the matcher from the row's config (bench/bench_stereo_real.py's variants); None: ours
+    matcher: Callable[[StereoConfig], StereoMatcher] | None = None
+
+    def matcher_for(self, cfg0: StereoConfig) -> tuple[StereoConfig, StereoMatcher]:
+        """The config (at ``cfg0``'s match scale) and matcher this row runs."""
+        if self.config is None:
+            return cfg0, TextbookSgbmWls()
+        cfg = replace(self.config, match_scale=cfg0.match_scale)
+        return cfg, (self.matcher or CachedSgbm)(cfg)
 
 
 OLD = "before the retune (ZNCC 0.5, WLS 0.5 px)"
@@ -255,6 +265,50 @@ def table(results, names, by_camera: bool) -> str:
     return "\n".join(lines)
 
 
+def sim_results(
+    selected: dict[str, Row],
+    *,
+    seed: int = 11,
+    t_s: float = 1.0,
+    phases: Sequence[str] = ("empty", "setup", "intraoperative", "turnover"),
+    resolution: str = "SVGA",
+    jpeg_quality: int = 90,
+) -> list[tuple[str, int, str, dict[str, float]]]:
+    """(phase, serial, row name, scores) of every selected row on every camera of each phase;
+    ``Row.matcher`` (a factory) replaces our matcher where it is set."""
+    from sim import World
+    from sim.eval_set import room_bounds
+
+    results = []
+    for phase in phases:
+        world = World.from_seed(seed, phase=phase)
+        b = room_bounds(world)
+        room_box = (np.array(b[:3]), np.array(b[3:]))
+        for unit in world.rig:
+            left, right = world.render_stereo(unit.index, t_s, resolution)
+            left_rgb = as_recorded(left.image_rgb, jpeg_quality)
+            right_rgb = as_recorded(right.image_rgb, jpeg_quality)
+            st = unit.factory.stereo(resolution)
+            cfg0 = StereoConfig.for_resolution(st.left.width_px)
+            rect = rectifier(
+                st.left, st.right, st.right_from_left, cfg0.match_scale, cfg0.rectify_alpha
+            )
+            inside = rect.rectify(left_rgb, right_rgb)[2]
+            textured, blank = material_masks(world, unit, t_s, rect, left.object_index)
+            for name, row in selected.items():
+                cfg, m = row.matcher_for(cfg0)
+                d = compute_depth(
+                    left_rgb, right_rgb, st.left, st.right, st.right_from_left, cfg, m
+                )
+                if row.fill:
+                    d = with_fill(d, cfg, row.fill, unit.left_pose, room_box)
+                s = score(d, st.left, left.depth_m, inside, textured, blank)
+                results.append((phase, unit.serial, name, s))
+                print(f"  {phase} SN{unit.serial} {name}: "
+                      + " ".join(f"{c} {100 * s[c]:.1f}" for c in COLUMNS), flush=True)  # fmt: skip
+    return results
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seed", type=int, default=11)
@@ -269,45 +323,18 @@ def main() -> None:
     parser.add_argument("--rows", default="", help="comma-separated rows to run (all)")
     args = parser.parse_args()
 
-    from sim import World
-    from sim.eval_set import room_bounds
-
     base = StereoConfig()
     selected = rows(base)
     if args.rows:
         selected = {k: v for k, v in selected.items() if k in args.rows.split(",")}
-    results = []  # (phase, serial, row name, scores)
-    for phase in args.phases.split(","):
-        world = World.from_seed(args.seed, phase=phase)
-        b = room_bounds(world)
-        room_box = (np.array(b[:3]), np.array(b[3:]))
-        for unit in world.rig:
-            left, right = world.render_stereo(unit.index, args.t_s, args.resolution)
-            left_rgb = as_recorded(left.image_rgb, args.jpeg_quality)
-            right_rgb = as_recorded(right.image_rgb, args.jpeg_quality)
-            st = unit.factory.stereo(args.resolution)
-            cfg0 = StereoConfig.for_resolution(st.left.width_px)
-            rect = rectifier(
-                st.left, st.right, st.right_from_left, cfg0.match_scale, cfg0.rectify_alpha
-            )
-            inside = rect.rectify(left_rgb, right_rgb)[2]
-            textured, blank = material_masks(world, unit, args.t_s, rect, left.object_index)
-            for name, row in selected.items():
-                if row.config is None:
-                    cfg, m = cfg0, TextbookSgbmWls()
-                else:
-                    cfg = replace(row.config, match_scale=cfg0.match_scale)
-                    m = CachedSgbm(cfg)
-                d = compute_depth(
-                    left_rgb, right_rgb, st.left, st.right, st.right_from_left, cfg, m
-                )
-                if row.fill:
-                    d = with_fill(d, cfg, row.fill, unit.left_pose, room_box)
-                s = score(d, st.left, left.depth_m, inside, textured, blank)
-                results.append((phase, unit.serial, name, s))
-                print(f"  {phase} SN{unit.serial} {name}: "
-                      + " ".join(f"{c} {100 * s[c]:.1f}" for c in COLUMNS), flush=True)  # fmt: skip
-
+    results = sim_results(
+        selected,
+        seed=args.seed,
+        t_s=args.t_s,
+        phases=args.phases.split(","),
+        resolution=args.resolution,
+        jpeg_quality=args.jpeg_quality,
+    )
     print("\nMean over the cameras (%):\n")
     print(table(results, set(selected), by_camera=False))
     print("\nPer camera (%):\n")

@@ -15,6 +15,9 @@ session) and writes the calibration TOML, a report (``report.html`` and pictures
 everything already reconstructed with OLD stays in place; it prints how far each camera moved.
 ``--check OLD`` measures how far OLD has drifted from what a new wand session says, without
 writing a calibration; it exits with code 1 when a camera moved past the drift limits.
+
+A frame whose image fails its recorded checksum is skipped: left out of the background and
+counted among the rejected frames as ``damaged image (checksum mismatch)``.
 """
 
 from __future__ import annotations

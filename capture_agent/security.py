@@ -15,8 +15,9 @@ wrong server key, fails the handshake (a socket monitor counts it). ``LinkGuard.
 the daemons report in ``status``.
 
 Every socket gets ``MAXMSGSIZE`` (per message part: a peer that sends a bigger part is
-disconnected before it is buffered), a bounded handshake and ZMTP heartbeats, so a half-open or
-silent peer is dropped instead of held.
+disconnected before it is buffered), a bounded handshake and TCP keepalive (not ZMTP heartbeats:
+see ``KEEPALIVE_IDLE_S``), so a half-open or dead peer is dropped instead of held. A client's
+link that drops or whose handshake is refused is made again by ``capture_agent/link_watch.py``.
 """
 
 from __future__ import annotations

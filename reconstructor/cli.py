@@ -17,7 +17,10 @@ Examples::
 ``--at`` is a time in seconds since the session started or ``set:N``. Each timestamp's outputs go
 to ``OUT/t<seconds>/``: ``splats.ply`` (INRIA 3DGS layout), ``config.toml`` (the resolved
 settings), ``log.txt``, ``summary.json``, ``points.ply``, the calibration used, and
-``auxiliary_views.jpg`` (reference | render | refined for a few auxiliary views).
+``auxiliary_views.jpg`` (reference | render | refined for a few auxiliary views). A camera whose
+image at the timestamp fails its recorded checksum is left out of it, like a camera missing from
+the set: a warning names the camera, row and side, and ``summary.json`` lists it under
+``damaged_images``.
 
 Training is 500 warm-up steps on the input views, then 1500 steps on the input views plus 15
 auxiliary views per input camera, rendered by the model after warm-up and corrected by the
@@ -184,6 +187,12 @@ def main_reconstruct(argv: list[str]) -> int:
                 f"set {ts.set_index}: camera(s) "
                 f"{', '.join(f'SN{s}' for s in ts.missing_serials)} missing; reconstructing "
                 f"from the other {len(ts.camera_serials)}",
+                file=sys.stderr,
+            )
+        for image in ts.damaged_images:  # the camera was left out of this timestamp
+            print(
+                f"set {ts.set_index}: {image} image is damaged (checksum mismatch); "
+                "reconstructing without that camera",
                 file=sys.stderr,
             )
         run_dir = out / f"t{ts.t_s:09.3f}"

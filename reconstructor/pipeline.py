@@ -438,6 +438,7 @@ def write_outputs(result: Reconstruction) -> None:
         "t_s": ts.t_s,
         "sensors": [f.camera.name for f in ts.frames],
         "missing_cameras": [f"SN{s}" for s in ts.missing_serials],
+        "damaged_images": list(ts.damaged_images),  # left out: they fail their checksums
         "train_views": [v.name for v in result.train_views],
         "held_out_views": [v.name for v in result.held_out_views],
         "gaussians": result.gaussians.num,

@@ -3,6 +3,10 @@ median of its frames spread over the session), and for a chunk of sets, detect, 
 every camera's observation to its set's time (the module docstring of ``extract`` says why and
 how well). Jobs are plain tuples, so they pickle to the processes; each process receives the
 backgrounds once, through ``set_backgrounds``.
+
+A frame whose image no longer matches its recorded checksum is skipped: left out of the
+background and counted as a rejection with the reason ``DAMAGED`` (the wand is seen in many other
+frames, so calibration goes on without it).
 """
 
 from __future__ import annotations
@@ -19,9 +23,10 @@ from calibration.observations import SIDES
 from protocol.formats.wand import WandSpec
 from protocol.formats.zed_conf import ConfFormatError, StereoCalibration, ZedFactoryCalibration
 from protocol.images import EncodeError, decode_image
-from protocol.session import CameraInfo, SessionReader
+from protocol.session import CameraInfo, ImageChecksumError, SessionReader
 
 ALIGN_EXACT_NS = 200_000  # closer than this to the set's time: use the frame as it is
+DAMAGED = "damaged image (checksum mismatch)"  # the rejection reason of a skipped frame
 
 _BACKGROUNDS: dict[tuple[int, str], np.ndarray] = {}  # a worker's copy, set once per process
 
@@ -64,7 +69,11 @@ def background_work(args: tuple) -> tuple[int, np.ndarray, np.ndarray]:
         cam = reader.info.camera(serial)
         frames: tuple[list[np.ndarray], list[np.ndarray]] = ([], [])
         for r in rows:
-            for side_frames, buf in zip(frames, reader.frame_bytes(serial, int(r)), strict=True):
+            try:
+                buffers = reader.frame_bytes(serial, int(r))
+            except ImageChecksumError:
+                continue  # a median over the other frames: one fewer changes little
+            for side_frames, buf in zip(frames, buffers, strict=True):
                 side_frames.append(_decode(buf, cam))
     return serial, temporal_median(frames[0]), temporal_median(frames[1])
 
@@ -142,7 +151,11 @@ class _Chunk:
         """(2, 3, 2) left/right labelled centres of one frame, or None and the reason."""
         key = (serial, row)
         if key not in self.cache:
-            left_buf, right_buf = self.reader.frame_bytes(serial, row)
+            try:
+                left_buf, right_buf = self.reader.frame_bytes(serial, row)
+            except ImageChecksumError:
+                self.cache[key] = (None, DAMAGED)
+                return self.cache[key]
             cam = self.reader.info.camera(serial)
             labels = []
             for side, buf in zip(SIDES, (left_buf, right_buf), strict=True):

@@ -130,13 +130,35 @@ def format_status(st: dict[str, Any]) -> str:
             lines.append(
                 f"agent {_t(a['node_id'])} ({_t(a['control'])}): NO STATUS - is it running?"
             )
+        lines += _link_line(a)
     if st["malformed_messages"] or st["unknown_version_messages"]:
         lines.append(
             f"rejected messages: {st['malformed_messages']} malformed, "
             f"{st['unknown_version_messages']} of an unknown version"
         )
+    if st.get("images_over_limit"):
+        lines.append(
+            f"refused {st['images_over_limit']} frames with an image over max_image_bytes = "
+            f"{st.get('max_image_bytes', '?')}"
+        )
     lines += _refusals(st)
     return "\n".join(lines)
+
+
+def _link_line(agent: dict[str, Any]) -> list[str]:
+    """The agent's frame link, when it is not up or has dropped, been refused or made again."""
+    link = agent.get("link") or {}
+    counts = [int(link.get(k, 0)) for k in ("drops", "handshake_failures", "reconnects")]
+    if not link or (link.get("state") == "up" and not any(counts)):
+        return []
+    state = "up" if link.get("state") == "up" else f"{str(link.get('state', '?')).upper()}"
+    line = (
+        f"agent {_t(agent['node_id'])} frame link {state}: {counts[0]} drops, {counts[1]} "
+        f"refused handshakes, {counts[2]} reconnects"
+    )
+    if link.get("last_cause"):
+        line += f"; last: {_t(link['last_cause'])}"
+    return [line]
 
 
 def _refusals(st: dict[str, Any]) -> list[str]:

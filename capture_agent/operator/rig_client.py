@@ -28,6 +28,7 @@ import numpy as np
 import zmq
 
 from capture_agent.errors import CommandRefusedError, RecorderUnreachableError
+from capture_agent.link_watch import DROPPED, HANDSHAKE_REFUSED, WatchedSub
 from capture_agent.security import (
     CONTROL_MAX_BYTES,
     LinkSecurity,
@@ -46,7 +47,7 @@ from protocol.wire import (
     MalformedMessageError,
     decode_published,
 )
-from protocol.wire.frame_limits import frame_part_max_bytes
+from protocol.wire.frame_limits import LARGEST_IMAGE_BYTES, frame_part_max_bytes
 
 DEFAULT_RECORDER = "tcp://127.0.0.1:5560"
 log = logging.getLogger(__name__)
@@ -191,20 +192,35 @@ class RigClient:
             raise CommandRefusedError(f"camera {camera} is not streaming; cameras: {known}")
         node = cams[camera]["node_id"]
         agent = next(a for a in status["agents"] if a["node_id"] == node)
-        endpoint = agent["frames"]
-        sub = self._ctx.socket(zmq.SUB)
-        harden(sub, frame_part_max_bytes())
-        sub.setsockopt(zmq.RCVHWM, 10)
-        sub.setsockopt(zmq.SUBSCRIBE, b"")
-        deadline = time.monotonic() + timeout_s
-        try:
+        limit = int(status.get("max_image_bytes") or LARGEST_IMAGE_BYTES)
+        server_key = agent.get("public_key", "").encode() or None
+
+        def configure(sub: zmq.Socket) -> None:
+            harden(sub, frame_part_max_bytes(limit))
+            sub.setsockopt(zmq.RCVHWM, 10)
+            sub.setsockopt(zmq.SUBSCRIBE, b"")
             # the agent's public key as the recorder (itself authenticated) has it in rig.toml
-            make_client(sub, self.links, agent.get("public_key", "").encode() or None)
-            sub.connect(endpoint)
+            make_client(sub, self.links, server_key)
+
+        deadline = time.monotonic() + timeout_s
+        # watched: a refused handshake or a dropped link is retried, and named if it persists
+        link = WatchedSub(
+            self._ctx,
+            agent["frames"],
+            configure,
+            who="console",
+            max_part_bytes=frame_part_max_bytes(limit),
+        )
+        failure = ""
+        try:
             while time.monotonic() < deadline:
-                if not sub.poll(100):
+                for change in link.check():
+                    failure = change.cause if change.kind in (DROPPED, HANDSHAKE_REFUSED) else ""
+                if link.due():
+                    link.recreate()
+                if not link.sock.poll(100):
                     continue
-                msg = decode_published(sub.recv_multipart(copy=False))
+                msg = decode_published(link.sock.recv_multipart(copy=False), max_image_bytes=limit)
                 if (
                     isinstance(msg, FrameMessage)
                     and msg.camera_serial == camera
@@ -213,7 +229,12 @@ class RigClient:
                     buf = msg.left if side == "left" else msg.right
                     return decode_image(bytes(buf), msg.encoding.value, msg.width, msg.height)
         finally:
-            sub.close(linger=0)
+            link.close()
+        if failure:
+            raise CommandRefusedError(
+                f"no frame from camera {camera} within {timeout_s:g} s: the link to agent "
+                f"{node} failed: {failure}"
+            )
         raise CommandRefusedError(
             f"no frame from camera {camera} within {timeout_s:g} s; check it with "
             "'egosurg status' (is it streaming?)"

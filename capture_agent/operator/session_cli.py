@@ -7,6 +7,10 @@ Examples::
     egosurg session export-frames sessions/case-0042_20261121-101500.h5 --out frames/ --sets 0:30
     egosurg session recover damaged.h5 --out recovered.h5
 
+``info`` and ``verify`` also list the take's session events, per kind with their count and
+nodes: links that dropped or came back, frames the recorder refused (a node over its rate, a
+stamp that went back), counters that jumped (docs/session.md, "Session events").
+
 A file that cannot be read (truncated, damaged metadata, not a session) gives one line and exit
 code 2; ``verify`` exits 1 when it finds damage inside a readable file (an image whose checksum
 no longer matches, ...). ``recover`` copies every intact frame and synchronised set of a damaged
@@ -14,7 +18,10 @@ or killed recording into a new session and says what was kept and lost.
 
 ``export-frames`` exports by synchronised set, so the files of one set index show one instant
 from every camera: ``<out>/set_000012/SN<serial>_left.png``. With ``--by-camera`` it exports
-each camera's frames in order instead: ``<out>/SN<serial>/left_<frame_index>.png``.
+each camera's frames in order instead: ``<out>/SN<serial>/left_<frame_index>.png``. Every image
+is checked against the checksum stored when it was recorded: one that no longer matches is not
+written; the others are, and the damaged ones are listed by camera, row and side at the end, with
+exit code 1.
 """
 
 from __future__ import annotations
@@ -22,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import sys
 from pathlib import Path
 
 import cv2
@@ -30,8 +38,9 @@ import numpy as np
 from protocol.command import CommandArgumentError, add_subcommand, command_parser
 from protocol.errors import UserError
 from protocol.images import decode_image
-from protocol.session import GapKind, SessionFormatError, SessionReader
+from protocol.session import GapKind, ImageChecksumError, SessionFormatError, SessionReader
 from protocol.session.recover import recover_session
+from protocol.session.verify import describe_events
 from protocol.set_counts import missing_in_sets
 
 # What reading a damaged file may still raise past the reader's own checks (h5py, numpy, cv2).
@@ -121,7 +130,17 @@ def summarise(reader: SessionReader) -> dict:
         "tolerance_ms": info.tolerance_ns / 1e6,
         "cameras": cams,
         "drops_and_gaps": gaps,
+        "events": event_counts(reader),
     }
+
+
+def event_counts(reader: SessionReader) -> dict[str, dict[str, int]]:
+    """Per event kind, per node: how many times it happened (a row may stand for many)."""
+    out: dict[str, dict[str, int]] = {}
+    for e in reader.events():
+        per = out.setdefault(e.kind.name.lower(), {})
+        per[e.node_id] = per.get(e.node_id, 0) + e.count
+    return out
 
 
 def format_info(s: dict) -> str:
@@ -147,6 +166,9 @@ def format_info(s: dict) -> str:
         lines.append(
             "metadata: " + ", ".join(f"{_safe(k)}={_safe(v)}" for k, v in s["metadata"].items())
         )
+    for kind, per_node in sorted(s["events"].items()):
+        nodes = ", ".join(f"{_safe(n)} {k}" for n, k in sorted(per_node.items()))
+        lines.append(f"event {kind}: {sum(per_node.values())} ({nodes})")
     lines.append(
         "camera       node      mode                       frames    fps  "
         "missing-in-sets  drops/gaps"
@@ -171,9 +193,12 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_verify(args: argparse.Namespace) -> int:
     with SessionReader(args.file) as reader:
         problems = reader.verify(check_images=not args.quick)
+        events = describe_events(reader)  # what happened in the take: not problems
     errors = [p for p in problems if p.startswith("error")]
     for p in problems:
         print(p)
+    for line in events:
+        print(line)
     print(
         f"{args.file}: {'OK' if not errors else f'{len(errors)} problem(s)'}"
         f"{f' ({len(problems) - len(errors)} note(s))' if len(problems) > len(errors) else ''}"
@@ -185,6 +210,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     out = Path(args.out)
     sides = ("left", "right") if args.side == "both" else (args.side,)
     written = 0
+    skipped: list[str] = []  # "SN<serial> row <r> <side>" of the damaged images not written
     with SessionReader(args.file) as reader:
         info = reader.info
         serials = info.camera_serials
@@ -196,13 +222,19 @@ def cmd_export(args: argparse.Namespace) -> int:
                 )
             serials = (args.camera,)
 
-        def write(path: Path, serial: int, row: int, side: str) -> None:
+        def write(path: Path, serial: int, row: int, side: str) -> int:
             ci = info.camera(serial)
-            left, right = reader.frame_bytes(serial, row)
-            img = decode_image(left if side == "left" else right, ci.encoding, ci.width, ci.height)
+            try:
+                data = reader.image_bytes(serial, row, side)
+            except ImageChecksumError as exc:  # skipped and listed: the others are still useful
+                print(_safe(f"warning: skipped {exc}"), file=sys.stderr)
+                skipped.append(f"SN{serial} row {row} {side}")
+                return 0
+            img = decode_image(data, ci.encoding, ci.width, ci.height)
             path.parent.mkdir(parents=True, exist_ok=True)
             if not cv2.imwrite(str(path), img):
                 raise OSError(f"could not write {path}")
+            return 1
 
         if args.by_camera:
             for serial in serials:
@@ -210,8 +242,8 @@ def cmd_export(args: argparse.Namespace) -> int:
                 for row in _slice(args.frames, len(table["frame_index"]))[:: args.every]:
                     for side in sides:
                         idx = int(table["frame_index"][row])
-                        write(out / f"SN{serial}" / f"{side}_{idx:06d}.png", serial, row, side)
-                        written += 1
+                        name = out / f"SN{serial}" / f"{side}_{idx:06d}.png"
+                        written += write(name, serial, row, side)
         else:
             sets = reader.sets()
             cols = [list(info.camera_serials).index(s) for s in serials]
@@ -221,10 +253,16 @@ def cmd_export(args: argparse.Namespace) -> int:
                     if row < 0:
                         continue
                     for side in sides:
-                        write(out / f"set_{k:06d}" / f"SN{serial}_{side}.png", serial, row, side)
-                        written += 1
+                        name = out / f"set_{k:06d}" / f"SN{serial}_{side}.png"
+                        written += write(name, serial, row, side)
     print(f"wrote {written} PNG(s) to {out}/")
-    return 0
+    if skipped:
+        print(
+            f"skipped {len(skipped)} damaged image(s) (checksum mismatch): {', '.join(skipped)}; "
+            "'egosurg session verify' lists every damaged image",
+            file=sys.stderr,
+        )
+    return 1 if skipped else 0
 
 
 def cmd_recover(args: argparse.Namespace) -> int:
@@ -245,7 +283,12 @@ def main(argv: list[str]) -> int:
     )
     p.add_argument("file")
     p.add_argument("--quick", action="store_true", help="skip reading every image")
-    p = add_subcommand(sub, "export-frames", "write frames as PNG", cmd_export)
+    p = add_subcommand(
+        sub,
+        "export-frames",
+        "write frames as PNG; a damaged image (checksum mismatch) is skipped, listed, exit 1",
+        cmd_export,
+    )
     p.add_argument("file")
     p.add_argument("--out", required=True)
     p.add_argument("--camera", type=int, help="only this camera serial")

@@ -22,6 +22,16 @@ What each gap kind means
   another node. No gap is computed across it; ``missing_count`` is the index gap when the index
   continued upwards, else 0 (unknown).
 
+  An implausible jump is a reconnect too: a ``frame_index`` step, or a node's ``seq`` step, of
+  more than an hour of frames at the camera's rate (``MAX_PLAUSIBLE_GAP_S`` x fps; for ``seq``,
+  times the node's cameras). No camera drops an hour of frames between two frames it delivers
+  (the time between them shows such a pause as a ``TIME_GAP``), so such a jump is a restarted,
+  buggy or forged counter: counting it as drops would put a made-up number (1e12) into the
+  take's totals. It is recorded as ``RECONNECT`` with ``missing_count`` 0 and
+  ``first_missing_frame_index`` -1, never added to the totals, and noted (``notes``) for the
+  session's events (``IMPLAUSIBLE_JUMP``). A ``seq`` that goes back is noted too
+  (``PUBLISHER_CHANGED``): the node's publisher restarted, or another took its place.
+
 Splitting a camera's missing frames into camera drops and transport losses
 -------------------------------------------------------------------------
 Every lost message is a frame of one of the node's cameras, so it also shows up later as an index
@@ -33,8 +43,14 @@ the node can claim any more are left as the node's unattributed losses. When a c
 transport loss of two cameras of one node fall between the same frames, the per-camera split can
 swap them; the node's sums stay exact.
 
+Frames the recorder refused (a stamp that went back, over the camera's rate or byte cap) are
+missing from the file too, so they show as an index gap; ``refused`` tells the accounting of each,
+and the camera's next index gap counts up to that many as ``frames_refused``, not as drops. The
+node's ``seq`` takes a refused frame's as seen, so a refusal is not a transport loss either.
+
 Totals per camera (``CameraTotals``): ``frames_missing`` = the sum of index gaps,
-``= frames_dropped_camera + transport_lost``; ``time_gaps`` and ``reconnects`` count events.
+``= frames_dropped_camera + transport_lost`` + the refused frames before the camera's last frame;
+``frames_refused`` counts every refused frame; ``time_gaps`` and ``reconnects`` count events.
 ``transport_lost_by_node()`` gives every lost message per node, attributed or not.
 """
 
@@ -45,7 +61,7 @@ from bisect import bisect_left, insort
 from collections import deque
 from dataclasses import dataclass
 
-from protocol.session import GapKind, GapRecord
+from protocol.session import EventKind, GapKind, GapRecord
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +70,8 @@ TIME_GAP_FACTOR = 1.5  # a gap is an interval above 1.5x the median (docs/sessio
 MEDIAN_WINDOW = 31  # per-frame intervals in the running median
 MEDIAN_MIN_SAMPLES = 3  # no time gap is judged before this many intervals
 MAX_LOST_RANGES = 1024  # per node; older ranges become unattributed
+MAX_PLAUSIBLE_GAP_S = 3600.0  # a counter step over this many seconds of frames is a reconnect
+MAX_NOTES = 1024  # notes kept until the recording takes them
 
 
 def gap_record(
@@ -80,6 +98,7 @@ class CameraTotals:
     transport_lost: int  # published by the agent, lost before the recorder
     time_gaps: int
     reconnects: int
+    frames_refused: int = 0  # refused by the recorder (stamp back, over its caps)
 
 
 class _LostRange:
@@ -112,6 +131,8 @@ class _Camera:
         "node_id",
         "received",
         "reconnects",
+        "refused",
+        "refused_pending",
         "seq",
         "sorted_intervals",
         "time_gaps",
@@ -125,6 +146,7 @@ class _Camera:
         self.sorted_intervals: list[float] = []
         self.received = self.missing = self.dropped = self.transport = 0
         self.time_gaps = self.reconnects = 0
+        self.refused = self.refused_pending = 0  # refused: counted; pending: not yet in a gap
 
     def median_interval(self) -> float | None:
         v, n = self.sorted_intervals, len(self.sorted_intervals)
@@ -147,9 +169,25 @@ class _Camera:
 class StreamAccounting:
     """Feed every received frame to ``observe`` in arrival order; see the module docstring."""
 
-    def __init__(self) -> None:
+    def __init__(self, *, fps: float = 120.0) -> None:
+        """``fps``: the cameras' configured rate; it sets what jump is implausible."""
+        if not fps > 0:
+            raise ValueError(f"fps must be > 0, got {fps}")
         self._nodes: dict[str, _Node] = {}
         self._cams: dict[int, _Camera] = {}
+        self.max_step = max(int(MAX_PLAUSIBLE_GAP_S * fps), 1)
+        # (kind, node_id, camera serial or -1, detail) for the session's events; the recording
+        # takes them after each frame (``take_notes``)
+        self.notes: list[tuple[EventKind, str, int, str]] = []
+
+    def take_notes(self) -> list[tuple[EventKind, str, int, str]]:
+        """The notes since the last call (implausible jumps), oldest first."""
+        notes, self.notes = self.notes, []
+        return notes
+
+    def _note(self, kind: EventKind, node_id: str, serial: int, detail: str) -> None:
+        if len(self.notes) < MAX_NOTES:
+            self.notes.append((kind, node_id, serial, detail))
 
     def observe(
         self, camera_serial: int, frame_index: int, seq: int, capture_unix_ns: int, node_id: str
@@ -161,26 +199,7 @@ class StreamAccounting:
         if node is None:
             node = self._nodes[node_id] = _Node()
         node.cameras.add(serial)
-        if node.last_seq is not None:
-            if seq > node.last_seq + 1:
-                first_lost = node.last_seq + 1
-                lost = seq - first_lost
-                node.lost += lost
-                node.ranges.append(_LostRange(first_lost, seq - 1))
-                while len(node.ranges) > MAX_LOST_RANGES:
-                    node.ranges.popleft()
-                out.append(
-                    gap_record(
-                        serial, GapKind.SEQ_GAP, NO_FRAME_INDEX, lost, node.last_capture_ns, cap
-                    )
-                )
-                log.warning("node %s: %d frame messages lost in transport", node_id, lost)
-            elif seq <= node.last_seq:
-                node.epoch += 1
-                node.ranges.clear()
-                log.info(
-                    "node %s: seq went from %d to %d: agent restarted", node_id, node.last_seq, seq
-                )
+        out += self._observe_seq(node, node_id, serial, seq, cap)
         node.last_seq, node.last_capture_ns = seq, cap
 
         cam = self._cams.get(serial)
@@ -188,8 +207,16 @@ class StreamAccounting:
             cam = self._cams[serial] = _Camera(node_id, node.epoch)
             self._remember(cam, idx, seq, cap)
             return out
-        if cam.node_id != node_id or cam.epoch != node.epoch or idx <= cam.index:
-            skipped = idx - cam.index - 1
+        implausible = idx - cam.index > self.max_step
+        if implausible:
+            self._note(
+                EventKind.IMPLAUSIBLE_JUMP,
+                node_id,
+                serial,
+                f"frame_index jumped from {cam.index} to {idx}: a reconnect, not dropped frames",
+            )
+        if cam.node_id != node_id or cam.epoch != node.epoch or idx <= cam.index or implausible:
+            skipped = -1 if implausible else idx - cam.index - 1
             out.append(
                 gap_record(
                     serial,
@@ -201,6 +228,7 @@ class StreamAccounting:
                 )
             )
             cam.reconnects += 1
+            cam.refused_pending = 0
             if cam.node_id != node_id:
                 self._nodes[cam.node_id].cameras.discard(serial)
             cam.node_id, cam.epoch = node_id, node.epoch
@@ -212,9 +240,12 @@ class StreamAccounting:
         if step > 1:
             n = step - 1
             by_transport = self._claim(node, cam.seq, seq, n)
+            by_refusal = min(n - by_transport, cam.refused_pending)
+            cam.refused_pending -= by_refusal
             cam.missing += n
             cam.transport += by_transport
-            cam.dropped += n - by_transport
+            cam.refused += by_refusal
+            cam.dropped += n - by_transport - by_refusal
             out.append(
                 gap_record(
                     serial, GapKind.FRAME_INDEX_GAP, cam.index + 1, n, cam.last_capture_ns, cap
@@ -234,6 +265,59 @@ class StreamAccounting:
         self._expire(node)
         return out
 
+    def _observe_seq(
+        self, node: _Node, node_id: str, serial: int, seq: int, cap: int
+    ) -> list[GapRecord]:
+        """The node's ``seq`` step: lost messages (a ``SEQ_GAP``), or a new stream (an agent
+        restart, or an implausible jump) that makes each of its cameras reconnect."""
+        out: list[GapRecord] = []
+        if node.last_seq is None:
+            return out
+        if seq - node.last_seq > self.max_step * max(len(node.cameras), 1):
+            self._note(
+                EventKind.IMPLAUSIBLE_JUMP,
+                node_id,
+                serial,
+                f"seq jumped from {node.last_seq} to {seq}: a reconnect, not lost messages",
+            )
+            node.epoch += 1  # a new stream for each of the node's cameras
+            node.ranges.clear()
+        elif seq > node.last_seq + 1:
+            first_lost = node.last_seq + 1
+            lost = seq - first_lost
+            node.lost += lost
+            node.ranges.append(_LostRange(first_lost, seq - 1))
+            while len(node.ranges) > MAX_LOST_RANGES:
+                node.ranges.popleft()
+            out.append(
+                gap_record(serial, GapKind.SEQ_GAP, NO_FRAME_INDEX, lost, node.last_capture_ns, cap)
+            )
+            log.warning("node %s: %d frame messages lost in transport", node_id, lost)
+        elif seq <= node.last_seq:
+            node.epoch += 1
+            node.ranges.clear()
+            log.info(
+                "node %s: seq went from %d to %d: agent restarted", node_id, node.last_seq, seq
+            )
+            self._note(
+                EventKind.PUBLISHER_CHANGED,
+                node_id,
+                -1,
+                f"seq went from {node.last_seq} to {seq}: the node's publisher restarted or was "
+                "replaced; its cameras reconnect",
+            )
+        return out
+
+    def refused(self, camera_serial: int, seq: int, node_id: str) -> None:
+        """A frame the recorder refused: its camera's next index gap counts it as refused, and
+        its node's ``seq`` as seen (when it is the next one: a skip before it stays a loss)."""
+        cam = self._cams.get(int(camera_serial))
+        if cam is not None and cam.node_id == node_id:
+            cam.refused_pending += 1
+        node = self._nodes.get(node_id)
+        if node is not None and node.last_seq is not None and int(seq) == node.last_seq + 1:
+            node.last_seq = int(seq)
+
     def totals(self) -> dict[int, CameraTotals]:
         """Per camera serial, the counts since the first frame received from it."""
         return {
@@ -244,6 +328,7 @@ class StreamAccounting:
                 transport_lost=c.transport,
                 time_gaps=c.time_gaps,
                 reconnects=c.reconnects,
+                frames_refused=c.refused + c.refused_pending,
             )
             for s, c in self._cams.items()
         }

@@ -1,7 +1,10 @@
 """The disk the sessions go to, as the recorder's I/O thread sees it (``recorder.py``): its free
 space, measured every ``DISK_CHECK_S``, and the reserve (``disk_reserve_gb``) a take must never
 eat into. A take is stopped while there is still room for what arrives before the next checks
-and for closing the file (``DISK_HEADROOM_S`` at the take's rate)."""
+and for closing the file (``DISK_HEADROOM_S`` at the take's rate). That rate is planned from
+the configuration (each camera's fps x its typical frame, ``CameraTable.planned_byte_rate``), or
+the take's sustained write rate if higher; never a burst's, which the cameras' caps refuse anyway
+and which would otherwise stop every node's take."""
 
 from __future__ import annotations
 

@@ -1,22 +1,30 @@
 """What the recorder's I/O thread does with each message an agent publishes
 (``capture_agent/recorder/recorder.py``): decode it, check that it comes from the agent whose
 node and cameras it names, keep the camera table (``CameraLive``, bounded by rig.toml) and refuse
-frames stamped too far from the recorder's clock.
+frames stamped too far from the recorder's clock. A node is held to what it said it is: a frame
+whose stamp is not after its camera's last, or over the camera's rate cap or byte budget
+(``budget.py``), is refused too, so a stream's stored rows stay in stamp order and one node's
+burst cannot take the write queue (or the disk check) from the others.
 
 ``CameraTable`` owns that state: the cameras, each agent's last status and the refusal counters
 (``status`` shows them). Every refusal is counted there and logged, rate-limited
-(``log_due``); no message is kept after it is handled: ``accept_frame`` says whether the frame
+(``log_due``), and a refused frame of a take goes to ``on_refused`` (the take's session events and
+accounting); no message is kept after it is handled: ``accept_frame`` says whether the frame
 goes to the take, and the recorder hands it on."""
 
 from __future__ import annotations
 
 import collections
 import logging
+import statistics
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from capture_agent.recorder.budget import StreamBudget, StreamLimits
 from protocol.formats.rig_config import AgentEndpoint, RigConfig
 from protocol.safe_text import safe_text
+from protocol.session import EventKind
 from protocol.wire import (
     AgentStatus,
     FrameMessage,
@@ -24,6 +32,7 @@ from protocol.wire import (
     UnknownVersionError,
     decode_published,
 )
+from protocol.wire.frame import ImageTooLargeError
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +67,10 @@ class CameraLive:
     ptp_locked: bool = False
     frames_rx: int = 0
     frames_refused_clock: int = 0  # stamped further than max_clock_skew_s from our clock
+    last_stamp_ns: int = 0  # of the last frame accepted: a stream's stamps only increase
+    budget: StreamBudget | None = None  # its rate and byte caps (``budget.py``)
+    # refused because the stamp went back or repeated, over the rate cap, over the byte budget
+    refused: collections.Counter[EventKind] = field(default_factory=collections.Counter)
 
     def fps(self) -> float:
         s = list(self.stamps)
@@ -81,6 +94,7 @@ class CameraLive:
         self.rx_monotonic.append(now_monotonic)
         self.bytes_rx.append(msg.left_bytes + msg.right_bytes)
         self.last_rx_monotonic = now_monotonic
+        self.last_stamp_ns = msg.capture_unix_ns
         self.ptp_offset_ns = msg.ptp_offset_ns
         self.ptp_locked = msg.ptp_locked
         self.frames_rx += 1
@@ -98,9 +112,15 @@ class CameraTable:
         self.agent_status: dict[str, tuple[AgentStatus, float]] = {}
         self.malformed = 0
         self.unknown_version = 0
+        self.images_over_limit = 0  # frames with an image over rig.toml's max_image_bytes
         self.frames_refused_sender = 0  # frames naming a node or camera not of their agent's key
         self.status_refused_sender = 0
         self.frames_refused_unknown_camera = 0  # serials not in rig.toml (or over the cap)
+        # per camera, what a take learnt of its mode (else rig.toml's fps and largest image)
+        self.limits: dict[int, StreamLimits] = {}
+        # who hears of each refused frame (its reason and a line saying why): the take in
+        # progress, which records it as a session event and in its accounting (``start.py``)
+        self.on_refused: Callable[[FrameMessage, EventKind, str], None] | None = None
 
     # -- what the rest of the recorder asks -----------------------------------------------------
     def expected(self) -> tuple[int, ...]:
@@ -114,6 +134,21 @@ class CameraTable:
     def byte_rate(self, serials: tuple[int, ...]) -> float:
         """What the given cameras stream, bytes/s (those not heard count 0)."""
         return sum(self.cameras[s].byte_rate() for s in serials if s in self.cameras)
+
+    def planned_byte_rate(self, serials: tuple[int, ...]) -> float:
+        """What the given cameras should bring, bytes/s: each one's configured fps times its
+        typical frame (the median of its recent frames, at most its largest); those not heard
+        count 0. Not the measured rate, which one node's burst would inflate (and so stop
+        every node's take at the disk check)."""
+        total = 0.0
+        for s in serials:
+            cam = self.cameras.get(s)
+            if cam is None or not cam.bytes_rx:
+                continue
+            limits = self.limits.get(s) or self.default_limits()
+            typical = min(statistics.median(cam.bytes_rx), limits.largest_frame_bytes)
+            total += limits.fps * typical
+        return total
 
     def listed_owner(self, serial: int) -> str | None:
         """The node rig.toml lists the camera under, if any."""
@@ -132,7 +167,11 @@ class CameraTable:
         """A message from ``agent``'s SUB socket (so, over CURVE, from that agent's key): the
         frame it carries, or None (a status is kept; anything refused is counted)."""
         try:
-            msg = decode_published(parts)
+            msg = decode_published(parts, max_image_bytes=self.config.max_image_bytes)
+        except ImageTooLargeError as exc:
+            self.images_over_limit += 1
+            warn_refused(self.images_over_limit, "refused frame #%d over the image limit: %s", exc)
+            return None
         except UnknownVersionError as exc:
             self.unknown_version += 1
             warn_refused(self.unknown_version, "rejected message #%d: %s", exc)
@@ -194,8 +233,61 @@ class CameraTable:
                 cam.node_id,
             )
             return False
+        why = self.refusal(cam, msg, rx_ns)
+        if why is not None:
+            self.refuse(cam, msg, why)
+            return False
         cam.heard(msg, time.monotonic())
         return True
+
+    # -- a node's frames held to what the node is ------------------------------------------------
+    def default_limits(self) -> StreamLimits:
+        """A camera's limits before a take learns its mode: rig.toml's fps and largest image."""
+        return StreamLimits(
+            fps=self.config.fps, largest_frame_bytes=2 * self.config.max_image_bytes
+        )
+
+    def set_limits(self, serial: int, limits: StreamLimits) -> None:
+        """A camera's rate and largest frame as the take learnt them (its buckets restart)."""
+        self.limits[serial] = limits
+        cam = self.cameras.get(serial)
+        if cam is not None:
+            cam.budget = StreamBudget(limits)
+
+    def refusal(self, cam: CameraLive, msg: FrameMessage, rx_ns: int) -> EventKind | None:
+        """Why a frame is refused, or None: a stamp that does not follow the stream's last
+        (the file keeps each camera's rows in stamp order), or a frame over the camera's rate
+        cap or byte budget (one node's burst must not take the write queue from the others)."""
+        if cam.frames_rx and msg.capture_unix_ns <= cam.last_stamp_ns:
+            return EventKind.STAMP_BACKWARDS
+        if cam.budget is None:
+            cam.budget = StreamBudget(self.limits.get(cam.serial) or self.default_limits())
+        return cam.budget.admit(msg.left_bytes + msg.right_bytes, msg.capture_unix_ns, rx_ns)
+
+    def refuse(self, cam: CameraLive, msg: FrameMessage, why: EventKind) -> None:
+        """Count a refused frame, log it (rate-limited) and make it a session event."""
+        cam.refused[why] += 1
+        if why is EventKind.STAMP_BACKWARDS:
+            back_ms = (cam.last_stamp_ns - msg.capture_unix_ns) / 1e6
+            detail = f"frame {msg.frame_index} stamped {back_ms:.3f} ms before the last: refused"
+        else:
+            limits = cam.budget.limits if cam.budget else self.default_limits()
+            detail = (
+                f"frame {msg.frame_index} ({msg.left_bytes + msg.right_bytes} bytes) over the "
+                f"cap of {limits.max_frames_per_s:g} frames/s and "
+                f"{limits.max_bytes_per_s / 1e6:.1f} MB/s: refused"
+            )
+        if log_due(cam.refused[why]):
+            log.warning(
+                "camera %d on %s: %s #%d: %s",
+                cam.serial,
+                cam.node_id,
+                why.name.lower(),
+                cam.refused[why],
+                detail,
+            )
+        if self.on_refused is not None:
+            self.on_refused(msg, why, detail)
 
     def camera_for(self, msg: FrameMessage) -> CameraLive | None:
         """The camera's entry; a new one only for a serial that rig.toml lists (or, when it
@@ -231,5 +323,6 @@ class CameraTable:
             )
             return None
         cam = self.cameras[msg.camera_serial] = CameraLive(msg.camera_serial, msg.node_id)
+        cam.budget = StreamBudget(self.limits.get(cam.serial) or self.default_limits())
         log.info("camera %d streaming from %s", msg.camera_serial, msg.node_id)
         return cam

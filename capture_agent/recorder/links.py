@@ -5,15 +5,26 @@ control REP, and one REQ per request to an agent, each CURVE unless rig.toml say
 Each agent's SUB socket queues what ``receive_buffer_mb`` allows (split over the agents, counted
 at the largest legal frame message; at most ``RECEIVE_QUEUE_S`` of that agent's frames: see
 ``receive_hwm``). ``AgentLinks`` owns them, the agents' public keys and the link guard (what the
-authenticator refused, for ``status``)."""
+authenticator refused, for ``status``).
+
+Each SUB socket is watched (``capture_agent/link_watch.py``): a link that drops or whose
+handshake is refused, by either side, is made again with backoff (0.2 s doubling to 5 s), so an
+agent that sent an oversize part, or that refused the recorder's key until its config was fixed,
+is heard again without restarting the recorder. ``check`` says what happened to the links,
+``due`` which socket is to be made again (the I/O thread drains it first), ``recreate`` makes it.
+"""
 
 from __future__ import annotations
 
+import functools
 import math
+import time
 from pathlib import Path
+from typing import Any
 
 import zmq
 
+from capture_agent.link_watch import LinkChange, WatchedSub
 from capture_agent.security import (
     CONTROL_MAX_BYTES,
     LinkGuard,
@@ -37,11 +48,13 @@ class AgentLinks:
         self.config = config
         self.ctx: zmq.Context = zmq.Context()  # its own: one ZAP authenticator per context
         self.guard: LinkGuard | None = None
-        self.subs: dict[zmq.Socket, AgentEndpoint] = {}
+        self.subs: dict[zmq.Socket, AgentEndpoint] = {}  # each agent's SUB socket of now
+        self.watched: dict[str, WatchedSub] = {}  # node_id -> its SUB socket and link state
+        self.generation = 0  # counts new sockets, so the I/O loop knows to poll them
         self.server_keys: dict[str, bytes] = {}  # agent endpoint -> the agent's public key
 
     def open(self) -> None:
-        """One SUB socket per agent and the control REP."""
+        """One watched SUB socket per agent and the control REP."""
         config = self.config
         Path(config.output_dir).mkdir(parents=True, exist_ok=True)
         self.security: LinkSecurity = LinkSecurity.from_config(config.security)
@@ -50,21 +63,57 @@ class AgentLinks:
             if not self.security.insecure:
                 key = load_public_key(a.public_key, f"public key file of agent {a.node_id}")
                 self.server_keys[a.frames] = self.server_keys[a.control] = key
-            sub = self.ctx.socket(zmq.SUB)
-            harden(sub, frame_part_max_bytes(config.max_image_bytes))
-            sub.setsockopt(zmq.RCVHWM, receive_hwm(config, a))
-            sub.setsockopt(zmq.SUBSCRIBE, b"")
-            make_client(sub, self.security, self.server_keys.get(a.frames))
-            sub.connect(a.frames)
-            self.subs[sub] = a
+            watched = WatchedSub(
+                self.ctx,
+                a.frames,
+                functools.partial(self._configure_sub, a),
+                who=f"recorder: agent {a.node_id}",
+                max_part_bytes=frame_part_max_bytes(config.max_image_bytes),
+            )
+            self.watched[a.node_id] = watched
+            self.subs[watched.sock] = a
         self.rep = self.ctx.socket(zmq.REP)
         harden(self.rep, CONTROL_MAX_BYTES)
         self.guard.make_server(self.rep, "recorder.control")
         self.rep.bind(config.control_bind)
 
+    def _configure_sub(self, agent: AgentEndpoint, sub: zmq.Socket) -> None:
+        """The options of ``agent``'s SUB socket, the first one and every one made again."""
+        harden(sub, frame_part_max_bytes(self.config.max_image_bytes))
+        sub.setsockopt(zmq.RCVHWM, receive_hwm(self.config, agent))
+        sub.setsockopt(zmq.SUBSCRIBE, b"")
+        make_client(sub, self.security, self.server_keys.get(agent.frames))
+
+    def check(self) -> list[tuple[AgentEndpoint, LinkChange]]:
+        """What happened to the agents' links since the last call (never waits)."""
+        now = time.monotonic()
+        return [(self.subs[w.sock], c) for w in self.watched.values() for c in w.check(now)]
+
+    def due(self) -> list[zmq.Socket]:
+        """The SUB sockets whose link dropped or was refused and whose retry is due: drain
+        each, then ``recreate`` it."""
+        now = time.monotonic()
+        return [w.sock for w in self.watched.values() if w.due(now)]
+
+    def recreate(self, sub: zmq.Socket) -> tuple[AgentEndpoint, LinkChange]:
+        """Close ``sub`` and make the agent's socket again (the same options and keys)."""
+        agent = self.subs.pop(sub)
+        watched = self.watched[agent.node_id]
+        try:
+            change = watched.recreate()
+        finally:
+            self.subs[watched.sock] = agent
+        self.generation += 1
+        return agent, change
+
+    def link_counts(self, node_id: str) -> dict[str, Any]:
+        """The state and counters of an agent's frame link, for ``status``."""
+        watched = self.watched.get(node_id)
+        return watched.counts.as_dict() if watched is not None else {}
+
     def close(self) -> None:
-        for sub in self.subs:
-            sub.close(linger=0)
+        for watched in self.watched.values():
+            watched.close()
         self.rep.close(linger=0)
         if self.guard is not None:
             self.guard.close()

@@ -11,7 +11,10 @@ served in order between frames and two simultaneous starts cannot race. It:
 - receives frame messages and agent status on one SUB socket per agent, a CURVE client of that
   agent's public key (``capture_agent/security.py``), so every message is known to come from
   that agent's key; malformed messages, unknown versions and messages that name another node
-  or a camera that is not the agent's in rig.toml are counted, logged and skipped;
+  or a camera that is not the agent's in rig.toml are counted, logged and skipped; a link that
+  drops or whose handshake is refused is made again with backoff (``links.AgentLinks``), and
+  each drop, refusal and return is counted per agent in ``status`` and recorded as a session
+  event of the take in progress;
 - while recording: stores every frame as received (no re-encoding), accounts for drops and gaps
   from frame indices, per-node sequence numbers and timestamps, feeds the synchroniser and stores
   each completed set; flushes the file every ``flush_interval_s`` (a crash loses at most that
@@ -59,7 +62,7 @@ name that is not 1-64 of ``A-Z a-z 0-9 _ . -``; more than 64 metadata keys, keys
 values over 4096 characters, control or bidi characters; a planned duration that is not a number
 > 0), when a camera the rig expects is not streaming, when an agent's PTP is not locked
 (``require_ptp_lock``), or when the disk cannot hold
-``planned_duration_min`` at the rig's measured data rate.
+``planned_duration_min`` at the cameras' configured rate (fps x their typical frame).
 
 This module owns the ``Recorder``: it composes the parts the I/O thread changes, each with one
 owner (``intake.CameraTable``: the cameras, the agents' status and what was refused;
@@ -81,10 +84,11 @@ import zmq
 from capture_agent.control_server import ControlServer
 from capture_agent.daemon import Progress, run_until_signal
 from capture_agent.errors import Refused
+from capture_agent.link_watch import DROPPED, HANDSHAKE_REFUSED, RECONNECTED, UP, LinkChange
 from capture_agent.recorder import status as recorder_status
 from capture_agent.recorder.disk import DiskBudget
 from capture_agent.recorder.intake import CameraTable, log_due
-from capture_agent.recorder.links import AgentLinks
+from capture_agent.recorder.links import AgentLinks, receive_hwm
 from capture_agent.recorder.recording import Recording
 from capture_agent.recorder.start import StartRefused, start_take
 from capture_agent.recorder.take import StopLimits, TakeState, drain_to_stop
@@ -92,7 +96,7 @@ from protocol.command import command_parser
 from protocol.formats.rig_config import AgentEndpoint, RigConfig
 from protocol.os_thread import NamedThread
 from protocol.safe_text import brief
-from protocol.session import SessionWriteError
+from protocol.session import EventKind, SessionWriteError
 from protocol.wire import ControlRequest, FrameMessage
 
 log = logging.getLogger(__name__)
@@ -103,6 +107,14 @@ WRITE_FAILURE_STOP_S = 5.0  # a take whose file cannot be written for this long 
 STOP_WRITE_S = 3.0  # at a stop, write the queued frames of the take for at most this long
 STOP_COUNT_S = 1.0  # then count (without writing) what is still queued, for at most this long
 STOP_IDLE_S = 0.25  # a stop stops waiting for frames after this long without a message
+# what a take records of its links (a new socket is only logged and counted: the failure that
+# led to it is the event)
+LINK_EVENT_KINDS = {
+    DROPPED: EventKind.LINK_DROPPED,
+    HANDSHAKE_REFUSED: EventKind.HANDSHAKE_FAILED,
+    RECONNECTED: EventKind.LINK_RECONNECTED,
+    UP: EventKind.LINK_RECONNECTED,  # an agent first heard mid-take
+}
 
 
 class Recorder:
@@ -142,13 +154,19 @@ class Recorder:
         return self._thread is not None and self._thread.is_alive()
 
     # -- the I/O loop ---------------------------------------------------------------------------
-    def _loop(self) -> None:
+    def _poller(self) -> zmq.Poller:
         poller = zmq.Poller()
         for sub in self.links.subs:
             poller.register(sub, zmq.POLLIN)
         poller.register(self.links.rep, zmq.POLLIN)
+        return poller
+
+    def _loop(self) -> None:
+        poller, generation = self._poller(), self.links.generation
         try:
             while not self.stopped.is_set():
+                if generation != self.links.generation:  # an agent's SUB socket was made again
+                    poller, generation = self._poller(), self.links.generation
                 events = dict(poller.poll(20))
                 self._receive([s for s in self.links.subs if s in events])
                 self.progress.beat("io")
@@ -210,8 +228,25 @@ class Recorder:
         if log_due(self.internal_errors):
             log.exception("internal error #%d %s; the recorder goes on", self.internal_errors, what)
 
+    def watch_links(self) -> None:
+        """Links that dropped, were refused or came back: counted (``links``), recorded in the
+        take; a socket whose retry is due is drained, then made again."""
+        for agent, change in self.links.check():
+            self._link_event(agent, change)
+        for sub in self.links.due():
+            # what the old socket still queues is the agent's, received before the drop
+            self._receive([sub], receive_hwm(self.config, self.links.subs[sub]))
+            self._link_event(*self.links.recreate(sub))
+
+    def _link_event(self, agent: AgentEndpoint, change: LinkChange) -> None:
+        kind = LINK_EVENT_KINDS.get(change.kind)
+        if kind is not None and self.take.recording is not None:
+            self.take.recording.append_event(kind, agent.node_id, detail=change.cause)
+
     def periodic(self) -> None:
-        """Between messages: a take to resume, flushes, write failures, the disk check."""
+        """Between messages: the links, a take to resume, flushes, write failures, the disk
+        check."""
+        self.watch_links()
         resume_args = self.take.resume_now(self.table)  # never waits
         if resume_args is not None:
             self._resume(resume_args)
@@ -247,10 +282,9 @@ class Recorder:
             )
 
     def _take_rate(self, rec: Recording, now: float) -> float:
-        """The take's bytes/s: the rate the streams bring (a rate from the first frames of a
-        recording alone would be wild), or the write rate if that is higher."""
-        elapsed = max(now - rec.started_monotonic, 1.0)
-        return max(self.table.byte_rate(rec.serials), rec.bytes_written / elapsed)
+        """The take's bytes/s: the cameras' configured rate x their typical frame, or the
+        sustained write rate if higher; never a burst's (``Recording.take_rate_bytes_per_s``)."""
+        return rec.take_rate_bytes_per_s(now)
 
     def _resume(self, args: dict[str, Any]) -> None:
         """Start the take a killed recorder left (``TakeState.resume_now`` said so)."""

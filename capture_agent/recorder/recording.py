@@ -36,9 +36,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from capture_agent.recorder.accounting import StreamAccounting
+from capture_agent.recorder.events import EventLimiter, EventRow
 from capture_agent.recorder.sync import SyncedSet, Synchroniser
 from capture_agent.recorder.write_queue import WriteQueue
-from protocol.session import SessionWriteError, SessionWriter
+from protocol.session import EventKind, SessionWriteError, SessionWriter
 from protocol.wire import FrameMessage
 
 log = logging.getLogger(__name__)
@@ -47,6 +48,9 @@ TAKE_START_WAIT_NS = 2_000_000_000  # a take starts on a partial set after this 
 DEFAULT_WRITE_QUEUE_BYTES = 256_000_000  # rig.toml's write_queue_mb default
 FINISH_WRITE_S = 3.0  # finish() waits this long for the queued frames to be written...
 FINISH_CLOSE_S = 1.0  # ...then this long for the file to close
+# the disk check averages the write rate over at least this long: a burst of the first seconds
+# (bounded by the cameras' caps) must not read as the take's rate
+RATE_WINDOW_MIN_S = 30.0
 
 
 @dataclass
@@ -59,6 +63,8 @@ class Recording:
     started_monotonic: float
     serials: tuple[int, ...]
     write_queue_bytes: int = DEFAULT_WRITE_QUEUE_BYTES
+    # the cameras' configured rate x their typical frame (``CameraTable.planned_byte_rate``)
+    planned_bytes_per_s: float = 0.0
     leading_sets_skipped: int = 0
     trailing_sets_skipped: int = 0
     take_started: bool = False
@@ -72,6 +78,9 @@ class Recording:
     not_written_at_stop: collections.Counter[int] = field(default_factory=collections.Counter)
     # frames refused because the write queue was full (the disk stalled or fell behind)
     not_written_disk_stalled: collections.Counter[int] = field(default_factory=collections.Counter)
+    # session events (``append_event``), aggregated under a flood; every occurrence per kind
+    events: EventLimiter = field(default_factory=EventLimiter)
+    event_counts: collections.Counter[str] = field(default_factory=collections.Counter)
     queue: WriteQueue = field(init=False)
 
     def __post_init__(self) -> None:
@@ -128,6 +137,8 @@ class Recording:
                 start_unix_ns=gap.start_unix_ns,
                 end_unix_ns=gap.end_unix_ns,
             )
+        for kind, node_id, camera_serial, detail in self.accounting.take_notes():
+            self.append_event(kind, node_id, camera_serial, detail)
         ticket = self.queue.put_frame(msg, recorder_receive_unix_ns)
         if ticket is None:
             self.not_written_disk_stalled[serial] += 1
@@ -148,8 +159,46 @@ class Recording:
         )
 
     def poll(self, now_unix_ns: int) -> None:
-        """Queue the sets that time (a silent camera's timeout) completes."""
+        """Queue the sets that time (a silent camera's timeout) completes, and the session
+        events held for an aggregate whose window ended."""
         self._write_sets(self.sync.poll(now_unix_ns))
+        self._put_events(self.events.due(now_s=time.monotonic(), now_ns=now_unix_ns))
+
+    # -- session events ----------------------------------------------------------------------
+    def append_event(
+        self, kind: EventKind, node_id: str, camera_serial: int = -1, detail: str = ""
+    ) -> None:
+        """Record a session event (``/events``) in the take's file, in order with what was
+        queued before it; never waits. ``camera_serial`` -1 for an event of the node as a
+        whole. A flood of one kind from one node is written as counted aggregates
+        (``capture_agent/recorder/events.py``), so it cannot fill the file."""
+        kind = EventKind(kind)
+        self.event_counts[kind.name.lower()] += 1
+        now_s, now_ns = time.monotonic(), time.time_ns()
+        self._put_events(
+            self.events.admit(kind, node_id, camera_serial, detail, now_s=now_s, now_ns=now_ns)
+        )
+
+    def refused_frame(self, msg: FrameMessage, why: EventKind, detail: str) -> None:
+        """A frame of a take's camera the camera table refused (``why``): a session event, and
+        the accounting's, so the frame is counted as refused, not as a drop or a loss."""
+        if msg.camera_serial not in self.serials:
+            return
+        if self.stop_unix_ns is not None and msg.capture_unix_ns > self.stop_unix_ns:
+            return  # not part of the take
+        self.accounting.refused(msg.camera_serial, msg.seq, msg.node_id)
+        self.append_event(why, msg.node_id, msg.camera_serial, detail)
+
+    def _put_events(self, rows: list[EventRow]) -> None:
+        for row in rows:
+            self.queue.put_event(
+                int(row.kind),
+                time_unix_ns=row.time_unix_ns,
+                node_id=row.node_id,
+                camera_serial=row.camera_serial,
+                count=row.count,
+                detail=row.detail,
+            )
 
     def request_flush(self) -> None:
         """Queue a flush (never waits): what was queued before it becomes durable."""
@@ -168,6 +217,12 @@ class Recording:
     def wait_written(self, timeout_s: float) -> bool:
         """Wait until everything queued is done; False if it took longer than ``timeout_s``."""
         return self.queue.wait_idle(timeout_s)
+
+    def take_rate_bytes_per_s(self, now_monotonic: float) -> float:
+        """The take's rate for the disk check: the planned rate, or the write rate over the
+        take (at least ``RATE_WINDOW_MIN_S``) when a sustained rise makes that higher."""
+        elapsed = max(now_monotonic - self.started_monotonic, RATE_WINDOW_MIN_S)
+        return max(self.planned_bytes_per_s, self.bytes_written / elapsed)
 
     def write_failing_s(self) -> float:
         """For how long the session file has not been writable (0 while it is)."""
@@ -221,6 +276,7 @@ class Recording:
             tail.pop()
             self.trailing_sets_skipped += 1
         self._write_sets(tail)
+        self._put_events(self.events.drain(now_ns=time.time_ns()))
         self.queue.request_flush()
         began = self.stop_began_monotonic or time.monotonic()
         left = began + write_s - time.monotonic()
@@ -257,6 +313,8 @@ class Recording:
                 "transport_lost": t.transport_lost if t else 0,
                 "time_gaps": t.time_gaps if t else 0,
                 "reconnects": t.reconnects if t else 0,
+                # refused by the recorder (stamp back, over its rate or bytes): not in the file
+                "refused": t.frames_refused if t else 0,
                 "missing_in_sets": int(q.missing_in_sets[s]),
                 "unassigned": int(self.sync.unassigned_frames.get(s, 0)),
                 "not_written_at_stop": int(at_stop[s]),
@@ -278,6 +336,7 @@ class Recording:
             "write_internal_errors": q.internal_errors,
             "bytes": q.bytes_written,
             "capture_to_durable_ms": q.latency_ms(),
+            "events": dict(self.event_counts),
             "cameras": per_camera,
             **extra,
         }

@@ -11,11 +11,13 @@ import logging
 import math
 import re
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from capture_agent.errors import Refused
 from capture_agent.recorder.accounting import StreamAccounting
+from capture_agent.recorder.budget import StreamLimits
 from capture_agent.recorder.disk import DiskBudget
 from capture_agent.recorder.intake import CameraTable
 from capture_agent.recorder.links import AgentLinks
@@ -26,7 +28,8 @@ from capture_agent.recorder.write_queue import open_writer
 from protocol import __version__
 from protocol.formats.rig_config import RigConfig
 from protocol.safe_text import brief, unsafe_character
-from protocol.session import CameraInfo, SessionWriter
+from protocol.session import CameraInfo, EventKind, SessionWriter
+from protocol.wire import FrameMessage
 from protocol.wire.agent_info import AgentReplyError, AgentStatusReply
 
 log = logging.getLogger(__name__)
@@ -113,12 +116,19 @@ def start_take(
             f"already recording case '{take.recording.case}' to "
             f"{take.recording.writer.path}; stop it first (egosurg record stop)"
         )
-    expected = streaming_cameras(table)
+    try:
+        expected = streaming_cameras(table)
+    except StartRefused:
+        # a camera whose images are over the limit never streams: say that, with the numbers
+        refuse_oversize_cameras(table, links)
+        raise
     if config.require_ptp_lock:
         check_ptp(table, config)
-    rate = table.byte_rate(expected)
-    check_disk(disk, rate, planned_min)
+    check_disk(disk, table.planned_byte_rate(expected), planned_min)
     infos = camera_infos(table, links, expected)
+    check_image_limit(infos, config.max_image_bytes)
+    for ci in infos:  # each camera held to its mode from now on
+        table.set_limits(ci.camera_serial, camera_limits(ci, config))
     started_ns = time.time_ns()
     path = session_path(Path(config.output_dir), case, started_ns)
     previous, part = take.link(case)  # a resumed take
@@ -145,6 +155,8 @@ def start_take(
             f"within {OPEN_WAIT_S:g} s (writing stalls); check the disk, then start again"
         ) from None
     rec = new_recording(writer, config, case=case, serials=expected, started_ns=started_ns)
+    rec.planned_bytes_per_s = table.planned_byte_rate(expected)
+    table.on_refused = take_refusals(take)
     log.info("recording case %s to %s (%d cameras)", case, path, len(expected))
     take.started(rec, meta=meta, planned_min=planned_min, path=path, previous=previous, part=part)
     return {
@@ -225,6 +237,24 @@ def session_path(output_dir: Path, case: str, started_ns: int) -> Path:
     return path
 
 
+def camera_limits(ci: CameraInfo, config: RigConfig) -> StreamLimits:
+    """What a camera may send (``budget.py``): rig.toml's fps (or its mode's, if lower) and
+    both images of its mode raw, each at most rig.toml's ``max_image_bytes`` (no JPEG of a
+    mode is larger than the raw image; the bucket's second of burst absorbs one that is)."""
+    image = min(ci.width * ci.height * 3, config.max_image_bytes)
+    return StreamLimits(fps=min(config.fps, ci.fps_nominal), largest_frame_bytes=2 * image)
+
+
+def take_refusals(take: TakeState) -> Callable[[FrameMessage, EventKind, str], None]:
+    """Where the camera table's refusals go: to the take in progress, if any."""
+
+    def record(msg: FrameMessage, why: EventKind, detail: str) -> None:
+        if take.recording is not None:
+            take.recording.refused_frame(msg, why, detail)
+
+    return record
+
+
 def new_recording(
     writer: SessionWriter,
     config: RigConfig,
@@ -244,7 +274,7 @@ def new_recording(
                 max_wait_ns=int(config.max_wait_ms * 1e6),
             )
         ),
-        accounting=StreamAccounting(),
+        accounting=StreamAccounting(fps=config.fps),
         case=case,
         started_unix_ns=started_ns,
         started_monotonic=time.monotonic(),
@@ -285,6 +315,34 @@ def camera_infos(
     if missing:
         raise StartRefused(f"no agent reports camera(s) {missing}; check the serials in rig.toml")
     return [infos[s] for s in serials]
+
+
+def refuse_oversize_cameras(table: CameraTable, links: AgentLinks) -> None:
+    """Refuse naming a listed camera whose images are over ``max_image_bytes``, if there is
+    one (its agent reports it); nothing when the agents cannot say."""
+    config = table.config
+    if not config.expected_cameras:
+        return
+    try:
+        infos = camera_infos(table, links, config.expected_cameras)
+    except StartRefused:
+        return
+    check_image_limit(infos, config.max_image_bytes)
+
+
+def check_image_limit(infos: list[CameraInfo], max_image_bytes: int) -> None:
+    """Refuse a take with a camera whose images exceed rig.toml's ``max_image_bytes``: its
+    frames would all be refused. Raw images are width x height x 3 bytes; a JPEG's size is
+    not known in advance (its frames are checked as they arrive)."""
+    for ci in infos:
+        largest = ci.width * ci.height * 3
+        if ci.encoding == "raw_bgr8" and largest > max_image_bytes:
+            raise StartRefused(
+                f"camera {ci.camera_serial} on {ci.node_id} sends raw_bgr8 images of "
+                f"{ci.width}x{ci.height}x3 = {largest} bytes, over rig.toml's max_image_bytes "
+                f"= {max_image_bytes}; set max_image_bytes = {largest} (or more) in rig.toml "
+                "and restart the recorder, or set that node's encoding to jpeg"
+            )
 
 
 def agent_status_reply(

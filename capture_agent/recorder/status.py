@@ -17,6 +17,7 @@ from capture_agent.recorder.links import AgentLinks
 from capture_agent.recorder.recording import Recording
 from capture_agent.recorder.take import TakeState
 from protocol.safe_text import safe_text
+from protocol.session import EventKind
 
 
 def link_counts(table: CameraTable, links: AgentLinks) -> dict[str, Any]:
@@ -49,11 +50,16 @@ def status(
         "agents": agent_rows(table, links),
         "malformed_messages": table.malformed,
         "unknown_version_messages": table.unknown_version,
+        "images_over_limit": table.images_over_limit,
+        "max_image_bytes": config.max_image_bytes,
         "links": link_counts(table, links),
         # what the recorder refused and how its loop and control socket fare: counts, never
         # lists of what a sender made up, so the reply stays small whatever arrives
         "frames_refused_unknown_camera": table.frames_refused_unknown_camera,
         "frames_refused_clock": sum(c.frames_refused_clock for c in table.cameras.values()),
+        "frames_refused_stamp": refused(table, EventKind.STAMP_BACKWARDS),
+        "frames_refused_rate": refused(table, EventKind.RATE_CAPPED),
+        "frames_refused_bytes": refused(table, EventKind.BYTES_CAPPED),
         "max_clock_skew_s": config.max_clock_skew_s,
         **loop,
     }
@@ -64,6 +70,11 @@ def status(
     if take.resume is not None:  # a take resumed (or to resume) after the recorder was killed
         out["take_resume"] = take.resume.status()
     return out
+
+
+def refused(table: CameraTable, why: EventKind) -> int:
+    """Frames refused for ``why``, all cameras."""
+    return sum(c.refused[why] for c in table.cameras.values())
 
 
 def camera_rows(table: CameraTable, rec: Recording | None) -> list[dict[str, Any]]:
@@ -89,6 +100,10 @@ def camera_rows(table: CameraTable, rec: Recording | None) -> list[dict[str, Any
                 "dropped_in_recording": totals[s].frames_dropped_camera if s in totals else 0,
                 "dropped_at_agent": agent_drops,
                 "frames_refused_clock": cam.frames_refused_clock if cam else 0,
+                # a node held to what it is: stamps that went back, frames over the caps
+                "frames_refused_stamp": cam.refused[EventKind.STAMP_BACKWARDS] if cam else 0,
+                "frames_refused_rate": cam.refused[EventKind.RATE_CAPPED] if cam else 0,
+                "frames_refused_bytes": cam.refused[EventKind.BYTES_CAPPED] if cam else 0,
             }
         )
     return rows
@@ -108,6 +123,8 @@ def agent_rows(table: CameraTable, links: AgentLinks) -> list[dict[str, Any]]:
                 "alive": bool(st and time.monotonic() - st[1] < table.config.agent_timeout_s),
                 "ptp_state": st[0].ptp.state if st else None,
                 "ptp_offset_ns": st[0].ptp.master_offset_ns if st else None,
+                # the frame link: state, drops, refused handshakes, new sockets, last cause
+                "link": links.link_counts(a.node_id),
             }
         )
     return rows

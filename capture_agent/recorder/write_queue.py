@@ -7,7 +7,9 @@ take: it hands frames, gap records, sets, flushes and the close to this thread t
 bounded in bytes (rig.toml's ``write_queue_mb``: the image bytes of the queued frames, which stay
 in memory until written). A frame that does not fit is refused (``put_frame`` returns None; the
 recording counts it per camera as ``not_written_disk_stalled``); everything else is small and
-always queued. ``stalled_s`` says for how long the thread has been inside one call. When the disk
+always queued. No camera holds more than its share of the queue (``camera_share_bytes``, the
+bound over the cameras): one node's burst cannot take the room of the others' frames.
+``stalled_s`` says for how long the thread has been inside one call. When the disk
 answers again the queue drains and the take goes on.
 
 Rows. A set names its frames by their rows in the file, which only this thread knows (a frame it
@@ -62,6 +64,12 @@ class _Gap:
 
 
 @dataclass(frozen=True)
+class _Event:
+    kind: int
+    fields: dict[str, Any]
+
+
+@dataclass(frozen=True)
 class _Set:
     set_unix_ns: int
     tickets: tuple[int | None, ...]
@@ -99,6 +107,9 @@ class WriteQueue:
         # while this thread counts, and a dict must not grow while another thread iterates it.
         zero = dict.fromkeys(self.serials, 0)
         self.queued_frames: collections.Counter[int] = collections.Counter(zero)
+        self.queued_camera_bytes: collections.Counter[int] = collections.Counter(zero)
+        # a camera already holding its share gets no more room (it may pass it by one frame)
+        self.camera_share_bytes = max_bytes // max(len(self.serials), 1)
         self._next_ticket = dict.fromkeys(self.serials, 0)  # producer's
         self._flush_queued = False
         self._closing = False
@@ -129,19 +140,28 @@ class WriteQueue:
         """Queue a frame; its ticket (the handle sets use), or None when it does not fit."""
         nbytes = msg.left_bytes + msg.right_bytes
         with self._cv:
-            if self._closing or self.queued_bytes + nbytes > self.max_bytes:
-                return None
             serial = msg.camera_serial
+            if (
+                self._closing
+                or self.queued_bytes + nbytes > self.max_bytes
+                or self.queued_camera_bytes[serial] >= self.camera_share_bytes
+            ):
+                return None
             ticket = self._next_ticket[serial]
             self._next_ticket[serial] = ticket + 1
             self.queued_bytes += nbytes
             self.queued_frames[serial] += 1
+            self.queued_camera_bytes[serial] += nbytes
             self._jobs.append(_Frame(msg, ticket, recorder_receive_unix_ns, nbytes))
             self._cv.notify_all()
         return ticket
 
     def put_gap(self, camera_serial: int, **fields: int) -> None:
         self._put(_Gap(camera_serial, fields))
+
+    def put_event(self, kind: int, **fields: Any) -> None:
+        """Queue a session event (``SessionWriter.append_event``'s arguments)."""
+        self._put(_Event(kind, fields))
 
     def put_set(self, set_unix_ns: int, tickets: tuple[int | None, ...], spread_ns: int) -> None:
         self._put(_Set(set_unix_ns, tickets, spread_ns))
@@ -232,6 +252,7 @@ class WriteQueue:
                     if isinstance(job, _Frame):
                         self.queued_bytes -= job.nbytes
                         self.queued_frames[job.msg.camera_serial] -= 1
+                        self.queued_camera_bytes[job.msg.camera_serial] -= job.nbytes
                     else:
                         self.queued_bytes -= SMALL_JOB_BYTES
                     self._cv.notify_all()
@@ -248,6 +269,11 @@ class WriteQueue:
             try:
                 self.writer.append_gap(job.camera_serial, **job.fields)
             except SessionWriteError as exc:  # the record is kept; the next flush retries it
+                self._failed(exc)
+        elif isinstance(job, _Event):
+            try:
+                self.writer.append_event(job.kind, **job.fields)
+            except SessionWriteError as exc:  # the event is kept; the next flush retries it
                 self._failed(exc)
         elif isinstance(job, _Flush):
             self._flush()

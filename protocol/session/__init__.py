@@ -15,6 +15,8 @@ the reconstructor. The full layout, written so anyone can read a session with pl
     /sets             set_unix_ns (N,), members (N, C) row per camera or -1, spread_ns (N,)
     /gaps             camera_serial, kind, first_missing_frame_index, missing_count,
                       start_unix_ns, end_unix_ns
+    /events           time_unix_ns, kind, node_id, camera_serial, count, detail: what happened
+                      to the links and streams (absent in files written before it existed)
     /summary          per-camera totals and summary_json, written by a clean close
 
 Crash safety. Every dataset is created before the file switches to SWMR mode, so that a writer
@@ -50,15 +52,17 @@ from protocol.session.format import (
     GAP_COLUMNS,
     SUMMARY_COLUMNS,
     CameraInfo,
+    EventKind,
     GapKind,
     GapRecord,
+    SessionEvent,
     SessionFormatError,
     SessionInfo,
     SessionNotFoundError,
     SessionWriteError,
     SetTable,
 )
-from protocol.session.read import SessionReader
+from protocol.session.read import ImageChecksumError, SessionReader
 from protocol.session.write import SessionWriter
 
 __all__ = [
@@ -71,8 +75,11 @@ __all__ = [
     "GAP_COLUMNS",
     "SUMMARY_COLUMNS",
     "CameraInfo",
+    "EventKind",
     "GapKind",
     "GapRecord",
+    "ImageChecksumError",
+    "SessionEvent",
     "SessionFormatError",
     "SessionInfo",
     "SessionNotFoundError",

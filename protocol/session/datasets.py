@@ -130,7 +130,7 @@ def _round_up(n: int, multiple: int) -> int:
     return -(-n // multiple) * multiple
 
 
-def create_table(group: h5py.Group, name: str, dtype: type[np.generic]) -> h5py.Dataset:
+def create_table(group: h5py.Group, name: str, dtype: type[np.generic] | np.dtype) -> h5py.Dataset:
     return group.create_dataset(
         name, shape=(0,), maxshape=(None,), chunks=(TABLE_CHUNK_ROWS,), dtype=dtype
     )

@@ -52,6 +52,18 @@ GAP_COLUMNS: dict[str, type[np.generic]] = {
     "end_unix_ns": np.int64,
 }
 SUMMARY_COLUMNS = ("frames", "missing_frames", "gap_records", "image_bytes")
+# The session events (``/events``): what happened to the links and streams during the take.
+# A file written before the table existed has no ``/events`` group; it reads as no events.
+EVENT_NODE_ID_BYTES = 32  # a node id's bound on the wire (UTF-8)
+EVENT_DETAIL_BYTES = 240  # a detail line, cut at a character boundary (UTF-8)
+EVENT_COLUMNS: dict[str, np.dtype] = {
+    "time_unix_ns": np.dtype(np.int64),
+    "kind": np.dtype(np.uint8),
+    "node_id": np.dtype(f"S{EVENT_NODE_ID_BYTES}"),
+    "camera_serial": np.dtype(np.int64),  # -1: the event is the node's, not one camera's
+    "count": np.dtype(np.int64),  # occurrences the row stands for (a flood is aggregated)
+    "detail": np.dtype(f"S{EVENT_DETAIL_BYTES}"),
+}
 
 # The chunk size of the image byte datasets this version writes. Readers never depend on it:
 # images are located by offset and length, whatever the chunking of the file.
@@ -83,6 +95,42 @@ class GapKind(enum.IntEnum):
     SEQ_GAP = 2  # the publisher's seq skipped: messages lost in transport
     TIME_GAP = 3  # capture_unix_ns jumped by more than 1.5x the median frame interval
     RECONNECT = 4  # the camera reconnected or its agent restarted
+
+
+class EventKind(enum.IntEnum):
+    """What a session event records; the value is the ``kind`` code stored in ``/events/kind``."""
+
+    LINK_DROPPED = 1  # the recorder's link to a node's publisher went down
+    HANDSHAKE_FAILED = 2  # a (re)connection's CURVE handshake was refused, by either side
+    LINK_RECONNECTED = 3  # the link came back (detail: after how long, the cause)
+    PUBLISHER_CHANGED = 4  # a node's publisher restarted or was replaced mid-take
+    RATE_CAPPED = 5  # a camera's frames came faster than 1.5x its fps: the excess refused
+    BYTES_CAPPED = 6  # a camera's bytes exceeded its budget (fps x largest frame): refused
+    STAMP_BACKWARDS = 7  # a camera's capture stamp went back or repeated: frame refused
+    IMPLAUSIBLE_JUMP = 8  # frame_index or seq jumped by over an hour of frames: a reconnect
+    MESSAGE_REFUSED = 9  # a message over the size limits, refused where it was decoded
+
+
+def event_text(text: str, limit_bytes: int) -> bytes:
+    """``text`` as UTF-8 of at most ``limit_bytes``, cut at a character boundary."""
+    raw = text.encode("utf-8", "replace")
+    if len(raw) <= limit_bytes:
+        return raw
+    return raw[:limit_bytes].decode("utf-8", "ignore").encode("utf-8")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SessionEvent:
+    """One row of ``/events``: ``camera_serial`` is -1 for an event of the node as a whole;
+    ``count`` is how many occurrences the row stands for (more than 1 when a flood of one
+    kind from one node was aggregated)."""
+
+    time_unix_ns: int
+    kind: EventKind
+    node_id: str
+    camera_serial: int
+    count: int
+    detail: str
 
 
 @dataclass(frozen=True, kw_only=True)

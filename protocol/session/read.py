@@ -10,6 +10,12 @@ type and a length the file can hold) is checked when it opens; and any error HDF
 raise while reading it later becomes a ``SessionFormatError`` that names the file and the part
 (``_guarded``). Asking for a camera the session does not have (``KeyError``) or a row past the
 end (``IndexError``) stays the caller's error.
+
+Checked images. ``frame_bytes`` compares every image it returns with the XXH3-64 stored when it
+was recorded (format_version 2 on), so no caller uses a changed image unnoticed; a mismatch is
+an ``ImageChecksumError`` naming the camera, row and side, and each command decides whether it
+refuses the file or skips that frame (docs/session.md lists which). The cost is one hash over
+bytes just read from disk: XXH3 runs at several GB/s, against HDF5's read of the same bytes.
 """
 
 from __future__ import annotations
@@ -24,16 +30,20 @@ from typing import Any, TypeVar
 
 import h5py
 import numpy as np
+import xxhash
 
 from protocol.session.format import (
+    EVENT_COLUMNS,
     FORMAT,
     FORMAT_VERSION,
     GAP_COLUMNS,
     OLDEST_FORMAT_VERSION,
     SUMMARY_COLUMNS,
     CameraInfo,
+    EventKind,
     GapKind,
     GapRecord,
+    SessionEvent,
     SessionFormatError,
     SessionInfo,
     SessionNotFoundError,
@@ -62,6 +72,7 @@ READ_ERRORS = (
     AttributeError,
 )
 _F = TypeVar("_F", bound=Callable[..., Any])
+SIDES = ("left", "right")
 
 
 class UnknownCameraError(KeyError):
@@ -70,6 +81,18 @@ class UnknownCameraError(KeyError):
 
 class FrameRowError(IndexError):
     """The caller asked for a frame row past the end of a camera's table."""
+
+
+class ImageChecksumError(SessionFormatError):
+    """An image's bytes no longer match the checksum stored when it was recorded."""
+
+    def __init__(self, path: Path, camera_serial: int, row: int, side: str) -> None:
+        self.camera_serial, self.row, self.side = camera_serial, row, side
+        super().__init__(
+            f"{path}: camera {camera_serial} row {row} {side} image does not match its "
+            "recorded checksum (xxh3_64): its bytes changed after it was recorded; "
+            "'egosurg session verify' lists every damaged image"
+        )
 
 
 def _guarded(what: str) -> Callable[[_F], _F]:
@@ -161,30 +184,40 @@ class SessionReader:
         n = self.frame_count(camera_serial)
         return {name: g[name][:n] for name in self.columns}
 
-    @_guarded("an image")
     def frame_bytes(self, camera_serial: int, row: int) -> tuple[bytes, bytes]:
-        """The (left, right) encoded images of one frame, exactly as they were received."""
+        """The (left, right) encoded images of one frame, exactly as they were received.
+
+        Each is checked against its stored checksum (format_version 2 on): a mismatch raises
+        ``ImageChecksumError`` naming the camera, row and side.
+        """
+        return (
+            self.image_bytes(camera_serial, row, "left"),
+            self.image_bytes(camera_serial, row, "right"),
+        )
+
+    @_guarded("an image")
+    def image_bytes(self, camera_serial: int, row: int, side: str) -> bytes:
+        """One encoded image (``side`` "left" or "right"), checked as ``frame_bytes`` does."""
         view = self._views.get(camera_serial)
         if view is None:
             view = self._views[camera_serial] = _BlobView(
-                self._group(camera_serial), self.frame_count(camera_serial)
+                self._group(camera_serial), self.frame_count(camera_serial), self.info.has_checksums
             )
         n = view.offsets.shape[0]
         if not 0 <= row < n:
             raise FrameRowError(f"camera {camera_serial} has frames 0..{n - 1}, not {row}")
-        out = []
-        for side in (0, 1):
-            start = int(view.offsets[row, side])
-            length = int(view.lengths[row, side])
-            if start < 0 or start + length > view.sizes[side]:
-                name = ("left", "right")[side]
-                raise SessionFormatError(
-                    f"{self._path}: camera {camera_serial} frame {row} {name} bytes "
-                    f"[{start}, {start + length}) lie past the end of {name}_bytes "
-                    f"({view.sizes[side]}); the file is damaged, run verify() for a full report"
-                )
-            out.append(view.read(side, start, length))
-        return out[0], out[1]
+        k = SIDES.index(side)
+        start, length = int(view.offsets[row, k]), int(view.lengths[row, k])
+        if start < 0 or start + length > view.sizes[k]:
+            raise SessionFormatError(
+                f"{self._path}: camera {camera_serial} frame {row} {side} bytes "
+                f"[{start}, {start + length}) lie past the end of {side}_bytes "
+                f"({view.sizes[k]}); the file is damaged, run verify() for a full report"
+            )
+        data = view.read(k, start, length)
+        if view.digests is not None and xxhash.xxh3_64_intdigest(data) != int(view.digests[row, k]):
+            raise ImageChecksumError(self._path, camera_serial, row, side)
+        return data
 
     # -- sets, gaps, summary
 
@@ -216,6 +249,47 @@ class SessionReader:
                 )
             )
         return out
+
+    @_guarded("the session events")
+    def events(self) -> list[SessionEvent]:
+        """The session events (``/events``), in the order they were written; none in a file
+        written before the table existed. Unknown kinds are skipped (``verify`` names them)."""
+        cols = self.events_raw()
+        if cols is None:
+            return []
+        out = []
+        for i in range(cols["kind"].shape[0]):
+            code = int(cols["kind"][i])
+            if code not in _EVENT_CODES:
+                logger.warning("%s: event %d has unknown kind %d", self._path, i, code)
+                continue
+            out.append(
+                SessionEvent(
+                    time_unix_ns=int(cols["time_unix_ns"][i]),
+                    kind=EventKind(code),
+                    node_id=bytes(cols["node_id"][i]).decode("utf-8", "replace"),
+                    camera_serial=int(cols["camera_serial"][i]),
+                    count=int(cols["count"][i]),
+                    detail=bytes(cols["detail"][i]).decode("utf-8", "replace"),
+                )
+            )
+        return out
+
+    def events_raw(self) -> dict[str, np.ndarray] | None:
+        """``/events``' columns cut to their common length; None when the file has none."""
+        g = self._f.get("events")
+        if g is None:
+            return None
+        for name, dtype in EVENT_COLUMNS.items():
+            ds = g[name]
+            if (
+                ds.ndim != 1
+                or ds.dtype != dtype
+                or ds.shape[0] * dtype.itemsize > self._size_bytes  # a damaged shape
+            ):
+                raise ValueError(f"events/{name} has shape {ds.shape} and type {ds.dtype}")
+        n = min(g[name].shape[0] for name in EVENT_COLUMNS)
+        return {name: g[name][:n] for name in EVENT_COLUMNS}
 
     @_guarded("/summary")
     def summary(self) -> dict[str, Any]:
@@ -381,8 +455,13 @@ class SessionReader:
 class _BlobView:
     """One camera's image offsets and byte datasets, cached for fast random reads."""
 
-    def __init__(self, group: h5py.Group, rows: int) -> None:
+    def __init__(self, group: h5py.Group, rows: int, checksums: bool) -> None:
         self.datasets = (group["left_bytes"], group["right_bytes"])
+        # the stored XXH3-64 of each image as uint64, or None in a file from before checksums
+        self.digests: np.ndarray | None = None
+        if checksums:
+            digests = [group["left_xxh3_64"][:rows], group["right_xxh3_64"][:rows]]
+            self.digests = np.stack(digests, axis=1).astype(np.uint64)
         self.sizes = tuple(int(ds.shape[0]) for ds in self.datasets)
         self.offsets = np.stack(
             [group["left_offset"][:rows], group["right_offset"][:rows]], axis=1
@@ -402,6 +481,7 @@ class _BlobView:
 
 
 _GAP_CODES = frozenset(int(k) for k in GapKind)
+_EVENT_CODES = frozenset(int(k) for k in EventKind)
 
 
 def _str_attr(attrs: Any, name: str, default: str | None = None) -> str:

@@ -7,15 +7,22 @@ session written by ``SessionWriter`` (closed cleanly, mode 0600):
 - each camera's frames whose table row and both images can be read, whose images lie inside
   their byte dataset, match their checksum (format_version 2 on), and are whole JPEGs (start and
   end markers) or raw images of the right size; a table is read chunk by chunk, so the rows
-  before a damaged chunk are kept;
+  before a damaged chunk are kept. Each camera is copied on its own: a camera whose group or
+  tables cannot be read is lost, the others are not;
 - every synchronised set all of whose members were copied (its members renumbered to the new
-  rows), whose spread matches its members' capture times and which keeps the sets' order;
-- the gap records that name a session camera and a known kind;
+  rows, a lost camera's column left out), whose spread matches its members' capture times and
+  which keeps the sets' order;
+- the gap records that name a session camera and a known kind, and the session events of a
+  known kind (a file from before the events table has none);
 - the root and camera attributes (name, case metadata, cameras, tolerance, rig config, take
-  links). Without them there is no session to write, and that is the one refusal.
+  links). When the file's own reader cannot read them (a damaged string heap, a damaged camera
+  group, a bad value), what is left of them is salvaged attribute by attribute and the rest is
+  rebuilt from the rig text and the frames (``protocol.session.salvage``), each substitution
+  listed. Only a file whose structure HDF5 cannot open, or in which no camera can be described,
+  is refused.
 
-The report says what was kept and what was lost, per camera, and is stored in the new file's
-``summary_json`` under ``recovered_from``.
+The report says what was kept and what was lost, per camera, and what was skipped or rebuilt and
+why; it is stored in the new file's ``summary_json`` under ``recovered_from``.
 """
 
 from __future__ import annotations
@@ -30,8 +37,19 @@ import h5py
 import numpy as np
 import xxhash
 
-from protocol.session.format import GAP_COLUMNS, GapKind, SessionFormatError
+from protocol.session.format import (
+    EVENT_COLUMNS,
+    GAP_COLUMNS,
+    EventKind,
+    GapKind,
+    SessionFormatError,
+    SessionInfo,
+    SessionNotFoundError,
+    frame_columns,
+)
+from protocol.session.open import open_unprobed, read_superblock
 from protocol.session.read import READ_ERRORS, SessionReader
+from protocol.session.salvage import rebuild_info, salvage_attributes
 from protocol.session.write import SessionWriter
 
 logger = logging.getLogger(__name__)
@@ -44,11 +62,13 @@ class RecoveryReport:
     source: Path
     target: Path
     frames_kept: dict[int, int] = field(default_factory=dict)
-    frames_lost: dict[int, int] = field(default_factory=dict)
+    frames_lost: dict[int, int] = field(default_factory=dict)  # -1: a camera wholly unreadable
     sets_kept: int = 0
     sets_lost: int = 0
     gaps_kept: int = 0
     gaps_lost: int = 0
+    events_kept: int = 0
+    events_lost: int = 0
     problems: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, Any]:
@@ -60,15 +80,20 @@ class RecoveryReport:
             "sets_lost": self.sets_lost,
             "gaps_kept": self.gaps_kept,
             "gaps_lost": self.gaps_lost,
+            "events_kept": self.events_kept,
+            "events_lost": self.events_lost,
             "problems": self.problems,
         }
 
     def lines(self) -> list[str]:
         out = [f"recovered {self.source} into {self.target}"]
         for serial, kept in self.frames_kept.items():
-            out.append(f"camera {serial}: {kept} frames kept, {self.frames_lost[serial]} lost")
+            lost = self.frames_lost[serial]
+            lost_text = f"{lost} lost" if lost >= 0 else "all lost (their number cannot be read)"
+            out.append(f"camera {serial}: {kept} frames kept, {lost_text}")
         out.append(f"synchronised sets: {self.sets_kept} kept, {self.sets_lost} lost")
         out.append(f"gap records: {self.gaps_kept} kept, {self.gaps_lost} lost")
+        out.append(f"session events: {self.events_kept} kept, {self.events_lost} lost")
         out += [f"- {p}" for p in self.problems]
         return out
 
@@ -124,31 +149,63 @@ def recover_session(source: Path | str, target: Path | str) -> RecoveryReport:
     """Copy what is intact in ``source`` into a new session ``target``; see the module doc."""
     source, target = Path(source), Path(target)
     report = RecoveryReport(source, target)
-    try:
-        reader = SessionReader(source, allow_truncated=True)
-    except SessionFormatError as exc:
-        if isinstance(exc, FileNotFoundError):
-            raise
-        raise SessionFormatError(
-            f"nothing can be recovered from {source}: {exc}. Without the file's structure and "
-            "the session's attributes its frames cannot be located; keep the file as it is"
-        ) from None
+    f, info = _open(source, report)
     existed = target.exists()  # then the writer refuses it, and it is not ours to remove
     try:
-        _recover(reader, target, report)
+        _recover(f, info, target, report)
     except BaseException:
         if not existed:  # never leave a half-written copy that looks like a recovery
             target.unlink(missing_ok=True)
         raise
     finally:
-        reader.close()
+        f.close()
     logger.debug("%s", "; ".join(report.lines()))
     return report
 
 
-def _recover(reader: SessionReader, target: Path, report: RecoveryReport) -> None:
-    info = reader.info
-    f = reader.h5
+def _open(source: Path, report: RecoveryReport) -> tuple[h5py.File, SessionInfo]:
+    """The open file and its description: the reader's, or salvaged and rebuilt when the reader
+    cannot describe it (see the module doc)."""
+    try:
+        reader = SessionReader(source, allow_truncated=True)
+        return reader.h5, reader.info
+    except SessionNotFoundError:
+        raise
+    except SessionFormatError as exc:
+        why = str(exc).removeprefix(f"{source}: ")
+    try:
+        read_superblock(source)
+        f = open_unprobed(source)
+    except (OSError, SessionFormatError) as exc:
+        raise SessionFormatError(
+            f"nothing can be recovered from {source}: {exc}. Without the file's structure its "
+            "frames cannot be located; keep the file as it is"
+        ) from None
+    try:
+        salvaged = salvage_attributes(source)
+        notes = [f"the session's description cannot be read as it is ({why}); rebuilt from it"]
+        info = rebuild_info(source, f, salvaged, notes)
+    except BaseException as exc:
+        f.close()
+        if isinstance(exc, SessionFormatError):
+            raise SessionFormatError(
+                f"nothing can be recovered from {source}: {exc}; keep the file as it is"
+            ) from None
+        raise
+    report.problems += [*notes[:1], *salvaged.problems, *notes[1:]]
+    for group in salvaged.groups:  # a camera that cannot be described: all its frames lost
+        serial = int(group.rsplit("/", 1)[-1]) if group.rsplit("/", 1)[-1].isdigit() else -1
+        if serial >= 0 and serial not in info.camera_serials:
+            report.frames_kept[serial] = 0
+            try:
+                report.frames_lost[serial] = int(f[group]["capture_unix_ns"].shape[0])
+            except READ_ERRORS:
+                report.frames_lost[serial] = -1  # its group cannot be read: nor its length
+    return f, info
+
+
+def _recover(f: h5py.File, info: SessionInfo, target: Path, report: RecoveryReport) -> None:
+    columns = frame_columns(info.format_version)
     with SessionWriter(
         target,
         session_name=info.session_name,
@@ -163,37 +220,84 @@ def _recover(reader: SessionReader, target: Path, report: RecoveryReport) -> Non
     ) as writer:
         row_maps: dict[int, dict[int, int]] = {}
         captures: dict[int, np.ndarray] = {}
+        unread = set()  # cameras whose tables cannot be read at all: left out of the sets
         for cam in info.cameras:
             serial = cam.camera_serial
             row_maps[serial], captures[serial] = {}, np.empty(0, np.int64)
             try:
-                row_maps[serial], captures[serial] = _copy_frames(reader, writer, cam, report)
+                row_maps[serial], captures[serial] = _copy_frames(f, columns, writer, cam, report)
             except READ_ERRORS as exc:
-                report.frames_kept.setdefault(serial, 0)
-                report.frames_lost.setdefault(serial, 0)
+                unread.add(serial)
+                report.frames_kept[serial] = 0
+                report.frames_lost[serial] = _declared_rows(f, serial, columns)
                 report.problems.append(f"camera {serial}: cannot be read ({exc})")
+            if not row_maps[serial]:
+                unread.add(serial)
         try:
-            _copy_sets(f, writer, info.camera_serials, row_maps, captures, report)
+            set_columns = _set_columns(f, info, unread, report)
+            _copy_sets(f, writer, set_columns, row_maps, captures, report)
         except READ_ERRORS as exc:
             report.problems.append(f"the synchronised sets cannot be read ({exc})")
         try:
             _copy_gaps(f, writer, info.camera_serials, report)
         except READ_ERRORS as exc:
             report.problems.append(f"the gap records cannot be read ({exc})")
+        try:
+            _copy_events(f, writer, report)
+        except READ_ERRORS as exc:
+            report.problems.append(f"the session events cannot be read ({exc})")
         stopped = info.stopped_unix_ns or max(
             (int(c.max()) for c in captures.values() if c.size), default=time.time_ns()
         )
         writer.close(stopped, {"recovered_from": report.as_dict()})
 
 
+def _declared_rows(f: h5py.File, serial: int, columns: Any) -> int:
+    """The rows a camera's table claims, or -1 when even that cannot be read."""
+    try:
+        return max(int(f[f"cameras/{serial}/{name}"].shape[0]) for name in columns)
+    except READ_ERRORS:
+        return -1
+
+
+def _set_columns(
+    f: h5py.File, info: SessionInfo, unread: set[int], report: RecoveryReport
+) -> tuple[int, ...]:
+    """The serial of each column of the source's sets (-1: a camera not copied), or () when the
+    columns cannot be matched to cameras (the source's camera_serials is lost)."""
+    try:
+        source = [int(x) for x in np.asarray(f.attrs["camera_serials"]).reshape(-1)]
+    except READ_ERRORS:
+        source = []
+    members = f["sets/members"]
+    if members.ndim != 2:
+        report.problems.append(
+            f"the synchronised sets are left out: their members table has shape {members.shape}"
+        )
+        return ()
+    if len(source) != members.shape[1]:
+        report.problems.append(
+            "the synchronised sets are left out: the file no longer says which camera each of "
+            "their columns is"
+        )
+        return ()
+    lost = [s for s in source if s not in info.camera_serials or s in unread]
+    if lost:
+        report.problems.append(
+            f"camera(s) {', '.join(map(str, lost))} kept no frame: left out of the synchronised "
+            "sets, which keep the other cameras"
+        )
+    return tuple(-1 if s in lost else s for s in source)
+
+
 def _copy_frames(
-    reader: SessionReader, writer: SessionWriter, cam: Any, report: RecoveryReport
+    f: h5py.File, columns: Any, writer: SessionWriter, cam: Any, report: RecoveryReport
 ) -> tuple[dict[int, int], np.ndarray]:
     serial = cam.camera_serial
-    group = reader.h5[f"cameras/{serial}"]
+    group = f[f"cameras/{serial}"]
     problems: list[str] = []
-    table = _table(group, reader.columns, problems)
-    declared = max(group[name].shape[0] for name in reader.columns)
+    table = _table(group, columns, problems)
+    declared = max(group[name].shape[0] for name in columns)
     blobs = (group["left_bytes"], group["right_bytes"])
     raw_bytes = cam.width * cam.height * 3
     row_map: dict[int, int] = {}
@@ -234,39 +338,43 @@ def _copy_frames(
 def _copy_sets(
     f: h5py.File,
     writer: SessionWriter,
-    serials: tuple[int, ...],
+    columns: tuple[int, ...],
     row_maps: dict[int, dict[int, int]],
     captures: dict[int, np.ndarray],
     report: RecoveryReport,
 ) -> None:
+    """``columns``: the camera of each source column, -1 for one not copied (its column is left
+    out of every set); () copies no set. A member whose frame was not kept is left out of its
+    set (-1, as a camera missing from a set is); a set with no member left is lost."""
     problems: list[str] = []
-    sets = _table(f["sets"], ("set_unix_ns", "members", "spread_ns"), problems)
-    declared = max(f[f"sets/{n}"].shape[0] for n in ("set_unix_ns", "members", "spread_ns"))
+    names = ("set_unix_ns", "members", "spread_ns")
+    declared = max(f[f"sets/{n}"].shape[0] for n in names)
+    if not columns:
+        report.sets_lost = declared
+        return
+    sets = _table(f["sets"], names, problems)
+    out_serials = writer.camera_serials
     last_time = None
-    last_rows = [-1] * len(serials)
-    respread = 0
+    last_rows = dict.fromkeys(out_serials, -1)
+    respread = dropped = 0
     for k in range(sets["set_unix_ns"].shape[0]):
-        members = []
-        for c, serial in enumerate(serials):
-            m = int(sets["members"][k, c])
-            members.append(-1 if m == -1 else row_maps[serial].get(m, -2))
-        present = [(c, m) for c, m in enumerate(members) if m >= 0]
-        times = [int(captures[serials[c]][m]) for c, m in present]
+        members, missing, in_lost_columns = _members(sets["members"][k], columns, row_maps)
         t = int(sets["set_unix_ns"][k])
         if (
-            -2 in members
-            or not present
+            not members
             or (last_time is not None and t < last_time)
-            or any(m <= last_rows[c] for c, m in present)
+            or any(m <= last_rows[c] for c, m in members.items())
         ):
             continue
+        times = [int(captures[c][m]) for c, m in members.items()]
         spread = max(times) - min(times)
-        if spread != int(sets["spread_ns"][k]):  # the frames are intact: their times decide
-            respread += 1
-        writer.append_set(t, members, spread)
+        # the frames are intact: their times decide (a member left out changes it, rightly)
+        changed = missing or in_lost_columns
+        respread += not changed and spread != int(sets["spread_ns"][k])
+        dropped += missing
+        writer.append_set(t, [members.get(c, -1) for c in out_serials], spread)
         last_time = t
-        for c, m in present:
-            last_rows[c] = m
+        last_rows.update(members)
         report.sets_kept += 1
     report.sets_lost = declared - report.sets_kept
     if respread:
@@ -274,9 +382,35 @@ def _copy_sets(
             f"{respread} kept sets had a spread_ns that disagreed with their members' capture "
             "times; it was recomputed from them"
         )
-    if report.sets_lost > len(problems):
-        problems.append(f"{report.sets_lost} synchronised sets with a damaged or missing member")
+    if dropped:
+        problems.append(
+            f"{dropped} set members whose frames were not kept are left out of their sets"
+        )
+    if report.sets_lost:
+        problems.append(
+            f"{report.sets_lost} synchronised sets lost: unreadable, with no member left, or out "
+            "of order"
+        )
     report.problems += problems
+
+
+def _members(
+    row: np.ndarray, columns: tuple[int, ...], row_maps: dict[int, dict[int, int]]
+) -> tuple[dict[int, int], int, int]:
+    """One set's members as {serial: new row}; how many of its members' frames were not kept,
+    and how many are in the columns of cameras not copied."""
+    out, missing, in_lost_columns = {}, 0, 0
+    for c, serial in enumerate(columns):
+        m = int(row[c])
+        in_lost_columns += serial == -1 and m != -1
+        if serial == -1 or m == -1:
+            continue
+        new = row_maps[serial].get(m)
+        if new is None:
+            missing += 1
+        else:
+            out[serial] = new
+    return out, missing, in_lost_columns
 
 
 def _copy_gaps(
@@ -299,4 +433,28 @@ def _copy_gaps(
         )
         report.gaps_kept += 1
     report.gaps_lost = declared - report.gaps_kept
+    report.problems += problems
+
+
+def _copy_events(f: h5py.File, writer: SessionWriter, report: RecoveryReport) -> None:
+    """The session events of a known kind, in order; a file without the table has none."""
+    if "events" not in f:
+        return
+    problems: list[str] = []
+    events = _table(f["events"], tuple(EVENT_COLUMNS), problems)
+    declared = max(f[f"events/{n}"].shape[0] for n in EVENT_COLUMNS)
+    known = {int(k) for k in EventKind}
+    for i in range(events["kind"].shape[0]):
+        if int(events["kind"][i]) not in known or int(events["count"][i]) < 1:
+            continue
+        writer.append_event(
+            int(events["kind"][i]),
+            time_unix_ns=int(events["time_unix_ns"][i]),
+            node_id=bytes(events["node_id"][i]).decode("utf-8", "replace"),
+            camera_serial=int(events["camera_serial"][i]),
+            count=int(events["count"][i]),
+            detail=bytes(events["detail"][i]).decode("utf-8", "replace"),
+        )
+        report.events_kept += 1
+    report.events_lost = declared - report.events_kept
     report.problems += problems

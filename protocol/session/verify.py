@@ -15,7 +15,7 @@ import h5py
 import numpy as np
 import xxhash
 
-from protocol.session.format import GAP_COLUMNS, GapKind
+from protocol.session.format import EVENT_COLUMNS, GAP_COLUMNS, EventKind, GapKind
 
 # The SessionReader being verified (not imported: session_read imports this module).
 SessionReader = Any
@@ -55,6 +55,7 @@ def verify_session(r: SessionReader, *, check_images: bool = True) -> list[str]:
         problems += _verify_camera(r, serial, tail, check_images)
     problems += _verify_sets(r, tail)
     problems += _verify_gaps(r, tail)
+    problems += _verify_events(r, tail)
     if clean:
         problems += _verify_summary(r)
     return problems
@@ -182,6 +183,48 @@ def _verify_gaps(r: SessionReader, tail: str) -> list[str]:
     backwards = np.flatnonzero(cols["end_unix_ns"] < cols["start_unix_ns"])
     if backwards.size:
         out.append(f"error: gap records {_rows(backwards)} end before they start")
+    return out
+
+
+def _verify_events(r: SessionReader, tail: str) -> list[str]:
+    """The session events' table checked. A file written before the table existed has none,
+    which is no problem. (What the events say is ``describe_events``: they are what happened
+    during the take, not damage.)"""
+    cols = r.events_raw()
+    if cols is None:
+        return []
+    out = _ragged_columns(tail, "events:", r._f["events"], EVENT_COLUMNS)
+    unknown = np.flatnonzero(~np.isin(cols["kind"], [int(k) for k in EventKind]))
+    if unknown.size:
+        out.append(f"error: session events {_rows(unknown)} have an unknown kind")
+    serial = cols["camera_serial"]
+    strangers = np.flatnonzero((serial != -1) & ~np.isin(serial, r.info.camera_serials))
+    if strangers.size:
+        out.append(f"error: session events {_rows(strangers)} name a camera not in the session")
+    uncounted = np.flatnonzero(cols["count"] < 1)
+    if uncounted.size:
+        out.append(f"error: session events {_rows(uncounted)} stand for fewer than 1 occurrence")
+    return out
+
+
+def describe_events(r: SessionReader) -> list[str]:
+    """One line per kind of session event that happened: how many times, in how many records,
+    from which nodes (``egosurg session verify`` prints them after the problems)."""
+    cols = r.events_raw()
+    if cols is None:
+        return []
+    out = []
+    for kind in EventKind:
+        rows = np.flatnonzero(cols["kind"] == int(kind))
+        if not rows.size:
+            continue
+        nodes = sorted({bytes(n).decode("utf-8", "replace") for n in cols["node_id"][rows]})
+        shown = ", ".join(repr(n) for n in nodes[:5]) + (" ..." if len(nodes) > 5 else "")
+        total = int(np.maximum(cols["count"][rows], 0).sum())
+        out.append(
+            f"event {kind.name.lower()}: {total} time(s) in {rows.size} record(s), from "
+            f"node(s) {shown}"
+        )
     return out
 
 

@@ -40,6 +40,9 @@ from protocol.session.datasets import (
 )
 from protocol.session.format import (
     BLOB_CHUNK_BYTES,
+    EVENT_COLUMNS,
+    EVENT_DETAIL_BYTES,
+    EVENT_NODE_ID_BYTES,
     FORMAT,
     FORMAT_VERSION,
     FRAME_COLUMNS,
@@ -47,8 +50,10 @@ from protocol.session.format import (
     SUMMARY_COLUMNS,
     TABLE_CHUNK_ROWS,
     CameraInfo,
+    EventKind,
     GapKind,
     SessionWriteError,
+    event_text,
 )
 from protocol.session.privacy import create_private_file, redact_secrets
 
@@ -106,6 +111,8 @@ class SessionWriter:
         self._sets_rows = 0
         self._gaps_pending: list[tuple[int, ...]] = []
         self._gaps_rows = 0
+        self._events_pending: list[tuple[int, int, bytes, int, int, bytes]] = []
+        self._events_rows = 0
         self._f = _create_file(self._path, blob_chunk_bytes)
         try:
             self._sink = ChunkSink(
@@ -190,6 +197,10 @@ class SessionWriter:
         self._set_spread = create_table(sets, "spread_ns", np.int64)
         gaps = f.create_group("gaps")
         self._gap_tables = {name: create_table(gaps, name, dt) for name, dt in GAP_COLUMNS.items()}
+        events = f.create_group("events")
+        self._event_tables = {
+            name: create_table(events, name, dt) for name, dt in EVENT_COLUMNS.items()
+        }
         summary = f.create_group("summary")
         summary.create_dataset("camera_serial", data=np.asarray(self._serials, dtype=np.int64))
         for name in SUMMARY_COLUMNS:
@@ -335,11 +346,46 @@ class SessionWriter:
             self.flush()
         return self._gaps_rows - 1
 
+    def append_event(
+        self,
+        kind: EventKind | int,
+        *,
+        time_unix_ns: int,
+        node_id: str,
+        camera_serial: int = -1,
+        count: int = 1,
+        detail: str = "",
+    ) -> int:
+        """Append a session event (``EventKind``); ``camera_serial`` -1 for the node's own,
+        ``count`` the occurrences the row stands for. ``node_id`` and ``detail`` are cut to
+        their bounds (``EVENT_NODE_ID_BYTES``, ``EVENT_DETAIL_BYTES``). Returns its row.
+
+        The caller bounds how many it appends (the recording aggregates a flood)."""
+        self._check_open()
+        code = EventKind(kind)
+        if count < 1:
+            raise ValueError(f"an event stands for at least 1 occurrence, got count={count}")
+        self._events_pending.append(
+            (
+                int(time_unix_ns),
+                int(code),
+                event_text(node_id, EVENT_NODE_ID_BYTES),
+                int(camera_serial),
+                int(count),
+                event_text(detail, EVENT_DETAIL_BYTES),
+            )
+        )
+        self._events_rows += 1
+        if len(self._events_pending) >= _MAX_PENDING_ROWS:
+            self.flush()
+        return self._events_rows - 1
+
     def flush(self, *, fsync: bool = False) -> None:
         """Make everything appended so far durable against a crash of this process.
 
         Order: image bytes, then the frame tables that point into them, then sets and gaps that
-        point at frames. ``fsync=True`` also asks the OS to put it on disk (power loss).
+        point at frames, then the session events. ``fsync=True`` also asks the OS to put it on
+        disk (power loss).
         """
         self._check_open()
         try:
@@ -387,6 +433,15 @@ class SessionWriter:
                 append_rows(self._gap_tables[name], start, end, np.asarray(col, dtype=dtype))
             self._gaps_pending.clear()
         for ds in self._gap_tables.values():
+            ds.flush()
+        if self._events_pending:
+            start = self._events_rows - len(self._events_pending)
+            end = start + len(self._events_pending)
+            columns = list(zip(*self._events_pending, strict=True))
+            for (name, etype), col in zip(EVENT_COLUMNS.items(), columns, strict=True):
+                append_rows(self._event_tables[name], start, end, np.asarray(col, dtype=etype))
+            self._events_pending.clear()
+        for ds in self._event_tables.values():
             ds.flush()
 
     def close(self, stopped_unix_ns: int, summary: Mapping[str, Any] | None = None) -> None:

@@ -33,6 +33,12 @@ FRAME_WIRE_VERSION = 1
 MAX_FRAME_BYTES = 64 * 1024 * 1024  # per image; HD1200 raw BGR is 6.9 MB
 MAX_IMAGE_SIDE_PX = 8192
 
+
+class ImageTooLargeError(MalformedMessageError):
+    """A frame whose image is larger than the receiver's ``max_image_bytes`` (rig.toml): a
+    sender configured for bigger images than the rig was sized for, counted on its own."""
+
+
 _FRAME_HEADER = struct.Struct("<4sHHQQQqqqQQHHBBBB32s")
 FRAME_HEADER_BYTES = _FRAME_HEADER.size  # 112
 
@@ -152,10 +158,13 @@ class FrameMessage:
         return [self.header(), self.left, self.right]
 
     @classmethod
-    def from_parts(cls, parts: Sequence[WirePart]) -> FrameMessage:
+    def from_parts(
+        cls, parts: Sequence[WirePart], *, max_image_bytes: int = MAX_FRAME_BYTES
+    ) -> FrameMessage:
         """Decode ``recv_multipart()`` output (bytes, or ``zmq.Frame`` with ``copy=False``).
 
         The image buffers of the result are views of ``parts[1]`` and ``parts[2]``, not copies.
+        An image over ``max_image_bytes`` (the rig's limit) raises ``ImageTooLargeError``.
         """
         n_parts = len(parts)
         if n_parts == 0:
@@ -227,6 +236,12 @@ class FrameMessage:
                 raise MalformedMessageError(
                     f"frame header says the {side} image is {claimed} bytes, above the "
                     f"{MAX_FRAME_BYTES}-byte limit (MAX_FRAME_BYTES)"
+                )
+            if claimed > max_image_bytes:
+                raise ImageTooLargeError(
+                    f"frame of camera {camera_serial}: its {side} image is {claimed} bytes, above "
+                    f"the rig's max_image_bytes = {max_image_bytes}; lower the camera's "
+                    "resolution, use jpeg, or raise max_image_bytes in rig.toml"
                 )
             buf = as_buffer(part, f"frame {side} image")
             if len(buf) != claimed:

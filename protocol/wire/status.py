@@ -33,7 +33,7 @@ from protocol.wire.checks import (
     load_json_object,
     require_object,
 )
-from protocol.wire.frame import FrameMessage
+from protocol.wire.frame import MAX_FRAME_BYTES, FrameMessage
 
 STATUS_WIRE_VERSION = 1
 PTP_STATES = ("locked", "unlocked", "no_ptp4l", "no_pmc", "disabled")
@@ -206,8 +206,11 @@ class AgentStatus:
         )
 
 
-def decode_published(parts: Sequence[WirePart]) -> FrameMessage | AgentStatus:
-    """Decode anything an agent publishes, by the magic at the start of the first part."""
+def decode_published(
+    parts: Sequence[WirePart], *, max_image_bytes: int = MAX_FRAME_BYTES
+) -> FrameMessage | AgentStatus:
+    """Decode anything an agent publishes, by the magic at the start of the first part; a
+    frame's images over ``max_image_bytes`` raise ``ImageTooLargeError``."""
     if len(parts) == 0:
         raise MalformedMessageError("published message has 0 parts")
     first = as_buffer(parts[0], "published message")
@@ -217,7 +220,7 @@ def decode_published(parts: Sequence[WirePart]) -> FrameMessage | AgentStatus:
         )
     magic = bytes(first[:4])
     if magic == FRAME_MAGIC:
-        return FrameMessage.from_parts(parts)
+        return FrameMessage.from_parts(parts, max_image_bytes=max_image_bytes)
     if magic == STATUS_MAGIC:
         return AgentStatus.from_parts(parts)
     raise MalformedMessageError(

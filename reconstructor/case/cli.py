@@ -7,10 +7,16 @@ Examples::
     egosurg reconstruct CASE.h5 --every 1s --out case/ --ray auto
     egosurg reconstruct CASE.h5 --every 1s --out case/ --cold     # no warm start
     egosurg case info case/
+    egosurg case info case/ --verify    # also read every model and compare its checksum
     egosurg case export case/ --out ply/ [--at t00060.000] [--format splat]
 
 Rerunning the same ``reconstruct`` command resumes: finished timestamps are checked by checksum
 and skipped; the rest are (re)done. docs/case.md describes the folder and its index.
+
+``case info`` checks every done model: that its file is there with the size written (always: a
+stat per model) and, with ``--verify``, its checksum (reading every model). A missing or damaged
+model is shown as MISSING or DAMAGED, not done, and the command exits 1; a model from before
+checksums were recorded is "unchecked".
 """
 
 from __future__ import annotations
@@ -18,11 +24,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from protocol.command import add_subcommand, command_parser
-from reconstructor.case.index import INDEX_NAME, CaseIndex
+from reconstructor.case.index import INDEX_NAME, CaseIndex, Entry, check_model
 from reconstructor.case.plan import (
     config_hash,
     parse_duration_s,
@@ -108,15 +115,19 @@ def summary_line(folder: Path, index: CaseIndex) -> str:
     )
 
 
-def info(folder: Path) -> str:
+def info(folder: Path, *, verify: bool = False) -> tuple[str, int]:
+    """The case's summary and per-timestamp table, and how many done models are missing or
+    damaged (see the module docstring)."""
     index = _read(folder)
     c = index.counts()
     done = [e for e in index.timestamps if e.status == "done"]
+    checks = {e.name: check_model(folder, e, read=verify) for e in done}
     lines = [
         f"case {folder}  session {index.session}",
         f"config hash {index.config_hash}  warm start {'on' if index.warm_start else 'off'}",
         f"timestamps {len(index.timestamps)}: {c['done']} done, {c['pending']} pending, "
         f"{c['failed']} failed",
+        _checked_line(checks, verify),
     ]
     if done:
         from reconstructor.case.storage import is_compact
@@ -136,12 +147,33 @@ def info(folder: Path) -> str:
         )
     lines.append(f"{'name':<12} {'set':>6} {'status':<8} {'MB':>7} {'s':>7} {'gaussians':>9} from")
     for e in index.timestamps:
-        lines.append(
-            f"{e.name:<12} {e.set_index:>6} {e.status:<8} {e.bytes / 1e6:>7.2f} "
-            f"{e.seconds:>7.1f} {e.gaussians:>9} {e.warm_from or '-'}"
-            + (f"  {e.error}" if e.error else "")
-        )
-    return "\n".join(lines)
+        lines.append(_entry_line(e, checks.get(e.name)))
+    bad = sum(state in ("missing", "damaged") for state, _ in checks.values())
+    return "\n".join(lines), bad
+
+
+def _checked_line(checks: Mapping[str, tuple[str, str]], verify: bool) -> str:
+    counts = {k: 0 for k in ("ok", "size ok", "unchecked", "missing", "damaged")}
+    for state, _ in checks.values():
+        counts[state] += 1
+    how = "by checksum" if verify else "by size; --verify reads their checksums"
+    return (
+        f"models checked {how}: {counts['ok'] + counts['size ok']} as written, "
+        f"{counts['missing']} MISSING, {counts['damaged']} DAMAGED, "
+        f"{counts['unchecked']} unchecked (no checksum recorded)"
+    )
+
+
+def _entry_line(e: Entry, check: tuple[str, str] | None) -> str:
+    status: str = e.status
+    note = e.error
+    if check is not None and check[0] in ("missing", "damaged", "unchecked"):
+        status = check[0].upper() if check[0] != "unchecked" else "done?"
+        note = check[1]
+    return (
+        f"{e.name:<12} {e.set_index:>6} {status:<8} {e.bytes / 1e6:>7.2f} "
+        f"{e.seconds:>7.1f} {e.gaussians:>9} {e.warm_from or '-'}" + (f"  {note}" if note else "")
+    )
 
 
 def export(folder: Path, out: Path, at: list[str] | None, fmt: str) -> list[Path]:
@@ -185,8 +217,15 @@ def _read(folder: Path) -> CaseIndex:
 def main(argv: list[str]) -> int:
     parser = command_parser("egosurg case", __doc__)
     sub = parser.add_subparsers(dest="verb", required=True)
-    p_info = add_subcommand(sub, "info", "what is done, pending, failed; sizes; timings")
+    p_info = add_subcommand(
+        sub, "info", "what is done, pending, failed; sizes; timings; missing or damaged models"
+    )
     p_info.add_argument("case", help="a case folder made by 'egosurg reconstruct --every'")
+    p_info.add_argument(
+        "--verify",
+        action="store_true",
+        help="read every done model and compare its checksum (default: presence and size only)",
+    )
     p_exp = add_subcommand(sub, "export", "timestamps as standard 3DGS PLY (or .splat) files")
     p_exp.add_argument("case")
     p_exp.add_argument("--out", required=True, help="folder to write the files to")
@@ -194,8 +233,9 @@ def main(argv: list[str]) -> int:
     p_exp.add_argument("--format", choices=("ply", "splat"), default="ply")
     args = parser.parse_args(argv)
     if args.verb == "info":
-        print(info(Path(args.case)))
-        return 0
+        text, bad = info(Path(args.case), verify=args.verify)
+        print(text)
+        return 1 if bad else 0
     files = export(Path(args.case), Path(args.out), args.at, args.format)
     print(f"{args.out}: {len(files)} file(s) exported")
     return 0

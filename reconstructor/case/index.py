@@ -124,6 +124,31 @@ def checksum_file(path: Path) -> tuple[str, int]:
     return h.hexdigest(), size
 
 
+ModelState = Literal["ok", "size ok", "unchecked", "missing", "damaged"]
+
+
+def check_model(folder: Path, entry: Entry, *, read: bool) -> tuple[ModelState, str]:
+    """Whether a done entry's model is still what was written, and what is wrong if not.
+
+    Without ``read`` only the file's presence and size are checked (a stat: cheap for any case);
+    with it, its checksum too ("ok"). An entry from before checksums were recorded is
+    "unchecked" (its file's presence still is)."""
+    path = folder / entry.model
+    if not entry.model or not path.is_file():
+        return "missing", f"model {entry.model or '(none)'} is missing"
+    if not entry.xxh3_64:
+        return "unchecked", "no checksum was recorded for this model"
+    size = path.stat().st_size
+    if size != entry.bytes:
+        return "damaged", f"model {entry.model} is {size} bytes, {entry.bytes} were written"
+    if not read:
+        return "size ok", ""
+    digest, _ = checksum_file(path)
+    if digest != entry.xxh3_64:
+        return "damaged", f"model {entry.model} does not match its checksum (xxh3_64)"
+    return "ok", ""
+
+
 def verify(folder: Path, entry: Entry) -> bool:
     """True when a done entry's model is there with its recorded checksum."""
     if entry.status != "done" or not entry.model:

@@ -7,7 +7,9 @@ Reading a session (this module) is separate from turning it into training views 
 - a set index: ``set:120`` (``egosurg session info`` prints how many sets a session has).
 
 A set in which some cameras are missing still reconstructs from the others; the missing cameras
-are named in ``Timestamp.missing_serials`` and in the run's log.
+are named in ``Timestamp.missing_serials`` and in the run's log. A camera whose image at the set
+no longer matches its recorded checksum is left out the same way, with a warning naming camera,
+row and side, and named in ``Timestamp.damaged_images`` (and the run's summary).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from protocol.camera import Camera, Intrinsics, Pose, Resolution
 from protocol.formats.rig_calibration import RigCalibration
 from protocol.formats.zed_conf import derive_intrinsics
 from protocol.images import EncodeError, decode_image
-from protocol.session import SessionInfo, SessionReader
+from protocol.session import CameraInfo, ImageChecksumError, SessionInfo, SessionReader
 from reconstructor.errors import CalibrationMismatchError, ReconstructError, TimestampError
 
 log = logging.getLogger(__name__)
@@ -51,6 +53,8 @@ class Timestamp:
     frames: tuple[SensorFrame, ...]
     missing_serials: tuple[int, ...]
     resolution: Resolution
+    # the images left out because they no longer match their checksums: "SN<serial> row <r> <side>"
+    damaged_images: tuple[str, ...] = ()
 
     def sensor(self, camera_serial: int, side: str) -> SensorFrame:
         for f in self.frames:
@@ -150,7 +154,8 @@ def load_timestamp(
     *,
     calibration_source: str = "the calibration",
 ) -> Timestamp:
-    """Decode every sensor's image of the set ``at`` names."""
+    """Decode every sensor's image of the set ``at`` names; a camera whose image is damaged is
+    left out with a warning (see the module docstring)."""
     path = Path(session)
     with SessionReader(path) as reader:
         info = reader.info
@@ -160,6 +165,7 @@ def load_timestamp(
         members = sets.members[index]
         frames: list[SensorFrame] = []
         missing: list[int] = []
+        damaged: list[str] = []
         resolution = Resolution.parse(info.cameras[0].resolution)
         for column, serial in enumerate(info.camera_serials):
             row = int(members[column])
@@ -173,35 +179,23 @@ def load_timestamp(
                     f"{path}: cameras recorded different modes ({resolution.value} and "
                     f"{res.value} for SN{serial}); the reconstructor needs one mode"
                 )
-            stamp = int(reader.frame_table(serial)["capture_unix_ns"][row])
-            buffers = reader.frame_bytes(serial, row)
-            for side, buf in zip(SIDES, buffers, strict=True):
-                try:
-                    bgr = decode_image(buf, cam_info.encoding, cam_info.width, cam_info.height)
-                except EncodeError as exc:
-                    raise ReconstructError(
-                        f"{path}: SN{serial} {side} frame {row} cannot be decoded ({exc}); "
-                        "run 'egosurg session verify' on the file"
-                    ) from exc
-                sensor = calibration.sensor(serial, side)
-                camera = Camera(
-                    name=f"SN{serial}-{side}",
-                    intrinsics=session_intrinsics(calibration, serial, side, res),
-                    pose=sensor.pose,
-                )
-                frames.append(
-                    SensorFrame(
-                        camera=camera,
-                        camera_serial=serial,
-                        side=side,
-                        image_rgb=np.ascontiguousarray(bgr[:, :, ::-1]),
-                        capture_unix_ns=stamp,
-                    )
+            try:
+                frames += _camera_frames(reader, cam_info, row, calibration, res)
+            except ImageChecksumError as exc:
+                damaged.append(f"SN{serial} row {exc.row} {exc.side}")
+                log.warning(
+                    "set %d: SN%d row %d %s image does not match its recorded checksum; "
+                    "reconstructing without SN%d ('egosurg session verify' lists the damage)",
+                    index,
+                    serial,
+                    exc.row,
+                    exc.side,
+                    serial,
                 )
         if not frames:
             raise ReconstructError(
-                f"{path}: set {index} has no camera at all; choose another --at "
-                "('egosurg session info' shows the sets)"
+                f"{path}: set {index} has no usable camera (missing or damaged); choose another "
+                "--at ('egosurg session info' shows the sets)"
             )
         if missing:
             log.warning(
@@ -219,7 +213,46 @@ def load_timestamp(
             frames=tuple(frames),
             missing_serials=tuple(missing),
             resolution=resolution,
+            damaged_images=tuple(damaged),
         )
+
+
+def _camera_frames(
+    reader: SessionReader,
+    cam_info: CameraInfo,
+    row: int,
+    calibration: RigCalibration,
+    res: Resolution,
+) -> list[SensorFrame]:
+    """Both sensors' decoded images of one camera's frame ``row``; ``ImageChecksumError`` when
+    either image is damaged (both are read before either is used)."""
+    serial = cam_info.camera_serial
+    stamp = int(reader.frame_table(serial)["capture_unix_ns"][row])
+    buffers = reader.frame_bytes(serial, row)
+    out = []
+    for side, buf in zip(SIDES, buffers, strict=True):
+        try:
+            bgr = decode_image(buf, cam_info.encoding, cam_info.width, cam_info.height)
+        except EncodeError as exc:
+            raise ReconstructError(
+                f"{reader.path}: SN{serial} {side} frame {row} cannot be decoded ({exc}); "
+                "run 'egosurg session verify' on the file"
+            ) from exc
+        camera = Camera(
+            name=f"SN{serial}-{side}",
+            intrinsics=session_intrinsics(calibration, serial, side, res),
+            pose=calibration.sensor(serial, side).pose,
+        )
+        out.append(
+            SensorFrame(
+                camera=camera,
+                camera_serial=serial,
+                side=side,
+                image_rgb=np.ascontiguousarray(bgr[:, :, ::-1]),
+                capture_unix_ns=stamp,
+            )
+        )
+    return out
 
 
 def right_from_left(left: Camera, right: Camera) -> Pose:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
+import sys
 from pathlib import Path
 
 from protocol.command import CommandArgumentError, command_parser, parse_size_px
@@ -82,7 +83,11 @@ def main_replay(argv: list[str]) -> int:
     p.add_argument("--size", default="960x600", help="WxH, even (960x600)")
     p.add_argument("--from", dest="t_from", type=float, help="first case time, s")
     p.add_argument("--to", dest="t_to", type=float, help="last case time, s")
-    p.add_argument("--pip", action="store_true", help="inset the nearest real camera's frame")
+    p.add_argument(
+        "--pip",
+        action="store_true",
+        help="inset the nearest real camera's frame (a damaged one shows DAMAGED and is listed)",
+    )
     p.add_argument("--no-preload", action="store_true", help="read each model when first shown")
     p.add_argument("--allow-gaps", action="store_true", help="show the model before a gap")
     p.add_argument("--near-m", type=float, help=f"near plane, m ({EYE_NEAR_M:g} for a role)")
@@ -117,6 +122,12 @@ def main_replay(argv: list[str]) -> int:
         f"{stats.models} models; {stats.fps:.1f} frames/s rendered, "
         f"{stats.load_wait_s:.2f} s waiting on models (preload {'on' if config.preload else 'off'})"
     )
+    if stats.damaged_images:  # shown as "DAMAGED" in the inset, never as the changed image
+        print(
+            f"warning: --pip: {len(stats.damaged_images)} damaged real frame(s) not shown "
+            f"(checksum mismatch): {', '.join(stats.damaged_images)}",
+            file=sys.stderr,
+        )
     if config.observed:
         from reconstructor.replay.observed_case import observed_paths
 
@@ -250,7 +261,11 @@ def main_view(argv: list[str]) -> int:
         save_to=Path(args.save_to), viewpoint_name=args.name, start=start,
     )  # fmt: skip
     if args.host not in ("127.0.0.1", "localhost", "::1"):
-        log.warning("serving on %s: anyone who reaches it sees the case (no login)", args.host)
+        log.warning(
+            "serving on %s: other machines can reach it; only a page with the printed URL's "
+            "token gets the case",
+            args.host,
+        )
     viewer = CaseViewer(Path(args.case), config)
     print(f"egosurg view: {args.case} at {viewer.url} (Ctrl-C to stop)", flush=True)
     try:

@@ -3,6 +3,10 @@
 Each output frame at case time t renders the path's camera at t into the case's model at t (the
 last done timestamp at or before t); a time code and the model's name are burned in. The
 models come from :class:`ModelSource`, which reads ahead in a thread when ``preload`` is on.
+
+With ``--pip`` the nearest real camera's frame is inset; an image that no longer matches its
+recorded checksum is never shown: the inset says "DAMAGED" with its camera and row instead, the
+run logs a warning and ``ReplayStats.damaged_images`` lists it.
 """
 
 from __future__ import annotations
@@ -62,6 +66,7 @@ class ReplayStats:
     load_wait_s: float  # time blocked on reading models (what preloading hides)
     t_from_s: float
     t_to_s: float
+    damaged_images: tuple[str, ...] = ()  # --pip frames not shown: "SN<serial> row <r> left"
 
     @property
     def fps(self) -> float:
@@ -107,9 +112,11 @@ class RealCameras:
 
     def __init__(self, models: CaseModels) -> None:
         from protocol.images import decode_image
-        from protocol.session import SessionReader
+        from protocol.session import ImageChecksumError, SessionReader
 
         self._decode = decode_image
+        self._damage_error = ImageChecksumError
+        self.damaged: list[str] = []  # "SN<serial> row <r> left", in the order first met
         session = Path(models.index.session)
         cal = models.folder / "calibration.toml"
         if not session.is_file() or not cal.is_file():
@@ -133,12 +140,25 @@ class RealCameras:
         if row < 0:
             return None
         key = (sensor.camera_serial, row)
+        label = f"{sensor.name} {timecode(self.set_t_s[k])}"
         if key not in self._cache:
             info = self.reader.info.camera(sensor.camera_serial)
-            left, _ = self.reader.frame_bytes(sensor.camera_serial, row)
+            try:
+                left = self.reader.image_bytes(sensor.camera_serial, row, "left")
+            except self._damage_error:
+                return self._damaged(sensor.camera_serial, row, info.width, info.height)
             bgr = self._decode(left, info.encoding, info.width, info.height)
             self._cache = {key: np.ascontiguousarray(bgr[:, :, ::-1])}  # keep one: small memory
-        return self._cache[key], f"{sensor.name} {timecode(self.set_t_s[k])}"
+        return self._cache[key], label
+
+    def _damaged(self, serial: int, row: int, width: int, height: int) -> tuple[np.ndarray, str]:
+        """A dark inset that says the real frame is damaged, never the changed image."""
+        name = f"SN{serial} row {row} left"
+        if name not in self.damaged:
+            self.damaged.append(name)
+            log.warning("--pip: %s image does not match its recorded checksum; not shown", name)
+        h = max(16, round(160 * height / max(width, 1)))
+        return np.full((h, 160, 3), 40, np.uint8), f"DAMAGED SN{serial} row {row}"
 
     def close(self) -> None:
         self.reader.close()
@@ -192,4 +212,5 @@ def replay(
         load_wait_s=waited,
         t_from_s=float(times[0]),
         t_to_s=float(times[-1]),
+        damaged_images=tuple(real.damaged) if real is not None else (),
     )

@@ -16,7 +16,8 @@ What it does, as the contract asks:
 
 Tests change its answers through ``status_result`` (the ``result`` of an ok reply),
 ``status_refusal`` (answer ``ok: false`` with that error) or ``status_delay_s`` (answer late),
-and read what it sent with ``frames_sent()``.
+and read what it sent with ``frames_sent()``. ``publish_raw(parts)`` sends one message of any
+parts on its frame socket (a fault: an oversize part).
 """
 
 from __future__ import annotations
@@ -64,6 +65,7 @@ class SpecAgent:
         self._lock = threading.Lock()
         self._auth: Any = None  # pyzmq's ThreadAuthenticator, with CURVE
         self._images = {s: self._stereo_jpeg(s) for s in self.serials}
+        self._raw: list[list[bytes]] = []  # messages for publish_raw, sent by the PUB thread
 
     # -- the camera: synthetic JPEGs, different per camera and side ----------------------------
     def _stereo_jpeg(self, serial: int) -> tuple[bytes, bytes]:
@@ -116,6 +118,11 @@ class SpecAgent:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
+    def publish_raw(self, parts: list[bytes]) -> None:
+        """Send ``parts`` as one message on the frame socket, between two frames."""
+        with self._lock:
+            self._raw.append(parts)
+
     def frames_sent(self) -> dict[int, list[tuple[int, int]]]:
         with self._lock:
             return {s: list(v) for s, v in self.sent.items()}
@@ -129,6 +136,10 @@ class SpecAgent:
         next_status = 0.0
         try:
             while not self._stop.is_set():
+                with self._lock:
+                    raw, self._raw = self._raw, []
+                for parts in raw:
+                    pub.send_multipart(parts)
                 if time.monotonic() >= next_status:
                     status_seq += 1
                     pub.send(STATUS_PREFIX + self._json(self._status_body(status_seq)))

@@ -168,3 +168,64 @@ def test_sightline_writes_the_csv_the_timeline_and_the_worst_instants(case, caps
                       str(case["roles"]), "--target", "xray", "--site", str(case["site"]),
                       "--out", str(out))  # fmt: skip
     assert bad.returncode == 2 and "no target 'xray'" in bad.stderr
+
+
+def _flip_left_images(session: Path, only: tuple[int, int] | None = None) -> list[str]:
+    """One byte changed in the middle of every camera's left images, or ``only`` the one of
+    (serial, row): "SN<serial> row <r> left" of each."""
+    import h5py
+
+    damaged = []
+    with h5py.File(session, "r+") as f:
+        for name in f["cameras"]:
+            g = f[f"cameras/{name}"]
+            for row in range(g["left_offset"].shape[0]):
+                if only is not None and only != (int(name), row):
+                    continue
+                off, n = int(g["left_offset"][row]), int(g["left_length"][row])
+                g["left_bytes"][off + n // 2] ^= 0x01
+                damaged.append(f"SN{name} row {row} left")
+    return damaged
+
+
+def test_replay_pip_shows_a_damaged_real_frame_as_damaged_and_lists_it(case, capsys, tmp_path):
+    import shutil
+
+    session = tmp_path / "session.h5"
+    shutil.copy(case["session"], session)
+    damaged = _flip_left_images(session)
+    copy = tmp_path / "case"
+    shutil.copytree(case["case"], copy)
+    index = json.loads((copy / "case.json").read_text())
+    index["session"] = str(session)
+    (copy / "case.json").write_text(json.dumps(index))
+    out = tmp_path / "pip.mp4"
+    done = egosurg(capsys, "replay", str(copy), "--role", "surgeon", "--roles",
+                   str(case["roles"]), "--out", str(out), "--size", "160x100", "--pip")  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "damaged real frame(s) not shown (checksum mismatch)" in done.stderr, done.stderr
+    named = done.stderr.rsplit("checksum mismatch): ", 1)[1].strip().split(", ")
+    assert named and set(named) <= set(damaged)
+    assert out.stat().st_size > 0  # the replay itself is whole
+
+
+def test_reconstruct_leaves_out_a_damaged_view_names_it_and_records_it(case, tmp_path):
+    import shutil
+
+    folder = tmp_path / "session"
+    shutil.copytree(case["session"].parent, folder)
+    from protocol.session import SessionReader
+
+    with SessionReader(folder / "session.h5") as reader:  # the first camera's frame in set 0
+        serial, row = reader.info.camera_serials[0], int(reader.sets().members[0, 0])
+    (damaged,) = _flip_left_images(folder / "session.h5", only=(serial, row))
+    out = tmp_path / "out"
+    done = run_egosurg("reconstruct", str(folder / "session.h5"), "--config",
+                       str(case["root"] / "tiny.toml"), "--at", "set:0", "--out", str(out),
+                       timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert f"{damaged} image is damaged (checksum mismatch)" in done.stderr, done.stderr
+    (summary_path,) = out.glob("*/summary.json")
+    summary = json.loads(summary_path.read_text())
+    assert summary["damaged_images"] == [damaged]
+    assert not any(name.startswith(f"SN{serial}-") for name in summary["sensors"])
