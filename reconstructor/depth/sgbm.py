@@ -109,13 +109,13 @@ class SgbmWlsMatcher(StereoMatcher):
         with np.errstate(invalid="ignore"):
             ok &= np.abs(raw.filtered - raw.left) <= cfg.wls_max_change_px
         if cfg.min_zncc > -1.0:
-            # Every pixel of the window is warped by its best estimate (SGBM's, else WLS's),
-            # not only the pixels that passed: warping the others by 0 made a confident pixel
-            # fail when its neighbours failed another check (on real pairs, 5-7 points of
-            # density at the same share of bad answers: EVALUATION.md, "Stereo depth on real
-            # images").
-            best = np.where(np.isfinite(raw.left), raw.left, raw.filtered)
-            zncc = zncc_at_disparity(_grey(left_rgb), _grey(right_rgb), best, cfg.zncc_window_px)
+            # The window's pixels that failed a check are warped by 0, or by their best
+            # estimate (SGBM's, else WLS's) with ``zncc_warp_failed_by_best``: see its comment.
+            if cfg.zncc_warp_failed_by_best:
+                warp = np.where(np.isfinite(raw.left), raw.left, raw.filtered)
+            else:
+                warp = np.where(ok, raw.left, 0.0)
+            zncc = zncc_at_disparity(_grey(left_rgb), _grey(right_rgb), warp, cfg.zncc_window_px)
             ok &= zncc >= cfg.min_zncc
         return ok
 

@@ -17,11 +17,11 @@ The search range comes from the depth range: ``d = f · B / depth`` with the rec
 length at match resolution and the calibrated baseline.
 
 Measured on the simulator (SVGA, noisy sensor images through JPEG 90, 4 cameras, every phase;
-``bench/bench_stereo.py``, EVALUATION.md): 87-89 % of textured surfaces and ~15 % of blank walls
-and ceiling get a depth, 14-15 % of valid depths are more than 3 % off and 6.5-7 % more than 5 %
+``bench/bench_stereo.py``, EVALUATION.md): 83-85 % of textured surfaces and ~11 % of blank walls
+and ceiling get a depth, 12-13 % of valid depths are more than 3 % off and 5-6 % more than 5 %
 (most of those on the blank surfaces); about 0.5 s per pair on 2 cores (HD1200 at
 ``match_scale`` 0.5: about 1.2 s). On real pairs with ground truth (Middlebury Motorcycle and
-Aloe, ``bench/bench_stereo_real.py``) it answers on 69-73 % of the pixels, with 0.4-2.5 % of its
+Aloe, ``bench/bench_stereo_real.py``) it answers on 62-69 % of the pixels, with 0.3-2.3 % of its
 answers more than 2 px off (OpenCV's textbook SGBM+WLS: 78-89 %, 9-13 %).
 """
 

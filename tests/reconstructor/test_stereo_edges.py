@@ -75,17 +75,19 @@ def test_opencv_invalid_codes_are_never_read_as_disparities():
 
 
 def test_a_confident_pixel_is_kept_when_its_neighbours_fail_another_check():
-    """The photometric check judges a pixel by its window, warped by each neighbour's best
-    disparity: a pixel whose SGBM match is right is kept even where three rows in four around it
-    have no SGBM match (they hold the WLS map's). Warping those neighbours by 0, as before, made
-    the window look uncorrelated and dropped it (on real pairs, 5-7 % of the answers)."""
+    """With ``zncc_warp_failed_by_best`` the photometric check judges a pixel by its window,
+    warped by each neighbour's best disparity: a pixel whose SGBM match is right is kept even
+    where three rows in four around it have no SGBM match (they hold the WLS map's). Warping
+    those neighbours by 0, as the default does, makes the window look uncorrelated and drops it
+    (on real pairs, 5-7 % of the answers)."""
     left, right = _rectified_pair()
     shape = left.shape[:2]
     true = np.full(shape, TRUE_DISPARITY_PX, np.float32)
     sgbm_left = true.copy()
     sgbm_left[np.arange(shape[0]) % 4 != 0] = np.nan  # SGBM answered one row in four
     raw = RawDisparities(left=sgbm_left, right=true, filtered=true)
-    keep = SgbmWlsMatcher(StereoConfig()).keep(left, right, raw)
+    config = StereoConfig(zncc_warp_failed_by_best=True)
+    keep = SgbmWlsMatcher(config).keep(left, right, raw)
     answered_rows = keep[12:-10:4][:, 40:-10]
     assert answered_rows.mean() >= 0.9, f"only {answered_rows.mean():.0%} of the answers kept"
     assert not keep[1::4].any()  # no SGBM match, no answer

@@ -1,6 +1,6 @@
 """Stereo depth on real rectified pairs with ground truth (bench/stereo_pairs.py): each pair and
-its truth load and agree with each other, and the default matcher, as ``compute_depth`` calls it,
-answers on most of each pair with precise answers.
+its truth load and agree with each other, and the default matcher (and its window option), as
+``compute_depth`` calls it, answers on most of each pair with precise answers.
 
 The pairs come from packages the project's own files install: scikit-image's wheel (the ``bench``
 extra, ``make``) and Debian's ``opencv-doc`` (``make system-deps`` as root). A test whose pair is
@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from bench.bench_stereo_real import DEFAULT, run_pair, variants
+from bench.bench_stereo_real import DEFAULT, WARP_BEST, run_pair, variants
 from bench.stereo_pairs import PAIR_NAMES, PairMissingError, RealPair, load_pair
 
 
@@ -60,16 +60,20 @@ def test_each_pair_loads_with_a_truth_that_fits_its_images(name):
         assert at_truth < _warp_error(pair, shift), f"the truth fits better at {shift} px"
 
 
-# the default's measured density on each pair (EVALUATION.md, "Stereo depth on real images"),
-# less about 2 points for other OpenCV builds
-MIN_DENSITY = {"motorcycle": 0.66, "aloe": 0.66, "aloe-half": 0.71}
+# the measured density on each pair (EVALUATION.md, "Stereo depth on real images"), less about
+# 2 points for other OpenCV builds: the default, and the window option zncc_warp_failed_by_best
+MIN_DENSITY = {
+    DEFAULT: {"motorcycle": 0.60, "aloe": 0.61, "aloe-half": 0.67},
+    WARP_BEST: {"motorcycle": 0.66, "aloe": 0.66, "aloe-half": 0.71},
+}
 
 
+@pytest.mark.parametrize("matcher", [DEFAULT, WARP_BEST])
 @pytest.mark.parametrize("name", PAIR_NAMES)
-def test_the_default_matcher_answers_most_of_a_real_pair_precisely(name):
+def test_the_matcher_answers_most_of_a_real_pair_precisely(name, matcher):
     """As the pipeline calls it: at most 3 % of its answers more than 2 px off the truth, on at
-    least two thirds of the pixels with a truth (before the photometric check judged each pixel
-    by its whole window: 62-69 %)."""
-    scores = run_pair(_pair(name), DEFAULT, variants()[DEFAULT])
+    least 60 % of the pixels with a truth (two thirds with the window option, which judges each
+    pixel by its whole window warped by its neighbours' best disparities)."""
+    scores = run_pair(_pair(name), matcher, variants()[matcher])
     assert scores["bad-2 ans"] <= 0.03, f"{scores['bad-2 ans']:.1%} of the answers > 2 px off"
-    assert scores["density"] >= MIN_DENSITY[name], f"answers on {scores['density']:.1%}"
+    assert scores["density"] >= MIN_DENSITY[matcher][name], f"answers on {scores['density']:.1%}"
