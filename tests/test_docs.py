@@ -154,3 +154,29 @@ def test_the_path_pattern_takes_repository_paths_and_leaves_the_rest():
     ]  # fmt: skip
     roots = {"capture_agent", "docs", "protocol"}  # out/ is not one: an output folder
     assert list(_broken_paths(ROOT / "tests" / "x.py", text, roots)) == [(0, "docs/x.md")]
+
+
+# RELIABILITY.md: "Files:" maps a letter to a test file, and each row names `letter::test_name`.
+_RELIABILITY_FILE = re.compile(r"`(tests/[\w/]+\.py)` \(([A-Z]{1,2})\)")
+_RELIABILITY_TEST = re.compile(r"\b([A-Z]{1,2})::(test_\w+)")
+
+
+def test_every_reliability_row_names_a_test_that_exists():
+    """A guarantee is only as good as the test that shows it: each `X::test_name` of
+    RELIABILITY.md is a test function of the file its letter names."""
+    text = (ROOT / "RELIABILITY.md").read_text(encoding="utf-8")
+    files = {letter: ROOT / path for path, letter in _RELIABILITY_FILE.findall(text)}
+    missing_files = sorted(str(p.relative_to(ROOT)) for p in files.values() if not p.is_file())
+    assert not missing_files, f"RELIABILITY.md names test files that do not exist: {missing_files}"
+    defined = {
+        letter: {
+            n.name for n in ast.walk(ast.parse(path.read_text())) if isinstance(n, ast.FunctionDef)
+        }
+        for letter, path in files.items()
+    }
+    named = _RELIABILITY_TEST.findall(text)
+    assert len(named) > 50  # the table is read
+    broken = sorted(
+        {f"{letter}::{name}" for letter, name in named if name not in defined.get(letter, set())}
+    )
+    assert not broken, "RELIABILITY.md names tests that do not exist:\n" + "\n".join(broken)
