@@ -82,6 +82,7 @@ def format_summary(s: dict[str, Any]) -> str:
             )
             + ")"
         )
+    lines += _held_to_its_word(s)
     if s.get("closing"):
         lines.append(f"NOTE: {_t(s['closing'])}")
     if s.get("malformed_messages") or s.get("unknown_version_messages"):
@@ -90,6 +91,24 @@ def format_summary(s: dict[str, Any]) -> str:
             f"{s['unknown_version_messages']} of an unknown version"
         )
     return "\n".join(lines)
+
+
+def _held_to_its_word(s: dict[str, Any]) -> list[str]:
+    """A stop summary's frames refused for breaking their camera's rate, byte budget or stamp
+    order, and the take's session events (``egosurg session info`` lists them too)."""
+    out = []
+    refused = {serial: int(c.get("refused", 0)) for serial, c in s["cameras"].items()}
+    if any(refused.values()):
+        out.append(
+            "refused (over the camera's rate or byte budget, or stamped out of order): "
+            + ", ".join(f"SN{_t(serial)} {n}" for serial, n in refused.items() if n)
+        )
+    events = s.get("events") or {}
+    if events:
+        out.append(
+            "session events: " + ", ".join(f"{_t(k)} {int(n)}" for k, n in sorted(events.items()))
+        )
+    return out
 
 
 def format_started(result: dict[str, Any]) -> str:
@@ -176,6 +195,16 @@ def _refusals(st: dict[str, Any]) -> list[str]:
             f"than {st.get('max_clock_skew_s', '?')} s off the recorder's clock, {unreadable} "
             "unreadable control requests"
         )
+    held = {
+        "over their camera's rate": int(st.get("frames_refused_rate", 0)),
+        "over their camera's byte budget": int(st.get("frames_refused_bytes", 0)),
+        "stamped before their camera's previous frame": int(st.get("frames_refused_stamp", 0)),
+        "naming a node or camera not of their agent": int(
+            (st.get("links") or {}).get("frames_refused_sender", 0)
+        ),
+    }
+    if any(held.values()):
+        out.append("refused frames: " + ", ".join(f"{n} {why}" for why, n in held.items() if n))
     for loop, age in (st.get("progress_age_s") or {}).items():
         if float(age) > 2.0:
             out.append(f"recorder loop {_t(loop)}: no progress for {float(age):.1f} s")

@@ -24,6 +24,7 @@ import pytest
 import zmq
 import zmq.auth
 
+from capture_agent.operator.control import format_status, format_summary
 from protocol.camera import Resolution
 from protocol.session import EventKind, GapKind, SessionReader
 from protocol.wire import ControlReply, ControlRequest
@@ -155,7 +156,14 @@ def tmpfs(tmp_path) -> Iterator[Path]:
 def rig(tmp_path, tmpfs) -> Iterator[tuple[SimRig, RogueNode]]:
     files = write_sim_rig(
         tmp_path / "rig",
-        SimRigSpec(seed=7, fps=FPS, drop_probability=0.0, content_fps=0.5, prerender_s=2.0),
+        SimRigSpec(
+            seed=7,
+            fps=FPS,
+            drop_probability=0.0,
+            content_fps=0.5,
+            prerender_s=2.0,
+            plaintext=True,  # the capture path under test; sealed: test_sealed_session.py
+        ),
     )
     # the sessions on the tmpfs, with HEADROOM_BYTES above the reserve
     reserve_gb = (psutil.disk_usage(str(tmpfs)).free - HEADROOM_BYTES) / 1e9
@@ -174,6 +182,14 @@ def rig(tmp_path, tmpfs) -> Iterator[tuple[SimRig, RogueNode]]:
     finally:
         sim.close()
         rogue.close()
+
+
+def _operator_reads_the_refusals(status: dict, summary: dict, camera_refused: str) -> None:
+    """The refusals in the words of `egosurg status` and of the stop summary."""
+    assert "over their camera's rate" in format_status(status)
+    printed = format_summary(summary)
+    assert camera_refused in printed
+    assert "session events: " in printed and "rate_capped" in printed
 
 
 def test_a_compromised_node_cannot_stop_the_take_or_corrupt_the_record(rig, tmp_path):
@@ -212,12 +228,14 @@ def test_a_compromised_node_cannot_stop_the_take_or_corrupt_the_record(rig, tmp_
     burst = summary["cameras"][str(burst_cam)]
     capped = burst["refused"]
     allowed = 1.5 * FPS * (BURST_S + 1.0)  # the cap's rate and its second of burst
-    print(f"refused over the rate cap: {capped} of {rogue.sent[burst_cam]} frames of the camera")
-    assert capped >= rogue.burst_sent + FPS * BURST_S - allowed - 2
+    assert capped >= rogue.burst_sent + FPS * BURST_S - allowed - 2, (
+        f"refused over the rate cap: {capped} of {rogue.sent[burst_cam]} frames of the camera"
+    )
     cams = {c["serial"]: c for c in status["cameras"]}
     assert cams[burst_cam]["frames_refused_rate"] >= capped  # and any during the stop
     assert (burst["dropped"], burst["transport_lost"]) == (0, 0), burst
     assert cams[other_cam]["frames_refused_stamp"] == 1
+    _operator_reads_the_refusals(status, summary, f"SN{burst_cam} {capped}")
 
     with SessionReader(summary["file"]) as r:
         assert r.verify() == []  # the stamp that went back is not in the file
