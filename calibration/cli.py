@@ -17,7 +17,9 @@ everything already reconstructed with OLD stays in place; it prints how far each
 writing a calibration; it exits with code 1 when a camera moved past the drift limits.
 
 A frame whose image fails its recorded checksum is skipped: left out of the background and
-counted among the rejected frames as ``damaged image (checksum mismatch)``.
+counted among the rejected frames as ``damaged image (checksum mismatch)``. A sealed session
+is opened with ``--identity FILE`` (else ``EGOSURG_IDENTITY``), the identity of one of its
+recipients.
 """
 
 from __future__ import annotations
@@ -42,6 +44,8 @@ from calibration.solve.solver import Solution, solve
 from protocol.command import CommandArgumentError, command_parser
 from protocol.formats.rig_calibration import RigCalibration
 from protocol.formats.wand import WandSpec
+from protocol.sealing import Identity
+from protocol.sealing.arguments import add_identity_argument, identity_from_args
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +77,7 @@ def report_data(
 def main(argv: list[str]) -> int:
     parser = command_parser("egosurg calibrate", __doc__)
     parser.add_argument("session", help="a wand session recorded by 'egosurg record'")
+    add_identity_argument(parser)
     parser.add_argument(
         "--wand", required=True, help="wand.toml (egosurg sim wand-file writes one)"
     )
@@ -112,7 +117,7 @@ def main(argv: list[str]) -> int:
     wand = WandSpec.read(args.wand)
     old = RigCalibration.read(args.check or args.refine) if (args.check or args.refine) else None
     t0 = time.perf_counter()
-    obs = _detect(args.session, wand, args.max_sets)
+    obs = _detect(args.session, wand, args.max_sets, identity_from_args(args))
     t_detect = time.perf_counter() - t0
     _print_detections(obs)
     solution = solve(obs, SolveConfig())
@@ -142,13 +147,16 @@ def main(argv: list[str]) -> int:
     return 0
 
 
-def _detect(session: str, wand: WandSpec, max_sets: int) -> WandObservations:
+def _detect(
+    session: str, wand: WandSpec, max_sets: int, identity: Identity | None
+) -> WandObservations:
     """The wand in the session's frames, with a progress line on stderr."""
 
     def progress(k: int, n: int) -> None:
         print(f"\rdetecting the wand: {k}/{n} chunks", end="", file=sys.stderr, flush=True)
 
-    obs = extract(session, wand, ExtractConfig(max_sets=max_sets), progress=progress)
+    cfg = ExtractConfig(max_sets=max_sets)
+    obs = extract(session, wand, cfg, progress=progress, identity=identity)
     print(file=sys.stderr)
     return obs
 

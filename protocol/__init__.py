@@ -8,8 +8,8 @@
   file, evaluation sets, sites, trajectories, the wand);
 - at the top, what all of them share: errors, the camera model, the image codec, the one way to
   read a TOML file into a typed config and write it back (``toml_config``, ``config_fields``),
-  the one way to write a command (``command``), files that survive a crash (``durable``), the
-  ``egosurg`` dispatcher.
+  the one way to write a command (``command``), files that survive a crash (``durable``),
+  files only their owner reads (``private_files``), the ``egosurg`` dispatcher.
 
 protocol/ imports none of the other four packages. Its third-party needs are the edge's: numpy,
 OpenCV (the camera model and the image codec), h5py and xxhash (the session file), pyzmq (the

@@ -18,6 +18,7 @@ import sys
 from collections.abc import Sequence
 
 from protocol.errors import UserError
+from protocol.private_files import owner_only_umask
 
 # name -> ("module:function", one-line summary). Order is the order shown in --help.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -102,7 +103,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         return 2
     try:
-        return int(getattr(module, func_name)(rest) or 0)
+        # Nearly everything a command writes shows a patient or names a case (models, PLYs,
+        # renders, MP4s, frames, logs): owner-only from creation on, whatever the shell's umask,
+        # rather than a mode passed by every writer and library (protocol/private_files.py).
+        with owner_only_umask():
+            return int(getattr(module, func_name)(rest) or 0)
     except UserError as exc:
         print(f"egosurg {name}: error: {exc}", file=sys.stderr)
         return 2

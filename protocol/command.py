@@ -7,7 +7,8 @@ option, a bad choice or number) raises :class:`CommandArgumentError` instead of 
 dump and ``SystemExit``: the ``egosurg`` dispatcher prints any ``UserError`` as one line and exits
 with code 2, so a user mistake found by argparse and one found by the command's own checks read
 the same. :func:`parse_size_px` reads a ``WxH`` option the same way in every command. This module
-needs only the standard library: the edge's commands use it.
+needs only the standard library: the edge's commands use it. (A command that reads sessions takes
+``--identity FILE`` through ``protocol/sealing/arguments.py``.)
 
 Example::
 

@@ -51,6 +51,8 @@ from protocol.camera import Camera, Intrinsics, Pose
 from protocol.command import CommandArgumentError, command_parser, parse_size_px
 from protocol.errors import UserError
 from protocol.formats.rig_calibration import RigCalibration
+from protocol.private_files import make_owner_only, plaintext_notice
+from protocol.sealing.arguments import add_identity_argument, identity_from_args
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.frames import load_timestamp
 from reconstructor.data.views import EYE_NEAR_M
@@ -91,6 +93,7 @@ def _progress(stage: str, k: int, n: int, stats: StepStats) -> None:
 def reconstruct_parser() -> argparse.ArgumentParser:
     parser = command_parser("egosurg reconstruct", __doc__)
     parser.add_argument("session", help="a session recorded by 'egosurg record'")
+    add_identity_argument(parser)
     parser.add_argument("--calibration", help="calibration.toml (default: beside the session)")
     parser.add_argument("--at", action="append", help="time in s, or set:N (repeatable)")
     case = parser.add_argument_group("a whole case (docs/case.md)")
@@ -173,15 +176,18 @@ def main_reconstruct(argv: list[str]) -> int:
 
     # a folder that cannot be used fails now, in one line, before any work
     depth_cache = DepthCache(Path(args.depth_cache)) if args.depth_cache else None
+    identity = identity_from_args(args)  # a damaged file fails now, before any work
     if args.every:
         from reconstructor.case.cli import reconstruct_case
 
-        return reconstruct_case(args, session, cal_path, config)
+        return reconstruct_case(args, session, cal_path, config, identity)
     out = Path(args.out)
     for at in args.at:
         from reconstructor.pipeline import reconstruct
 
-        ts = load_timestamp(session, calibration, at, calibration_source=str(cal_path))
+        ts = load_timestamp(
+            session, calibration, at, calibration_source=str(cal_path), identity=identity
+        )
         if ts.missing_serials:
             print(
                 f"set {ts.set_index}: camera(s) "
@@ -353,5 +359,7 @@ def main_render(argv: list[str]) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(out), rgb[:, :, ::-1]):
         raise CommandArgumentError(f"cannot write {out}; use a .png or .jpg path")
+    make_owner_only(out)  # a picture from an earlier run kept its mode when rewritten
     print(f"{out}: {camera.name} {rgb.shape[1]}x{rgb.shape[0]}, {time.perf_counter() - t0:.2f} s")
+    print(plaintext_notice("render", out), file=sys.stderr)
     return 0

@@ -36,7 +36,7 @@ def cmd_contact(args: argparse.Namespace) -> int:
     rows = true_field_intervals(world, DRAPE_FIELD, t0 + offset_s, t1 + offset_s)
     rows = [(n, a - offset_s, b - offset_s) for n, a, b in rows]  # back to case time
     Path(args.field_out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.field_out).write_text(site_toml([DRAPE_FIELD]))
+    Path(args.field_out).write_text(site_toml([DRAPE_FIELD], clock.session))
     write_truth_csv(Path(args.truth_out), rows)
     print(f"{args.field_out}: the field box {DRAPE_FIELD.name!r}; {args.truth_out}: "
           f"{len(rows)} true intervals in the field, {t0:.3f}-{t1:.3f} s")  # fmt: skip

@@ -7,8 +7,9 @@ Example::
 Stages so far:
 1. build the simulated OR and write the rig's eight views, a top-down map and a ground-truth video;
 2. run the capture chain as deployed: two simulated Jetson agents (two ZED X each) and the
-   recorder as separate processes over loopback TCP; record about 10 s of the OR, stop, and print
-   the session summary (``egosurg session info``);
+   recorder as separate processes over loopback TCP; record about 10 s of the OR, sealed for the
+   demo's site key, stop, and print the session summary (``egosurg session info``, which opens it
+   with the site identity; every later stage's reader does too, through ``EGOSURG_IDENTITY``);
 3. calibrate the rig: record a wand session through the same agents and recorder, run
    ``egosurg calibrate`` on it, and compare the recovered camera poses with the sim's truth;
 4. reconstruct one timestamp of the stage-2 session with that calibration (``egosurg
@@ -26,6 +27,7 @@ Each stage runs through the ``egosurg`` command as a user would run it.
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -41,6 +43,7 @@ from protocol.command import command_parser
 from protocol.formats.eval_set import EvalScene, EvalSet, ReferenceView
 from protocol.formats.rig_calibration import RigCalibration
 from protocol.formats.wand import WandSpec
+from protocol.sealing import IDENTITY_ENV
 from protocol.session import SessionReader
 from sim import pictures
 from sim.cli import write_pictures
@@ -79,7 +82,11 @@ def stage_capture(out: Path, seed: int, record_s: float) -> tuple[Path, SimRigFi
     print(f"      egosurg recorder --config {files.rig_config}")
     summary = _record(files, "demo-case", record_s, meta={"procedure": "simulated"})
     session = Path(summary["file"])
-    _egosurg("session", "info", str(session))
+    print(
+        f"      sealed for the site key {files.keys_dir / 'sim-site.recipient'}; readers open it "
+        f"with {IDENTITY_ENV}={files.identity}"
+    )
+    _egosurg("session", "info", str(session), env=files.reader_env())
     print(f"      logs: {files.directory / 'logs'}")
     return session, files
 
@@ -107,10 +114,15 @@ def _record(files, case: str, record_s: float, meta: dict[str, str] | None = Non
     return dict(summary)
 
 
-def _egosurg(*args: str) -> subprocess.CompletedProcess[str]:
+def _egosurg(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    """``egosurg *args`` in ``env`` (default: this process's, which names stage 2's identity)."""
     print("      egosurg " + " ".join(args))
     done = subprocess.run(
-        [sys.executable, "-m", "protocol.cli", *args], capture_output=True, text=True, check=False
+        [sys.executable, "-m", "protocol.cli", *args],
+        capture_output=True,
+        text=True,
+        check=False,
+        env=env,
     )
     print("\n".join("        " + line for line in done.stdout.splitlines()))
     if done.returncode != 0:
@@ -152,6 +164,7 @@ def stage_calibration(out: Path, seed: int, record_s: float) -> Path | None:
     # through every camera's view (sim/wand_tour.py), so the default 36 s pass them
     done = _egosurg(
         "calibrate", str(session), "--wand", str(wand), "--out", str(calibration),
+        env=files.reader_env(),  # the wand rig's own site key
     )  # fmt: skip
     if done.returncode != 0 or not calibration.exists():
         print("      calibration failed; see the message above")
@@ -381,6 +394,9 @@ def main(argv: list[str]) -> int:
     t0 = time.perf_counter()
     stage_sim(out, args.seed)
     session, files = stage_capture(out, args.seed, args.record_s)
+    # stages 4-7 read stage 2's sealed session as a reading workstation does, with the site
+    # identity in the environment (SimRig keeps it from the rig's own processes)
+    os.environ[IDENTITY_ENV] = str(files.identity)
     calibration = stage_calibration(out, args.seed, args.wand_s)
     stamp = stage_reconstruction(out, args.seed, session, files, calibration, args.steps)
     if stamp is not None:

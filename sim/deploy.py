@@ -2,12 +2,16 @@
 
 ``write_sim_rig`` writes the ``node.toml`` of each simulated Jetson (two ZED X each, as on the
 real rig) and a ``rig.toml`` for the recorder, with CURVE keys for every link (``keys/``: the
-recorder, each node and an operator, whose key the rig's clients use). It builds the configs the
-agent and the recorder read (``protocol/formats/``: ``NodeConfig``, ``RigConfig``), so a bad
-value fails here, and writes them with the house's TOML writer. ``SimRig`` starts them as
-separate ``egosurg`` processes, waits until every camera streams, and can kill and restart them
-for fault tests. The demo and the integration tests use it; it talks to the processes only
-through the ``egosurg`` command and the control protocol, as an operator would.
+recorder, each node and an operator, whose key the rig's clients use). Its sessions are sealed
+for a site key whose identity lives in ``reader-keys/`` (a reading workstation's folder): the
+recorder's ``keys/`` holds only the public ``sim-site.recipient``; ``SimRigFiles.reader_env``
+hands the identity to the ``egosurg`` reader commands as ``EGOSURG_IDENTITY``. It builds the
+configs the agent and the recorder read (``protocol/formats/``: ``NodeConfig``,
+``RigConfig``), so a bad value fails here, and writes them with the house's TOML writer.
+``SimRig`` starts them as separate ``egosurg`` processes, waits until every camera streams, and
+can kill and restart them for fault tests. The demo and the integration tests use it; it talks
+to the processes only through the ``egosurg`` command and the control protocol, as an operator
+would.
 
 Example::
 
@@ -35,7 +39,9 @@ from protocol.camera import Resolution
 from protocol.formats.camera_config import FaultSpec, SimSourceConfig
 from protocol.formats.node_config import EncodingName, NodeConfig, PtpConfig
 from protocol.formats.rig_config import AgentEndpoint, RigConfig
+from protocol.formats.sealing_config import RigSealingConfig
 from protocol.formats.security_config import NodeSecurityConfig, RigSecurityConfig
+from protocol.sealing import IDENTITY_ENV, generate_identity, write_identity
 from protocol.toml_config import dumps
 from sim.errors import SimRigError
 from sim.world import World
@@ -45,6 +51,8 @@ if TYPE_CHECKING:
 
 # the first lines of every file written here; key paths in them are relative to the file
 _WRITTEN = "the simulated %s: written by sim.deploy (key paths are relative to this file)"
+SITE_KEY = "sim-site"  # the key pair the sim rig's sessions are sealed for
+READER_KEYS = "reader-keys"  # where its identity lives: not the recorder's keys/ folder
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -75,6 +83,8 @@ class SimRigSpec:
     ptp: PtpConfig = field(default_factory=lambda: PtpConfig(source="none", require_lock=False))
     faults: dict[int, tuple[FaultSpec, ...]] = field(default_factory=dict)  # camera k -> faults
     insecure: bool = False  # plaintext links (insecure = true): only to measure CURVE's cost
+    # unsealed sessions (plaintext = true): a bench's baseline, or tests of the capture path only
+    plaintext: bool = False
 
     def __post_init__(self) -> None:
         if self.cameras < 1:
@@ -92,6 +102,16 @@ class SimRigFiles:
     serials_by_node: dict[str, tuple[int, ...]]
     camera_index_by_serial: dict[int, int]
     spec: SimRigSpec
+    identity: Path | None = None  # the site identity that opens the sessions (None: plaintext)
+
+    def reader_env(self) -> dict[str, str]:
+        """``os.environ`` with ``EGOSURG_IDENTITY`` naming the site identity: the environment
+        of the ``egosurg`` commands that read this rig's sessions."""
+        env = dict(os.environ)
+        env.pop(IDENTITY_ENV, None)
+        if self.identity is not None:
+            env[IDENTITY_ENV] = str(self.identity)
+        return env
 
     @property
     def keys_dir(self) -> Path:
@@ -125,6 +145,21 @@ def write_keys(directory: Path, names: list[str]) -> None:
                 zmq.auth.create_certificates(directory, name)
     finally:
         os.umask(old)
+
+
+def write_site_key(directory: Path) -> tuple[Path, Path]:
+    """The rig's site key pair, as ``egosurg keys generate --kind site`` makes it: the identity
+    in ``reader-keys/`` (a reading workstation's, never the recorder's), its public recipient
+    copied to the recorder's ``keys/``; existing keys are kept. (recipient, identity) paths."""
+    readers = directory / READER_KEYS
+    identity = readers / f"{SITE_KEY}.identity"
+    if not identity.exists():
+        write_identity(generate_identity(SITE_KEY), readers)
+    recipient = directory / "keys" / f"{SITE_KEY}.recipient"
+    if not recipient.exists():
+        recipient.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        recipient.write_text((readers / recipient.name).read_text())
+    return recipient, identity
 
 
 def free_ports(n: int) -> list[int]:
@@ -208,7 +243,8 @@ def rig_config(
     rig_name: str = "sim-or",
 ) -> RigConfig:
     """The recorder's rig.toml for ``agents``, with ``spec``'s recorder settings and the keys
-    ``write_keys`` makes (paths relative to the file); the capture bench's replay rig uses it."""
+    ``write_keys`` and ``write_site_key`` make (paths relative to the file); the capture bench's
+    replay rig uses it."""
     keys = RigSecurityConfig(
         secret_key="keys/recorder.key_secret",
         operator_keys=("keys/operator.key",),
@@ -225,6 +261,10 @@ def rig_config(
         disk_reserve_gb=spec.disk_reserve_gb,
         planned_duration_min=spec.planned_duration_min,
         security=RigSecurityConfig(insecure=True) if spec.insecure else keys,
+        sealing=RigSealingConfig(
+            plaintext=spec.plaintext,
+            recipients=() if spec.plaintext else (f"keys/{SITE_KEY}.recipient",),
+        ),
         agents=tuple(agents),
     )
 
@@ -243,6 +283,7 @@ def write_sim_rig(directory: Path | str, spec: SimRigSpec | None = None) -> SimR
     ports = free_ports(2 * len(nodes) + 1)
     if not spec.insecure:
         write_keys(out / "keys", ["recorder", "operator", *sorted(nodes)])
+    identity = None if spec.plaintext else write_site_key(out)[1]
     node_paths: dict[str, Path] = {}
     serials_by_node: dict[str, tuple[int, ...]] = {}
     agents: list[AgentEndpoint] = []
@@ -275,6 +316,7 @@ def write_sim_rig(directory: Path | str, spec: SimRigSpec | None = None) -> SimR
         serials_by_node=serials_by_node,
         camera_index_by_serial={u.serial: u.index for _, u in units},
         spec=spec,
+        identity=identity,
     )
 
 
@@ -289,6 +331,7 @@ class SimRig:
 
     def _spawn(self, name: str, *args: str) -> subprocess.Popen:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env.pop(IDENTITY_ENV, None)  # the rig's processes hold no identity, as on a real rig
         with open(self.logs / f"{name}.log", "ab") as log:  # the child keeps its own handle
             proc = subprocess.Popen(
                 [sys.executable, "-m", "protocol.cli", *args],

@@ -218,7 +218,9 @@ def _write_session(
     views: list[ReferenceView] = []
     with SessionWriter(
         session,
-        session_name=f"sim-{name}",
+        # the seed in the name: every eval-set session starts at the sim epoch, and a roles
+        # file of one seed must not pass for another's (protocol/formats/session_id.py)
+        session_name=f"sim-{name}-seed{spec.seed}{'-contact' if spec.contact else ''}",
         case_metadata={"source": "egosurg sim eval-set", "phase": phase, "seed": str(spec.seed)}
         | ({"contact": "1"} if spec.contact else {}),
         cameras=cameras,

@@ -1,5 +1,7 @@
 """``egosurg sim roles``: each person's true eye over time, as a roles file, and the site's true
 boxes, so that replay and line of sight can be judged against the simulator's exact truth.
+Given a session, both files record it (their ``[session]`` table): the review commands refuse
+them for another session's case.
 
 Case time (seconds since the session started) maps to sim time through the session's start:
 ``t_sim = (started_unix_ns - SIM_EPOCH_UNIX_NS) / 1e9 + t_case``; ``egosurg sim eval-set``
@@ -20,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from protocol.command import CommandArgumentError, add_subcommand
+from protocol.formats.session_id import SessionId
 from protocol.formats.site import SiteBox, site_toml, surface_points
 from protocol.formats.trajectory import Keyframe, Trajectory, write_trajectories
 from sim.phases import PHASES
@@ -114,6 +117,7 @@ def _times(args: argparse.Namespace, first_s: float, last_s: float) -> np.ndarra
 
 def cmd_roles(args: argparse.Namespace) -> int:
     offset_s, seed, phase = 0.0, args.seed, args.phase
+    session: SessionId | None = None  # without a session file: none to record
     first_s = last_s = float("nan")
     if args.session:
         path = Path(args.session)
@@ -122,7 +126,7 @@ def cmd_roles(args: argparse.Namespace) -> int:
         if len(set_s) == 0:
             raise CommandArgumentError(f"the session {path} holds no synchronised sets")
         first_s, last_s = set_s[0], set_s[-1]
-        offset_s = clock.sim_offset_s
+        offset_s, session = clock.sim_offset_s, clock.session
         if seed is None:
             if "seed" not in meta:
                 raise CommandArgumentError(f"{path} does not say its sim seed: pass --seed")
@@ -142,13 +146,13 @@ def cmd_roles(args: argparse.Namespace) -> int:
     roles = role_trajectories(world, times, sim_offset_s=offset_s, fov_deg=args.fov)
     if not roles:
         raise CommandArgumentError(f"the {phase} phase has no people: no roles to write")
-    write_trajectories(args.out, roles)
+    write_trajectories(args.out, roles, session)
     print(f"{args.out}: {len(roles)} roles ({', '.join(r.name for r in roles)}), "
           f"{len(times)} keyframes each, {times[0]:.3f} s to {times[-1]:.3f} s")  # fmt: skip
     if args.site_out:
         boxes = site_boxes(world)
         Path(args.site_out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.site_out).write_text(site_toml(boxes))
+        Path(args.site_out).write_text(site_toml(boxes, session))
         print(f"{args.site_out}: {len(boxes)} boxes ({', '.join(b.name for b in boxes)})")
     return 0
 

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from protocol.command import CommandArgumentError
+from protocol.formats.session_id import SessionId
 from sim.errors import SimTimeError
 
 SIM_EPOCH_UNIX_NS = 1_767_225_600_000_000_000  # 2026-01-01T00:00:00Z: sim time 0
@@ -33,6 +34,7 @@ class SessionClock:
     case_metadata: dict[str, str]
     sim_offset_s: float  # the session's start on the sim clock
     set_times_s: np.ndarray  # (N,) case time of each synchronised set; may be empty
+    session: SessionId  # what a roles or field file written for it records (its [session])
 
 
 def read_session_clock(path: Path) -> SessionClock:
@@ -44,8 +46,10 @@ def read_session_clock(path: Path) -> SessionClock:
         raise CommandArgumentError(f"the session {path} does not exist")
     with SessionReader(path) as reader:
         meta, start = reader.info.case_metadata, reader.info.started_unix_ns
+        name = reader.info.session_name
         set_ns = reader.sets().set_unix_ns
     return SessionClock(
+        session=SessionId(name=name, started_unix_ns=int(start)),
         case_metadata=meta,
         sim_offset_s=(start - SIM_EPOCH_UNIX_NS) / 1e9,
         set_times_s=(set_ns - start) / 1e9,

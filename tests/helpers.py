@@ -25,9 +25,12 @@ if TYPE_CHECKING:
 REPO = Path(__file__).resolve().parents[1]
 
 
-def run_egosurg(*args: str, timeout: float = 300.0, cwd: Path | None = None):
-    """Run the real ``egosurg`` command in a subprocess, as a user would."""
-    env = dict(os.environ)
+def run_egosurg(
+    *args: str, timeout: float = 300.0, cwd: Path | None = None, env: dict[str, str] | None = None
+):
+    """Run the real ``egosurg`` command in a subprocess, as a user would (in ``env``, else this
+    process's environment: a sim rig's ``files.reader_env()`` names its identity)."""
+    env = dict(os.environ) if env is None else env
     return subprocess.run(
         [sys.executable, "-m", "protocol.cli", *args],
         capture_output=True,
@@ -49,15 +52,23 @@ def moved_camera(cal: RigCalibration, serial: int, shift_m: np.ndarray) -> RigCa
 
 
 def copy_sets(
-    source: Path, target: Path, set_rows: np.ndarray, *, drop_serial: int | None = None
+    source: Path,
+    target: Path,
+    set_rows: np.ndarray,
+    *,
+    drop_serial: int | None = None,
+    identity: Path | None = None,
 ) -> None:
-    """A session holding only the sets ``set_rows`` of ``source`` (their frames, byte for byte);
-    ``drop_serial``'s frames are left out, so its members read -1 (a missing camera)."""
+    """A plaintext session holding only the sets ``set_rows`` of ``source`` (their frames, byte
+    for byte; a sealed ``source`` is opened with the ``identity`` file); ``drop_serial``'s
+    frames are left out, so its members read -1 (a missing camera)."""
     # conftest imports this module for every test, the capture tests' too: the session
     # and sim modules load only when a helper that needs them runs
+    from protocol.sealing import load_identity
     from protocol.session import SessionReader, SessionWriter
 
-    with SessionReader(source) as reader:
+    key = load_identity(identity) if identity is not None else None
+    with SessionReader(source, identity=key) as reader:
         sets = reader.sets()
         serials = reader.info.camera_serials
         tables = {s: reader.frame_table(s) for s in serials}
@@ -97,7 +108,8 @@ def copy_sets(
 
 
 def record_sim_session(directory: Path, spec: SimRigSpec, case: str, seconds: float) -> Path:
-    """Record ``seconds`` through real agent and recorder processes of a sim rig; the file."""
+    """Record ``seconds`` through real agent and recorder processes of a sim rig; the file,
+    sealed for the rig's site key unless ``spec.plaintext`` (``sim_identity`` opens it)."""
     from sim.deploy import SimRig, write_sim_rig
 
     files = write_sim_rig(directory, spec)
@@ -109,6 +121,20 @@ def record_sim_session(directory: Path, spec: SimRigSpec, case: str, seconds: fl
     return Path(summary["file"])
 
 
+def sim_identity(session: Path) -> Path:
+    """The site identity that opens a session ``record_sim_session`` recorded (the sim rig's
+    ``reader-keys/``, beside its ``sessions/``)."""
+    from sim.deploy import READER_KEYS, SITE_KEY
+
+    return session.parent.parent / READER_KEYS / f"{SITE_KEY}.identity"
+
+
+def sim_reader_env(session: Path) -> dict[str, str]:
+    """The environment of an ``egosurg`` reader of that session: its identity in
+    ``EGOSURG_IDENTITY``."""
+    return {**os.environ, "EGOSURG_IDENTITY": str(sim_identity(session))}
+
+
 def loopback_rig_config(
     output_dir: Path | str,
     *,
@@ -118,8 +144,10 @@ def loopback_rig_config(
     rig_name: str = "test",
 ):
     """A recorder's config on free loopback ports: one agent ``n0`` with ``cameras``, plaintext
-    links (CURVE is tests/capture_agent/test_security.py's), no PTP or disk-reserve checks."""
+    links (CURVE is tests/capture_agent/test_security.py's) and plaintext sessions (sealed ones
+    are tests/capture_agent/test_rig_sealing.py's), no PTP or disk-reserve checks."""
     from protocol.formats.rig_config import AgentEndpoint, RigConfig
+    from protocol.formats.sealing_config import RigSealingConfig
     from protocol.formats.security_config import RigSecurityConfig
     from sim.deploy import free_ports
 
@@ -140,6 +168,7 @@ def loopback_rig_config(
         require_ptp_lock=False,
         disk_reserve_gb=0.0,
         security=RigSecurityConfig(insecure=True),
+        sealing=RigSealingConfig(plaintext=True),
     )
 
 

@@ -67,7 +67,7 @@ WINGS: dict[str, dict[str, set[str]]] = {
     },
     "protocol": {
         "top": set(),  # errors, the camera model, images, the TOML idiom, the command helper
-        "session": {"top"},
+        "session": {"top", "sealing"},  # a sealed session's key block and payloads
         # rig.toml's image and buffer limits are the wire's (MAX_FRAME_BYTES, wire/frame_limits)
         "formats": {"top", "wire"},
         "wire": {"top", "session"},  # an agent's status reply names the session's camera info

@@ -55,7 +55,7 @@ def make_replay_rig(
     the sim rig (written as ``write_sim_rig`` does, then pointed at the feeders' ports)."""
     from protocol.formats.rig_config import AgentEndpoint
     from protocol.toml_config import dumps
-    from sim.deploy import SimRigFiles, free_ports, rig_config, write_keys
+    from sim.deploy import SimRigFiles, free_ports, rig_config, write_keys, write_site_key
 
     if cameras < 2 or cameras % 2:
         raise SystemExit(f"replay cameras must be even and >= 2, got {cameras}")
@@ -66,6 +66,7 @@ def make_replay_rig(
         nodes["replay-a" if k % 2 == 0 else "replay-b"].append(REPLAY_SERIAL0 + k)
     if not insecure:
         write_keys(directory / "keys", ["recorder", "operator", *nodes])
+    identity = None if spec.plaintext else write_site_key(directory)[1]  # rig_config names it
     endpoints = {}
     agents = []
     for k, (node, serials) in enumerate(nodes.items()):
@@ -96,6 +97,7 @@ def make_replay_rig(
         serials_by_node={n: tuple(s) for n, s in nodes.items()},
         camera_index_by_serial={},
         spec=spec,
+        identity=identity,
     )
     return files, endpoints
 

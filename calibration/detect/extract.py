@@ -43,6 +43,7 @@ from calibration.detect.worker import background_work, session_stereo, set_backg
 from calibration.errors import ExtractionError
 from calibration.observations import SIDES, SensorKey, WandObservations
 from protocol.formats.wand import WandSpec
+from protocol.sealing import Identity
 from protocol.session import SessionReader
 
 log = logging.getLogger(__name__)
@@ -116,9 +117,12 @@ def extract(
     wand: WandSpec,
     config: ExtractConfig | None = None,
     progress: Callable[[int, int], None] | None = None,
+    identity: Identity | None = None,
 ) -> WandObservations:
+    """The wand in the session's frames; a sealed session is opened with ``identity``."""
     cfg = config or ExtractConfig()
-    with SessionReader(session_path) as reader:
+    with SessionReader(session_path, identity=identity) as reader:
+        reader.require_identity("every image")  # said here once, not by each worker
         stereo = session_stereo(reader)
         serials = reader.info.camera_serials
         sets = reader.sets()
@@ -147,9 +151,9 @@ def extract(
         }
     workers = cfg.workers or min(2, os.cpu_count() or 1)
     wand_mm = (wand.sphere_diameter_mm, list(wand.sphere_positions_mm))
-    bg_jobs = [(session_path, serial, background_rows[serial]) for serial in serials]
+    bg_jobs = [(session_path, identity, serial, background_rows[serial]) for serial in serials]
     chunks = split_runs(chosen, max(1, workers * 4))
-    jobs = [(session_path, chunk, wand_mm, cfg.detector) for chunk in chunks]
+    jobs = [(session_path, identity, chunk, wand_mm, cfg.detector) for chunk in chunks]
     backgrounds: dict[tuple[int, str], np.ndarray] = {}
     results = []
     if workers == 1:

@@ -63,9 +63,9 @@ def set_backgrounds(backgrounds: dict[tuple[int, str], np.ndarray]) -> None:
 
 def background_work(args: tuple) -> tuple[int, np.ndarray, np.ndarray]:
     """One camera's two backgrounds: the median of its frames at ``rows`` (a worker process)."""
-    path, serial, rows = args
+    path, identity, serial, rows = args
     cv2.setNumThreads(1)
-    with SessionReader(path) as reader:
+    with SessionReader(path, identity=identity) as reader:
         cam = reader.info.camera(serial)
         frames: tuple[list[np.ndarray], list[np.ndarray]] = ([], [])
         for r in rows:
@@ -81,10 +81,10 @@ def background_work(args: tuple) -> tuple[int, np.ndarray, np.ndarray]:
 def work(args: tuple) -> tuple[np.ndarray, dict[str, dict[str, int]], int]:
     """Detect, label and time-align in a chunk of sets (runs in a worker process); the points
     (K, 2C, 3, 2), the rejections per camera and reason, and the number of frames decoded."""
-    path, set_rows, wand_mm, detector_cfg = args
+    path, identity, set_rows, wand_mm, detector_cfg = args
     wand = WandSpec(sphere_diameter_mm=wand_mm[0], sphere_positions_mm=tuple(wand_mm[1]))
     cv2.setNumThreads(1)
-    with SessionReader(path) as reader:
+    with SessionReader(path, identity=identity) as reader:
         chunk = _Chunk(reader, set_rows, wand, detector_cfg)
         points = np.full((len(set_rows), 2 * len(chunk.serials), 3, 2), np.nan)
         rejected: dict[str, dict[str, int]] = {}

@@ -7,6 +7,11 @@ Examples::
     egosurg session export-frames sessions/case-0042_20261121-101500.h5 --out frames/ --sets 0:30
     egosurg session recover damaged.h5 --out recovered.h5
 
+A sealed session (rig.toml's ``[sealing]``) is opened with the identity of one of its
+recipients: ``--identity FILE`` or ``EGOSURG_IDENTITY``; ``info``, ``verify`` and
+``export-frames`` refuse one without it in one line naming its recipients (exit 2). ``recover``
+needs none: it copies the sealed images as they are.
+
 ``info`` and ``verify`` also list the take's session events, per kind with their count and
 nodes: links that dropped or came back, frames the recorder refused (a node over its rate, a
 stamp that went back), counters that jumped (docs/session.md, "Session events").
@@ -38,6 +43,8 @@ import numpy as np
 from protocol.command import CommandArgumentError, add_subcommand, command_parser
 from protocol.errors import UserError
 from protocol.images import decode_image
+from protocol.private_files import make_owner_only, plaintext_notice
+from protocol.sealing.arguments import add_identity_argument, identity_from_args
 from protocol.session import GapKind, ImageChecksumError, SessionFormatError, SessionReader
 from protocol.session.recover import recover_session
 from protocol.session.verify import describe_events
@@ -183,15 +190,27 @@ def format_info(s: dict) -> str:
     return "\n".join(lines)
 
 
+def open_session(args: argparse.Namespace, needs: str) -> SessionReader:
+    """``args.file`` opened with ``--identity`` (or ``$EGOSURG_IDENTITY``); a sealed session
+    opened without one is refused in one line naming its recipients, as ``needs`` it."""
+    reader = SessionReader(args.file, identity=identity_from_args(args))
+    try:
+        reader.require_identity(needs)
+    except BaseException:
+        reader.close()
+        raise
+    return reader
+
+
 def cmd_info(args: argparse.Namespace) -> int:
-    with SessionReader(args.file) as reader:
+    with open_session(args, "the case metadata") as reader:
         s = summarise(reader)
     print(json.dumps(s, indent=2) if args.json else format_info(s))
     return 0
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    with SessionReader(args.file) as reader:
+    with open_session(args, "every image") as reader:
         problems = reader.verify(check_images=not args.quick)
         events = describe_events(reader)  # what happened in the take: not problems
     errors = [p for p in problems if p.startswith("error")]
@@ -211,7 +230,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     sides = ("left", "right") if args.side == "both" else (args.side,)
     written = 0
     skipped: list[str] = []  # "SN<serial> row <r> <side>" of the damaged images not written
-    with SessionReader(args.file) as reader:
+    with open_session(args, "every image") as reader:
         info = reader.info
         serials = info.camera_serials
         if args.camera is not None:
@@ -234,6 +253,7 @@ def cmd_export(args: argparse.Namespace) -> int:
             path.parent.mkdir(parents=True, exist_ok=True)
             if not cv2.imwrite(str(path), img):
                 raise OSError(f"could not write {path}")
+            make_owner_only(path)  # a frame from an earlier export kept its mode when rewritten
             return 1
 
         if args.by_camera:
@@ -256,6 +276,8 @@ def cmd_export(args: argparse.Namespace) -> int:
                         name = out / f"set_{k:06d}" / f"SN{serial}_{side}.png"
                         written += write(name, serial, row, side)
     print(f"wrote {written} PNG(s) to {out}/")
+    if written:
+        print(plaintext_notice(f"{written} frame(s) as PNG", f"{out}/"), file=sys.stderr)
     if skipped:
         print(
             f"skipped {len(skipped)} damaged image(s) (checksum mismatch): {', '.join(skipped)}; "
@@ -277,12 +299,14 @@ def main(argv: list[str]) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     p = add_subcommand(sub, "info", "cameras, duration, sets, drops and spread", cmd_info)
     p.add_argument("file")
+    add_identity_argument(p)
     p.add_argument("--json", action="store_true")
     p = add_subcommand(
         sub, "verify", "check the file's integrity (exit 1 on a problem)", cmd_verify
     )
     p.add_argument("file")
     p.add_argument("--quick", action="store_true", help="skip reading every image")
+    add_identity_argument(p)
     p = add_subcommand(
         sub,
         "export-frames",
@@ -291,6 +315,7 @@ def main(argv: list[str]) -> int:
     )
     p.add_argument("file")
     p.add_argument("--out", required=True)
+    add_identity_argument(p)
     p.add_argument("--camera", type=int, help="only this camera serial")
     p.add_argument("--side", choices=("left", "right", "both"), default="both")
     p.add_argument("--sets", help="set range, e.g. 0:30 (default: all)")

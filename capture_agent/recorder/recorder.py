@@ -90,6 +90,7 @@ from capture_agent.recorder.disk import DiskBudget
 from capture_agent.recorder.intake import CameraTable, log_due
 from capture_agent.recorder.links import AgentLinks, receive_hwm
 from capture_agent.recorder.recording import Recording
+from capture_agent.recorder.sealing import load_recipients
 from capture_agent.recorder.start import StartRefused, start_take
 from capture_agent.recorder.take import StopLimits, TakeState, drain_to_stop
 from protocol.command import command_parser
@@ -120,6 +121,8 @@ LINK_EVENT_KINDS = {
 class Recorder:
     def __init__(self, config: RigConfig) -> None:
         self.config = config
+        # public keys only, loaded now: a bad key file stops the recorder, not a take
+        self.recipients = load_recipients(config.sealing, f"recorder {config.rig_name}")
         self.table = CameraTable(config)
         self.links = AgentLinks(config)
         self.disk = DiskBudget(output_dir=config.output_dir, reserve_gb=config.disk_reserve_gb)
@@ -317,6 +320,7 @@ class Recorder:
             disk=self.disk,
             links=self.links,
             take=self.take,
+            recipients=self.recipients,
         )
 
     def stop_recording(self, reason: str, *, write_queued: bool = True) -> dict[str, Any]:

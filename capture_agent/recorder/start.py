@@ -11,7 +11,7 @@ import logging
 import math
 import re
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +28,7 @@ from capture_agent.recorder.write_queue import open_writer
 from protocol import __version__
 from protocol.formats.rig_config import RigConfig
 from protocol.safe_text import brief, unsafe_character
+from protocol.sealing import Recipient
 from protocol.session import CameraInfo, EventKind, SessionWriter
 from protocol.wire import FrameMessage
 from protocol.wire.agent_info import AgentReplyError, AgentStatusReply
@@ -106,9 +107,11 @@ def start_take(
     disk: DiskBudget,
     links: AgentLinks,
     take: TakeState,
+    recipients: Sequence[Recipient] = (),
 ) -> dict[str, Any]:
     """Check a start and begin its take in ``take``; the start's reply. Reads the camera table,
-    the disk and the agents (over ``links``); a start that cannot go ahead is refused."""
+    the disk and the agents (over ``links``); a start that cannot go ahead is refused. The
+    session is sealed for ``recipients`` (none: a plaintext session, rig.toml said so)."""
     case, meta, planned_min = start_args(args, config.planned_duration_min)
     # (first: a bad start says what is bad)
     if take.recording is not None:
@@ -136,6 +139,7 @@ def start_take(
     def create() -> SessionWriter:
         return SessionWriter(
             path,
+            recipients=tuple(recipients),  # none: rig.toml says plaintext = true
             previous_session_file=previous,
             take_part=part,
             session_name=case,

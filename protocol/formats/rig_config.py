@@ -27,6 +27,10 @@ Example ``rig.toml``::
     control = "tcp://10.10.0.11:5551"
     cameras = [41234567, 41234568]     # expected serials; a start is refused if one is missing
     public_key = "/etc/egosurg/keys/orin-a.key"            # frames from another key are refused
+
+    [sealing]                          # sessions encrypted for these public keys only
+    recipients = ["/etc/egosurg/keys/site.recipient", "/etc/egosurg/keys/escrow.recipient"]
+    # plaintext = true                 # unencrypted sessions instead: a bench only, warns
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ from typing import Any
 from protocol.config_fields import internal, option, validate
 from protocol.errors import ConfigError
 from protocol.formats.node_config import NAME_HINT, endpoint_like, is_name
+from protocol.formats.sealing_config import RigSealingConfig
 from protocol.formats.security_config import NO_KEYS, RigSecurityConfig, key_path
 from protocol.toml_config import load_toml, read_table
 from protocol.wire import MAX_FRAME_BYTES
@@ -104,6 +109,7 @@ class RigConfig:
     # frames stamped further from the recorder's clock: refused
     max_clock_skew_s: float = option(10.0, ge=0.1, le=86_400)
     security: RigSecurityConfig = field(default_factory=RigSecurityConfig)
+    sealing: RigSealingConfig = field(default_factory=RigSealingConfig)
     toml_text: str = internal("")
     source_path: str = internal("")
 
@@ -123,6 +129,7 @@ class RigConfig:
                     f"agents[{i}] ({a.node_id}): 'public_key' is required (the agent's .key "
                     f"file); {NO_KEYS}"
                 )
+        self.sealing.require_choice()
         _check_buffers(self)
 
     @property
@@ -143,9 +150,13 @@ class RigConfig:
             dataclasses.replace(a, public_key=key_path(a.public_key, base)) if a.public_key else a
             for a in cfg.agents
         )
-        security = cfg.security.resolved(where)
         return dataclasses.replace(
-            cfg, agents=agents, security=security, toml_text=text, source_path=where
+            cfg,
+            agents=agents,
+            security=cfg.security.resolved(where),
+            sealing=cfg.sealing.resolved(where),
+            toml_text=text,
+            source_path=where,
         )
 
 

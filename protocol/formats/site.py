@@ -8,12 +8,20 @@ Format (version 1)::
 
     format = "egosurg-site"
     format_version = 1
+    [session]                        # the session it was made for (optional; see below)
+    name = "sim-intraoperative-seed3"
+    started_unix_ns = 1767225600000000000
     [[boxes]]
     name = "monitor-a"
     centre_m = [1.735, -1.372, 1.75]
     size_m = [0.008, 0.58, 0.36]     # along the box's own x, y, z
     yaw_deg = 143.2                  # the box's x axis, turned about world +z from world +x
     front_only = true                # only the +x face counts (a screen seen from behind: 0)
+
+``[session]`` names the recording the boxes were measured for (``protocol/formats/
+session_id.py``): a field or target box placed for one session's room and table need not fit
+another's, so the review commands refuse a file made for another session than the case's and
+warn about one without the table (a site measured once, by hand, for every session).
 
 Each box's surface is sampled on a fixed grid (:func:`surface_points`); a viewer sees the
 faces whose outward normal points towards the eye, so a solid box seen from anywhere can be
@@ -29,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from protocol.errors import UserError
+from protocol.formats.session_id import SessionId, session_toml_lines
 from protocol.toml_config import load_toml, read_table
 
 SITE_FORMAT = "egosurg-site"
@@ -89,13 +98,20 @@ def surface_points(box: SiteBox, eye_m: np.ndarray, per_face: int = 12) -> np.nd
 
 
 @dataclass(frozen=True, kw_only=True)
-class _SiteFile:
+class SiteFile:
     format: str
     format_version: int
+    session: SessionId | None = None  # the session it was made for; None: not recorded
     boxes: tuple[SiteBox, ...] = ()
 
 
 def read_site(path: Path | str) -> dict[str, SiteBox]:
+    """The file's boxes by name; every problem is a :class:`SiteFileError`."""
+    return read_site_file(path)[1]
+
+
+def read_site_file(path: Path | str) -> tuple[SessionId | None, dict[str, SiteBox]]:
+    """(the session the file names or None, its boxes by name)."""
     path = Path(path)
     if not path.exists():
         raise SiteFileError(f"the site file {path} does not exist")
@@ -106,17 +122,20 @@ def read_site(path: Path | str) -> dict[str, SiteBox]:
             f"{SITE_FORMAT_VERSION} (docs/replay.md has an example)"
         )
     boxes: dict[str, SiteBox] = {}
-    for box in read_table(_SiteFile, table, str(path), error=SiteFileError).boxes:
+    file = read_table(SiteFile, table, str(path), error=SiteFileError)
+    for box in file.boxes:
         if box.name in boxes:
             raise SiteFileError(f"{path}: the box name {box.name!r} repeats")
         boxes[box.name] = box
     if not boxes:
         raise SiteFileError(f"{path} holds no [[boxes]]")
-    return boxes
+    return file.session, boxes
 
 
-def site_toml(boxes: list[SiteBox]) -> str:
+def site_toml(boxes: list[SiteBox], session: SessionId | None = None) -> str:
+    """The file's text; ``session``: the session it is made for (its ``[session]`` table)."""
     lines = [f'format = "{SITE_FORMAT}"', f"format_version = {SITE_FORMAT_VERSION}"]
+    lines += session_toml_lines(session)
     for b in boxes:
         lines += [
             "",

@@ -9,6 +9,10 @@ Format (version 1)::
     format = "egosurg-trajectories"
     format_version = 1
 
+    [session]                           # the session it was made for (optional; see below)
+    name = "sim-intraoperative-seed3"
+    started_unix_ns = 1767225600000000000
+
     [[trajectories]]
     name = "surgeon"                    # a role's name, or any name for a path
     [[trajectories.keyframes]]
@@ -17,6 +21,10 @@ Format (version 1)::
     look_at_m = [0.1, 0.0, 1.0]         # a point it looks at (image up towards +z) ...
     # orientation_wxyz = [w, x, y, z]   # ... or the world-from-camera rotation (OpenCV axes)
     fov_deg = 90.0                      # horizontal field of view
+
+``[session]`` names the recording the times belong to (``protocol/formats/session_id.py``):
+the review commands refuse a file made for another session than the case's, and warn about one
+without the table (written by hand, or by an egosurg before it existed).
 
 Shared by sim/ (which writes true roles) and reconstructor/ (which replays them): a contract,
 so it lives here and imports neither.
@@ -33,6 +41,7 @@ import numpy as np
 
 from protocol.camera import Pose
 from protocol.errors import UserError
+from protocol.formats.session_id import SessionId, session_toml_lines
 from protocol.toml_config import load_toml, read_table
 
 TRAJECTORY_FORMAT = "egosurg-trajectories"
@@ -142,14 +151,20 @@ class Trajectory:
 
 
 @dataclass(frozen=True, kw_only=True)
-class _TrajectoryFile:
+class TrajectoryFile:
     format: str
     format_version: int
+    session: SessionId | None = None  # the session it was made for; None: not recorded
     trajectories: tuple[Trajectory, ...] = ()
 
 
 def read_trajectories(path: Path | str) -> tuple[Trajectory, ...]:
     """All trajectories of a file; every problem is a :class:`TrajectoryFileError`."""
+    return read_trajectory_file(path).trajectories
+
+
+def read_trajectory_file(path: Path | str) -> TrajectoryFile:
+    """The whole file: its trajectories and the session it names (``session``)."""
     path = Path(path)
     if not path.exists():
         raise TrajectoryFileError(f"the trajectory file {path} does not exist")
@@ -164,21 +179,25 @@ def read_trajectories(path: Path | str) -> tuple[Trajectory, ...]:
             f"{path} has format_version {table.get('format_version')!r}; this egosurg reads "
             f"{TRAJECTORY_FORMAT_VERSION}"
         )
-    out = read_table(_TrajectoryFile, table, str(path), error=TrajectoryFileError).trajectories
+    file = read_table(TrajectoryFile, table, str(path), error=TrajectoryFileError)
+    out = file.trajectories
     if not out:
         raise TrajectoryFileError(f"{path} holds no [[trajectories]]")
     names = [t.name for t in out]
     if len(set(names)) != len(names):
         raise TrajectoryFileError(f"{path}: trajectory names repeat: {names}")
-    return tuple(out)
+    return file
 
 
 def _fmt(values: tuple[float, ...] | None) -> str:
     return "[" + ", ".join(f"{v:.6f}" for v in values or ()) + "]"
 
 
-def trajectories_toml(trajectories: tuple[Trajectory, ...] | list[Trajectory]) -> str:
+def trajectories_toml(
+    trajectories: tuple[Trajectory, ...] | list[Trajectory], session: SessionId | None = None
+) -> str:
     lines = [f'format = "{TRAJECTORY_FORMAT}"', f"format_version = {TRAJECTORY_FORMAT_VERSION}"]
+    lines += session_toml_lines(session)
     for tr in trajectories:
         lines += ["", "[[trajectories]]", f'name = "{tr.name}"']
         for k in tr.keyframes:
@@ -192,8 +211,13 @@ def trajectories_toml(trajectories: tuple[Trajectory, ...] | list[Trajectory]) -
     return "\n".join(lines) + "\n"
 
 
-def write_trajectories(path: Path | str, trajectories: tuple[Trajectory, ...] | list[Trajectory]):
+def write_trajectories(
+    path: Path | str,
+    trajectories: tuple[Trajectory, ...] | list[Trajectory],
+    session: SessionId | None = None,
+) -> Path:
+    """Write the file; ``session``: the session it is made for (its ``[session]`` table)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(trajectories_toml(trajectories))
+    path.write_text(trajectories_toml(trajectories, session))
     return path

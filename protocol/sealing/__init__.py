@@ -75,6 +75,7 @@ from __future__ import annotations
 
 from protocol.sealing.errors import (
     IdentityError,
+    IdentityRequiredError,
     KeyBlockError,
     SealedPayloadError,
     WrongIdentityError,
@@ -108,6 +109,7 @@ __all__ = [
     "RECIPIENT_SUFFIX",
     "Identity",
     "IdentityError",
+    "IdentityRequiredError",
     "KeyBlock",
     "KeyBlockError",
     "PayloadContext",

@@ -24,3 +24,9 @@ class SealedPayloadError(UserError, ValueError):
     """A sealed payload that does not open where it is read: its bytes were changed, it was
     moved from another row, camera or session, or it is not a sealed payload at all. The
     message names the payload by session, field, camera, row, side and capture stamp."""
+
+
+class IdentityRequiredError(UserError, PermissionError):
+    """A sealed payload asked for without an identity: the message names the session's
+    recipients (name and key id) and says how to give one (``--identity FILE`` or
+    ``EGOSURG_IDENTITY``)."""

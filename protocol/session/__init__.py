@@ -18,6 +18,16 @@ the reconstructor. The full layout, written so anyone can read a session with pl
     /events           time_unix_ns, kind, node_id, camera_serial, count, detail: what happened
                       to the links and streams (absent in files written before it existed)
     /summary          per-camera totals and summary_json, written by a clean close
+    /sealing          a sealed session only (format_version 3): key_block, recipients_json,
+                      recipients_sealed; its frame tables add sealed_row
+
+Sealed sessions. ``SessionWriter(..., recipients=[...])`` seals every image, case metadata
+value and the rig text for the recipients' public keys (``protocol.session.sealed``,
+``protocol.sealing``); ``SessionReader(path, identity=...)`` opens them. Without an identity a
+sealed session's structure, tables, sets, gaps and events still read and ``verify`` checks each
+image's checksum (over the ciphertext); its images and case values raise
+``IdentityRequiredError``, naming the recipients. Plaintext sessions are written as before
+(format_version 2).
 
 Crash safety. Every dataset is created before the file switches to SWMR mode, so that a writer
 killed at any moment (SIGKILL included) leaves a file that opens without ``h5clear``.
@@ -35,9 +45,9 @@ Damaged files give a ``SessionFormatError``, never a hang (``protocol.session.op
 ``protocol.session.recover`` copies what is intact into a new file; files are owner-only and
 hold no keys (``protocol.session.privacy``).
 
-The code lives in three modules, all re-exported here: ``protocol.session.format`` (names,
-types, errors), ``protocol.session.write`` (``SessionWriter``) and ``protocol.session.read``
-(``SessionReader``).
+The public names live in three modules, all re-exported here: ``protocol.session.format``
+(names, types, errors), ``protocol.session.write`` (``SessionWriter``) and
+``protocol.session.read`` (``SessionReader``).
 """
 
 from __future__ import annotations
@@ -50,11 +60,15 @@ from protocol.session.format import (
     FORMAT_VERSION,
     FRAME_COLUMNS,
     GAP_COLUMNS,
+    SEALED_FORMAT_VERSION,
+    SEALED_FRAME_COLUMNS,
     SUMMARY_COLUMNS,
     CameraInfo,
     EventKind,
     GapKind,
     GapRecord,
+    ImageChecksumError,
+    ImageSealError,
     SessionEvent,
     SessionFormatError,
     SessionInfo,
@@ -62,7 +76,7 @@ from protocol.session.format import (
     SessionWriteError,
     SetTable,
 )
-from protocol.session.read import ImageChecksumError, SessionReader
+from protocol.session.read import SessionReader
 from protocol.session.write import SessionWriter
 
 __all__ = [
@@ -73,12 +87,15 @@ __all__ = [
     "FORMAT_VERSION",
     "FRAME_COLUMNS",
     "GAP_COLUMNS",
+    "SEALED_FORMAT_VERSION",
+    "SEALED_FRAME_COLUMNS",
     "SUMMARY_COLUMNS",
     "CameraInfo",
     "EventKind",
     "GapKind",
     "GapRecord",
     "ImageChecksumError",
+    "ImageSealError",
     "SessionEvent",
     "SessionFormatError",
     "SessionInfo",

@@ -111,12 +111,16 @@ class Blob:
 
 class CameraWriter:
     def __init__(
-        self, group: h5py.Group, info: CameraInfo, blob_chunk_bytes: int, sink: ChunkSink
+        self,
+        group: h5py.Group,
+        info: CameraInfo,
+        blob_chunk_bytes: int,
+        sink: ChunkSink,
+        columns: dict[str, type[np.generic]] = FRAME_COLUMNS,
     ) -> None:
         self.info = info
-        self.tables = {
-            name: create_table(group, name, dtype) for name, dtype in FRAME_COLUMNS.items()
-        }
+        self.columns = columns  # FRAME_COLUMNS, or SEALED_FRAME_COLUMNS in a sealed session
+        self.tables = {name: create_table(group, name, dtype) for name, dtype in columns.items()}
         self.left = Blob(_create_blob(group, "left_bytes", blob_chunk_bytes), sink)
         self.right = Blob(_create_blob(group, "right_bytes", blob_chunk_bytes), sink)
         self.pending: list[tuple[int, ...]] = []

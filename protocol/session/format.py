@@ -19,6 +19,11 @@ FORMAT = "egosurg-session"
 # Version 2 added the per-frame checksums (required in a version-2 file: one that lacks them has
 # been damaged or edited, which only the version can tell) and the take links of a resumed take.
 FORMAT_VERSION = 2
+# Version 3 is a sealed session (``protocol.session.sealed``): its images and case values are
+# ciphertext that an older reader would misread. Plaintext sessions are still written as
+# version 2, so every reader that read them still does.
+SEALED_FORMAT_VERSION = 3
+NEWEST_FORMAT_VERSION = SEALED_FORMAT_VERSION  # the newest version this code reads
 OLDEST_FORMAT_VERSION = 1  # every version a reader of this code still reads
 ENCODINGS = ("jpeg", "raw_bgr8")
 
@@ -43,6 +48,9 @@ CHECKSUM_COLUMNS: dict[str, type[np.generic]] = {
 }
 # The frame table this version writes.
 FRAME_COLUMNS: dict[str, type[np.generic]] = {**FRAME_COLUMNS_V1, **CHECKSUM_COLUMNS}
+# A sealed session's frame table: each image's associated data names ``sealed_row``, the row it
+# was recorded at (equal to the row, except in a recovered file that left frames out).
+SEALED_FRAME_COLUMNS: dict[str, type[np.generic]] = {**FRAME_COLUMNS, "sealed_row": np.uint64}
 GAP_COLUMNS: dict[str, type[np.generic]] = {
     "camera_serial": np.int64,
     "kind": np.uint8,
@@ -73,6 +81,8 @@ TABLE_CHUNK_ROWS = 4096  # 32 KiB of int64
 
 def frame_columns(format_version: int) -> dict[str, type[np.generic]]:
     """The frame table's columns in a file of ``format_version``."""
+    if format_version >= SEALED_FORMAT_VERSION:
+        return SEALED_FRAME_COLUMNS
     return FRAME_COLUMNS if format_version >= 2 else FRAME_COLUMNS_V1
 
 
@@ -82,6 +92,33 @@ class SessionFormatError(UserError, ValueError):
 
 class SessionNotFoundError(SessionFormatError, FileNotFoundError):
     """The session file does not exist."""
+
+
+class ImageChecksumError(SessionFormatError):
+    """An image's bytes no longer match the checksum stored when it was recorded."""
+
+    def __init__(self, path: Path, camera_serial: int, row: int, side: str) -> None:
+        self.camera_serial, self.row, self.side = camera_serial, row, side
+        super().__init__(
+            f"{path}: camera {camera_serial} row {row} {side} image does not match its "
+            "recorded checksum (xxh3_64): its bytes changed after it was recorded; "
+            "'egosurg session verify' lists every damaged image"
+        )
+
+
+class ImageSealError(ImageChecksumError):
+    """A sealed image that does not open where it is read (its AES-GCM tag fails): changed
+    bytes whose checksum was forged too, or an image moved from another row or session. An
+    ``ImageChecksumError``, so every command treats it as it treats a damaged image."""
+
+    def __init__(self, path: Path, camera_serial: int, row: int, side: str) -> None:
+        self.camera_serial, self.row, self.side = camera_serial, row, side
+        SessionFormatError.__init__(
+            self,
+            f"{path}: camera {camera_serial} row {row} {side} image does not open with the "
+            "session's key (AES-GCM tag): its bytes were changed, or it was moved here from "
+            "another row, camera or session; 'egosurg session verify' lists every such image",
+        )
 
 
 class SessionWriteError(UserError, OSError):
@@ -191,6 +228,9 @@ class SessionInfo:
     # file name (same folder) and this file's part number, 1 for a take's first file.
     previous_session_file: str = ""
     take_part: int = 1
+    # A sealed session (format_version 3): without an identity, ``case_metadata``'s values and
+    # ``rig_config_toml`` read as ``"<sealed>"`` (the keys stay readable).
+    sealed: bool = False
 
     @property
     def has_checksums(self) -> bool:

@@ -20,29 +20,35 @@ bytes just read from disk: XXH3 runs at several GB/s, against HDF5's read of the
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import logging
 import os
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar, cast
 
 import h5py
 import numpy as np
 import xxhash
 
+from protocol.errors import UserError
+from protocol.sealing import Identity, PayloadContext, Recipient, SealedPayloadError
 from protocol.session.format import (
     EVENT_COLUMNS,
     FORMAT,
-    FORMAT_VERSION,
     GAP_COLUMNS,
+    NEWEST_FORMAT_VERSION,
     OLDEST_FORMAT_VERSION,
+    SEALED_FORMAT_VERSION,
     SUMMARY_COLUMNS,
     CameraInfo,
     EventKind,
     GapKind,
     GapRecord,
+    ImageChecksumError,
+    ImageSealError,
     SessionEvent,
     SessionFormatError,
     SessionInfo,
@@ -50,27 +56,23 @@ from protocol.session.format import (
     SetTable,
     frame_columns,
 )
+from protocol.session.layout import READ_ERRORS, check_layout
 from protocol.session.open import check_superblock, read_superblock
 from protocol.session.probe import open_hdf5
+from protocol.session.sealed import (
+    GROUP,
+    IMAGE_FIELD,
+    SEALED_TEXT,
+    ReaderSeal,
+    StoredSeal,
+    read_stored_seal,
+)
 from protocol.session.verify import verify_session
 from protocol.set_counts import missing_in_sets
 
 logger = logging.getLogger(__name__)
 
 READ_CACHE_BYTES = 16 << 20  # per dataset: a few chunks of the byte datasets
-# What reading a damaged file can raise, from h5py (OSError, RuntimeError, KeyError, ...), numpy
-# (ValueError, IndexError, MemoryError for an absurd shape) and json (ValueError).
-READ_ERRORS = (
-    OSError,
-    RuntimeError,
-    KeyError,
-    ValueError,
-    TypeError,
-    IndexError,
-    MemoryError,
-    OverflowError,
-    AttributeError,
-)
 _F = TypeVar("_F", bound=Callable[..., Any])
 SIDES = ("left", "right")
 
@@ -83,18 +85,6 @@ class FrameRowError(IndexError):
     """The caller asked for a frame row past the end of a camera's table."""
 
 
-class ImageChecksumError(SessionFormatError):
-    """An image's bytes no longer match the checksum stored when it was recorded."""
-
-    def __init__(self, path: Path, camera_serial: int, row: int, side: str) -> None:
-        self.camera_serial, self.row, self.side = camera_serial, row, side
-        super().__init__(
-            f"{path}: camera {camera_serial} row {row} {side} image does not match its "
-            "recorded checksum (xxh3_64): its bytes changed after it was recorded; "
-            "'egosurg session verify' lists every damaged image"
-        )
-
-
 def _guarded(what: str) -> Callable[[_F], _F]:
     """Turn any error reading the file into a ``SessionFormatError`` naming the file and part."""
 
@@ -103,8 +93,8 @@ def _guarded(what: str) -> Callable[[_F], _F]:
         def guarded(self: SessionReader, *args: Any, **kwargs: Any) -> Any:
             try:
                 return method(self, *args, **kwargs)
-            except (SessionFormatError, UnknownCameraError, FrameRowError):
-                raise
+            except (SessionFormatError, UnknownCameraError, FrameRowError, UserError):
+                raise  # (UserError: IdentityRequiredError, a PermissionError, is not damage)
             except READ_ERRORS as exc:
                 raise SessionFormatError(
                     f"{self.path}: cannot read {what} ({type(exc).__name__}: {exc}); the file is "
@@ -124,16 +114,29 @@ class SessionReader:
     says so). Use it as a context manager. ``refresh()`` picks up rows a live writer flushed.
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, allow_truncated: bool = False) -> None:
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        allow_truncated: bool = False,
+        identity: Identity | None = None,
+    ) -> None:
         """``allow_truncated``: open a file shorter than the end its superblock records, for
-        ``protocol.session.recover`` (what is cut off then fails as ``SessionFormatError``)."""
+        ``protocol.session.recover`` (what is cut off then fails as ``SessionFormatError``).
+        ``identity``: a recipient's identity, which opens a sealed session's images and case
+        values (``WrongIdentityError``, naming its recipients, if it is not one of them);
+        without one a sealed session's structure reads and its sealed parts raise
+        ``IdentityRequiredError``. A plaintext session ignores it."""
         self._path = Path(path)
         self._f, version = _open_session(self._path, allow_truncated)
         self.columns = frame_columns(version)  # the frame table's columns in this file
+        self._seal: ReaderSeal | None = None
         try:
             self._size_bytes = self._path.stat().st_size
             self.info = self._read_info(version)
-            self._check_layout()
+            check_layout(self._path, self._f, self.info, self.columns, self._size_bytes)
+            if version >= SEALED_FORMAT_VERSION:
+                self._seal = self._open_seal(identity)
         except BaseException:
             self._f.close()
             raise
@@ -142,6 +145,34 @@ class SessionReader:
     @property
     def path(self) -> Path:
         return self._path
+
+    @property
+    def sealed(self) -> bool:
+        """Whether the session's images and case values are sealed (format_version 3)."""
+        return self._seal is not None
+
+    @property
+    def can_open(self) -> bool:
+        """Whether its images can be read: a plaintext session, or a sealed one opened with
+        the identity of one of its recipients."""
+        return self._seal is None or self._seal.sealer is not None
+
+    @property
+    def recipients(self) -> list[Recipient]:
+        """The recipients a sealed session is sealed for (none for a plaintext one): derived
+        data is sealed for them. Opened with an identity, the list is the one sealed with the
+        images (a list changed in the file is refused when it opens)."""
+        return list(self._seal.recipients) if self._seal is not None else []
+
+    def stored_seal(self) -> StoredSeal | None:
+        """A sealed session's sealing as stored, for ``recover`` to copy; None if plaintext."""
+        return self._seal.stored if self._seal is not None else None
+
+    def require_identity(self, what: str) -> None:
+        """``IdentityRequiredError`` naming ``what`` and the recipients, when the session is
+        sealed and was opened without an identity."""
+        if self._seal is not None and self._seal.sealer is None:
+            raise self._seal.required(what)
 
     @property
     def h5(self) -> h5py.File:
@@ -201,12 +232,16 @@ class SessionReader:
         view = self._views.get(camera_serial)
         if view is None:
             view = self._views[camera_serial] = _BlobView(
-                self._group(camera_serial), self.frame_count(camera_serial), self.info.has_checksums
+                self._group(camera_serial),
+                self.frame_count(camera_serial),
+                self.info.has_checksums,
+                sealed=self._seal is not None,
             )
         n = view.offsets.shape[0]
         if not 0 <= row < n:
             raise FrameRowError(f"camera {camera_serial} has frames 0..{n - 1}, not {row}")
         k = SIDES.index(side)
+        self.require_identity(f"camera {camera_serial} row {row} {side} image")
         start, length = int(view.offsets[row, k]), int(view.lengths[row, k])
         if start < 0 or start + length > view.sizes[k]:
             raise SessionFormatError(
@@ -217,7 +252,30 @@ class SessionReader:
         data = view.read(k, start, length)
         if view.digests is not None and xxhash.xxh3_64_intdigest(data) != int(view.digests[row, k]):
             raise ImageChecksumError(self._path, camera_serial, row, side)
+        if self._seal is not None:
+            ctx = PayloadContext(
+                field=IMAGE_FIELD,
+                camera_serial=camera_serial,
+                row=int(view.sealed_rows[row]),
+                side=cast(Literal["left", "right"], side),
+                capture_unix_ns=int(view.captures[row]),
+            )
+            try:
+                return self._seal.open(data, ctx)
+            except SealedPayloadError:
+                raise ImageSealError(self._path, camera_serial, row, side) from None
         return data
+
+    def case_metadata(self) -> dict[str, str]:
+        """The case metadata; ``IdentityRequiredError`` for a sealed session opened without an
+        identity (whose ``info.case_metadata`` values read ``"<sealed>"``)."""
+        self.require_identity("its case metadata")
+        return dict(self.info.case_metadata)
+
+    def rig_config_text(self) -> str:
+        """The rig configuration's text, as ``case_metadata`` is guarded."""
+        self.require_identity("its rig configuration text")
+        return self.info.rig_config_toml
 
     # -- sets, gaps, summary
 
@@ -397,66 +455,46 @@ class SessionReader:
                 "by SessionWriter, re-export it from the recording"
             ) from None
 
-    def _check_layout(self) -> None:
-        """Every dataset there, 1-D (members 2-D), of an integer type, and no longer than the
-        file can hold: a damaged shape fails here, not as a huge read later."""
-        n_cams = len(self.info.camera_serials)
-        wanted: list[tuple[str, int, int]] = [  # (name, rank, columns of a 2-D table)
-            ("sets/set_unix_ns", 1, 0),
-            ("sets/members", 2, n_cams),
-            ("sets/spread_ns", 1, 0),
-            *((f"gaps/{name}", 1, 0) for name in GAP_COLUMNS),
-        ]
-        for serial in self.info.camera_serials:
-            wanted += [(f"cameras/{serial}/{name}", 1, 0) for name in self.columns]
-        for name, rank, columns in wanted:
+    def _open_seal(self, identity: Identity | None) -> ReaderSeal:
+        """A sealed session's key block and recipients; with ``identity``, its data key, and
+        ``info`` with the case values opened (``"<sealed>"`` without)."""
+        a = self._f.attrs
+        try:
+            if GROUP not in self._f:
+                raise KeyError(f"no /{GROUP} group")
+            stored = read_stored_seal(
+                self._f,
+                _str_attr(a, "case_metadata_json", "{}"),
+                _str_attr(a, "rig_config_toml", ""),
+            )
+        except READ_ERRORS as exc:
+            raise SessionFormatError(
+                f"{self._path}: a sealed session whose key block or recipients cannot be read "
+                f"({type(exc).__name__}: {exc}); no identity can open it. Copy the file again "
+                "from the recorder"
+            ) from None
+        seal = ReaderSeal(self._path, stored, identity)
+        meta = {k: SEALED_TEXT for k in stored.case_metadata}
+        rig = SEALED_TEXT
+        if seal.sealer is not None:
             try:
-                ds = self._f[name]
-                if not isinstance(ds, h5py.Dataset):
-                    raise TypeError("is not a dataset")
-                shape, dtype = ds.shape, ds.dtype
-            except READ_ERRORS as exc:
-                raise SessionFormatError(
-                    f"{self._path}: a session with a missing or bad part: no readable {name} "
-                    f"({exc}); the file is "
-                    "damaged or was not written by SessionWriter"
-                ) from None
-            if (
-                shape is None
-                or len(shape) != rank
-                or (rank == 2 and shape[1] != columns)
-                or dtype.kind not in "iu"
-            ):
-                raise SessionFormatError(
-                    f"{self._path}: {name} has shape {shape} and type {dtype}; a session's is "
-                    f"{'(rows,)' if rank == 1 else f'(rows, {columns})'} of integers. The file "
-                    "is damaged"
-                )
-            if shape[0] * dtype.itemsize * max(columns, 1) > self._size_bytes:
-                raise SessionFormatError(
-                    f"{self._path}: {name} claims {shape[0]} rows, more than a file of "
-                    f"{self._size_bytes} bytes can hold; the file is damaged"
-                )
-        for serial in self.info.camera_serials:
-            for side in ("left", "right"):
-                name = f"cameras/{serial}/{side}_bytes"
-                try:
-                    ds = self._f[name]
-                    ok = isinstance(ds, h5py.Dataset) and ds.ndim == 1 and ds.dtype.itemsize == 1
-                except READ_ERRORS:
-                    ok = False
-                if not ok:
-                    raise SessionFormatError(
-                        f"{self._path}: {name} is missing or not a 1-D byte dataset; the file is "
-                        "damaged"
-                    )
+                meta, rig = seal.open_metadata(), seal.open_rig_config()
+            except (SealedPayloadError, UnicodeDecodeError) as exc:
+                raise SessionFormatError(f"{self._path}: {exc}") from None
+        self.info = dataclasses.replace(
+            self.info, case_metadata=meta, rig_config_toml=rig, sealed=True
+        )
+        return seal
 
 
 class _BlobView:
     """One camera's image offsets and byte datasets, cached for fast random reads."""
 
-    def __init__(self, group: h5py.Group, rows: int, checksums: bool) -> None:
+    def __init__(self, group: h5py.Group, rows: int, checksums: bool, *, sealed: bool) -> None:
         self.datasets = (group["left_bytes"], group["right_bytes"])
+        # what a sealed image's associated data names: its sealed row and capture stamp
+        self.sealed_rows = group["sealed_row"][:rows] if sealed else np.empty(0, np.uint64)
+        self.captures = group["capture_unix_ns"][:rows] if sealed else np.empty(0, np.int64)
         # the stored XXH3-64 of each image as uint64, or None in a file from before checksums
         self.digests: np.ndarray | None = None
         if checksums:
@@ -540,10 +578,10 @@ def _open_session(path: Path, allow_truncated: bool = False) -> tuple[h5py.File,
                 f"{path}: an EgoSurg session without a valid format_version; the file is "
                 "damaged, copy it again from the recorder"
             ) from None
-        if version > FORMAT_VERSION:
+        if version > NEWEST_FORMAT_VERSION:
             raise SessionFormatError(
                 f"{path}: session format_version {version} was written by a newer EgoSurg; "
-                f"this one reads up to version {FORMAT_VERSION}. Upgrade egosurg."
+                f"this one reads up to version {NEWEST_FORMAT_VERSION}. Upgrade egosurg."
             )
         if version < OLDEST_FORMAT_VERSION:
             raise SessionFormatError(f"{path}: invalid session format_version {version}")

@@ -21,12 +21,17 @@ session written by ``SessionWriter`` (closed cleanly, mode 0600):
   listed. Only a file whose structure HDF5 cannot open, or in which no camera can be described,
   is refused.
 
+A sealed session is copied without a key: its key block, recipients, sealed values and sealed
+images as they are, each frame keeping the ``sealed_row`` its images are bound to; with an
+identity each image is also opened and one that does not open is left out.
+
 The report says what was kept and what was lost, per camera, and what was skipped or rebuilt and
 why; it is stored in the new file's ``summary_json`` under ``recovered_from``.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -37,9 +42,11 @@ import h5py
 import numpy as np
 import xxhash
 
+from protocol.sealing import OVERHEAD_BYTES, Identity, PayloadContext, SealedPayloadError
 from protocol.session.format import (
     EVENT_COLUMNS,
     GAP_COLUMNS,
+    SEALED_FORMAT_VERSION,
     EventKind,
     GapKind,
     SessionFormatError,
@@ -50,6 +57,7 @@ from protocol.session.format import (
 from protocol.session.open import open_unprobed, read_superblock
 from protocol.session.read import READ_ERRORS, SessionReader
 from protocol.session.salvage import rebuild_info, salvage_attributes
+from protocol.session.sealed import IMAGE_FIELD, ReaderSeal, StoredSeal, read_stored_seal
 from protocol.session.write import SessionWriter
 
 logger = logging.getLogger(__name__)
@@ -135,24 +143,37 @@ def _image(ds: h5py.Dataset, offset: int, length: int) -> bytes | None:
         return None
 
 
-def _intact(data: bytes | None, encoding: str, raw_bytes: int, digest: int | None) -> bool:
+def _intact(
+    data: bytes | None, encoding: str, raw_bytes: int, digest: int | None, *, sealed: bool
+) -> bool:
+    """An image that reads and matches its checksum, and is whole: a JPEG's markers, a raw
+    image's size. A sealed image is checked by its checksum and size only (recover holds no
+    key to open it; the reader checks its tag)."""
     if data is None:
         return False
     if digest is not None and xxhash.xxh3_64_intdigest(data) != digest:
         return False
+    if sealed:
+        return len(data) == raw_bytes + OVERHEAD_BYTES if encoding != "jpeg" else len(data) > 4
     if encoding == "jpeg":
         return len(data) >= 4 and data[:2] == b"\xff\xd8" and data[-2:] == b"\xff\xd9"
     return len(data) == raw_bytes
 
 
-def recover_session(source: Path | str, target: Path | str) -> RecoveryReport:
-    """Copy what is intact in ``source`` into a new session ``target``; see the module doc."""
+def recover_session(
+    source: Path | str, target: Path | str, *, identity: Identity | None = None
+) -> RecoveryReport:
+    """Copy what is intact in ``source`` into a new session ``target``; see the module doc.
+    A sealed session needs no key; with the ``identity`` of one of its recipients each image is
+    also opened, and a frame whose image does not open is left out (``WrongIdentityError`` for
+    an identity that is not a recipient)."""
     source, target = Path(source), Path(target)
     report = RecoveryReport(source, target)
-    f, info = _open(source, report)
+    f, info, seal = _open(source, report)
     existed = target.exists()  # then the writer refuses it, and it is not ours to remove
     try:
-        _recover(f, info, target, report)
+        opener = ReaderSeal(source, seal, identity) if seal and identity else None
+        _recover(f, info, seal, opener, target, report)
     except BaseException:
         if not existed:  # never leave a half-written copy that looks like a recovery
             target.unlink(missing_ok=True)
@@ -163,12 +184,12 @@ def recover_session(source: Path | str, target: Path | str) -> RecoveryReport:
     return report
 
 
-def _open(source: Path, report: RecoveryReport) -> tuple[h5py.File, SessionInfo]:
-    """The open file and its description: the reader's, or salvaged and rebuilt when the reader
-    cannot describe it (see the module doc)."""
+def _open(source: Path, report: RecoveryReport) -> tuple[h5py.File, SessionInfo, StoredSeal | None]:
+    """The open file, its description (the reader's, or salvaged and rebuilt when the reader
+    cannot describe it: see the module doc) and a sealed session's sealing as stored."""
     try:
         reader = SessionReader(source, allow_truncated=True)
-        return reader.h5, reader.info
+        return reader.h5, reader.info, reader.stored_seal()
     except SessionNotFoundError:
         raise
     except SessionFormatError as exc:
@@ -185,6 +206,7 @@ def _open(source: Path, report: RecoveryReport) -> tuple[h5py.File, SessionInfo]
         salvaged = salvage_attributes(source)
         notes = [f"the session's description cannot be read as it is ({why}); rebuilt from it"]
         info = rebuild_info(source, f, salvaged, notes)
+        seal = _salvaged_seal(source, f, info)
     except BaseException as exc:
         f.close()
         if isinstance(exc, SessionFormatError):
@@ -201,18 +223,42 @@ def _open(source: Path, report: RecoveryReport) -> tuple[h5py.File, SessionInfo]
                 report.frames_lost[serial] = int(f[group]["capture_unix_ns"].shape[0])
             except READ_ERRORS:
                 report.frames_lost[serial] = -1  # its group cannot be read: nor its length
-    return f, info
+    return f, info, seal
 
 
-def _recover(f: h5py.File, info: SessionInfo, target: Path, report: RecoveryReport) -> None:
+def _salvaged_seal(source: Path, f: h5py.File, info: SessionInfo) -> StoredSeal | None:
+    """A sealed session's sealing read from the file as it is: without its key block no
+    identity opens any image, so there is nothing to recover."""
+    if info.format_version < SEALED_FORMAT_VERSION:
+        return None
+    try:
+        return read_stored_seal(f, json.dumps(info.case_metadata), info.rig_config_toml)
+    except READ_ERRORS as exc:
+        raise SessionFormatError(
+            f"its key block or recipients cannot be read ({exc}): no identity can open its images"
+        ) from None
+
+
+def _recover(
+    f: h5py.File,
+    info: SessionInfo,
+    seal: StoredSeal | None,
+    opener: ReaderSeal | None,
+    target: Path,
+    report: RecoveryReport,
+) -> None:
+    """Copy into ``target``; a sealed session's key block, recipients, sealed values and
+    images as they are (``seal``: no key is needed; ``opener``, given an identity, checks that
+    each image opens)."""
     columns = frame_columns(info.format_version)
     with SessionWriter(
         target,
         session_name=info.session_name,
-        case_metadata=info.case_metadata,
+        case_metadata=info.case_metadata if seal is None else {},
         cameras=list(info.cameras),
         tolerance_ns=info.tolerance_ns,
-        rig_config_text=info.rig_config_toml,
+        rig_config_text=info.rig_config_toml if seal is None else "",
+        sealed_copy=seal,
         software_version=info.software_version,
         started_unix_ns=info.started_unix_ns,
         previous_session_file=info.previous_session_file if info.take_part > 1 else "",
@@ -225,7 +271,9 @@ def _recover(f: h5py.File, info: SessionInfo, target: Path, report: RecoveryRepo
             serial = cam.camera_serial
             row_maps[serial], captures[serial] = {}, np.empty(0, np.int64)
             try:
-                row_maps[serial], captures[serial] = _copy_frames(f, columns, writer, cam, report)
+                row_maps[serial], captures[serial] = _copy_frames(
+                    f, columns, writer, cam, report, opener
+                )
             except READ_ERRORS as exc:
                 unread.add(serial)
                 report.frames_kept[serial] = 0
@@ -291,7 +339,12 @@ def _set_columns(
 
 
 def _copy_frames(
-    f: h5py.File, columns: Any, writer: SessionWriter, cam: Any, report: RecoveryReport
+    f: h5py.File,
+    columns: Any,
+    writer: SessionWriter,
+    cam: Any,
+    report: RecoveryReport,
+    opener: ReaderSeal | None,
 ) -> tuple[dict[int, int], np.ndarray]:
     serial = cam.camera_serial
     group = f[f"cameras/{serial}"]
@@ -302,20 +355,28 @@ def _copy_frames(
     raw_bytes = cam.width * cam.height * 3
     row_map: dict[int, int] = {}
     kept_capture = []
-    damaged = 0
+    damaged = unopened = 0
     for row in range(table["capture_unix_ns"].shape[0]):
         images = []
         for side, ds in zip(("left", "right"), blobs, strict=True):
             data = _image(ds, int(table[f"{side}_offset"][row]), int(table[f"{side}_length"][row]))
             digest = int(table[f"{side}_xxh3_64"][row]) if f"{side}_xxh3_64" in table else None
-            images.append(data if _intact(data, cam.encoding, raw_bytes, digest) else None)
+            intact = _intact(data, cam.encoding, raw_bytes, digest, sealed=writer.sealed)
+            images.append(data if intact else None)
         if images[0] is None or images[1] is None:
             damaged += 1
             continue
-        row_map[row] = writer.append_frame(
+        if opener is not None and not _opens(opener, serial, table, row, images):
+            unopened += 1
+            continue
+        # a sealed image keeps the row it was sealed at (its associated data names it)
+        append = writer.append_frame if not writer.sealed else writer.append_sealed_frame
+        more = {"sealed_row": int(table["sealed_row"][row])} if writer.sealed else {}
+        row_map[row] = append(
             serial,
             left=images[0],
             right=images[1],
+            **more,
             capture_unix_ns=int(table["capture_unix_ns"][row]),
             host_receive_unix_ns=int(table["host_receive_unix_ns"][row]),
             recorder_receive_unix_ns=int(table["recorder_receive_unix_ns"][row]),
@@ -329,10 +390,34 @@ def _copy_frames(
             writer.flush()
     if damaged:
         problems.append(f"camera {serial}: {damaged} frames whose images are damaged")
+    if unopened:
+        problems.append(
+            f"camera {serial}: {unopened} frames whose images do not open with the session's key "
+            "(changed with their checksums, or moved from another row or session)"
+        )
     report.frames_kept[serial] = len(row_map)
     report.frames_lost[serial] = declared - len(row_map)
     report.problems += problems
     return row_map, np.asarray(kept_capture, dtype=np.int64)
+
+
+def _opens(
+    opener: ReaderSeal, serial: int, table: dict[str, np.ndarray], row: int, images: list[Any]
+) -> bool:
+    """Whether both sealed images of ``row`` open where they are (their AES-GCM tags)."""
+    for side, data in zip(("left", "right"), images, strict=True):
+        ctx = PayloadContext(
+            field=IMAGE_FIELD,
+            camera_serial=serial,
+            row=int(table["sealed_row"][row]),
+            side="left" if side == "left" else "right",
+            capture_unix_ns=int(table["capture_unix_ns"][row]),
+        )
+        try:
+            opener.open(data, ctx)
+        except SealedPayloadError:
+            return False
+    return True
 
 
 def _copy_sets(

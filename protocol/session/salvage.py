@@ -201,8 +201,9 @@ def rebuild_info(path: Path, f: h5py.File, s: Salvaged, notes: list[str]) -> Ses
             f"({', '.join(map(str, serials))}); the sets' columns cannot be matched to them"
         )
     version = root.get("format_version")
-    if version not in (1, 2):
-        version = 2 if any(f"cameras/{c}/left_xxh3_64" in f for c in serials) else 1
+    if version not in (1, 2, 3):  # 3: sealed, the only version with a /sealing group
+        checksums = any(f"cameras/{c}/left_xxh3_64" in f for c in serials)
+        version = 3 if "sealing" in f else 2 if checksums else 1
         notes.append(f"root attribute format_version is lost: {version}, from the frame tables")
     cameras = []
     for serial in serials:

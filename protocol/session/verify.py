@@ -15,7 +15,15 @@ import h5py
 import numpy as np
 import xxhash
 
-from protocol.session.format import EVENT_COLUMNS, GAP_COLUMNS, EventKind, GapKind
+from protocol.sealing import OVERHEAD_BYTES
+from protocol.session.format import (
+    EVENT_COLUMNS,
+    GAP_COLUMNS,
+    EventKind,
+    GapKind,
+    ImageChecksumError,
+    ImageSealError,
+)
 
 # The SessionReader being verified (not imported: session_read imports this module).
 SessionReader = Any
@@ -50,6 +58,12 @@ def verify_session(r: SessionReader, *, check_images: bool = True) -> list[str]:
         problems.append(
             f"note: no checksums (format version {r.info.format_version}): images are checked "
             "for their JPEG markers and sizes only"
+        )
+    if r.sealed and not r.can_open:
+        problems.append(
+            f"note: sealed for {', '.join(x.label() for x in r.recipients)}; without an "
+            "identity each image is checked against its checksum only (with one, every image "
+            "is opened and its AES-GCM tag checked too)"
         )
     for serial in r.info.camera_serials:
         problems += _verify_camera(r, serial, tail, check_images)
@@ -95,13 +109,14 @@ def _verify_camera(r: SessionReader, serial: int, tail: str, check_images: bool)
                 "overlap the previous frame's"
             )
         if info.encoding == "raw_bgr8":
-            wrong = np.flatnonzero(len_in != info.width * info.height * 3)
+            overhead = OVERHEAD_BYTES if r.sealed else 0  # a sealed image's nonce, tag, version
+            wrong = np.flatnonzero(len_in != info.width * info.height * 3 + overhead)
             if wrong.size:
                 out.append(
                     f"error: camera {serial}: {side} raw_bgr8 images of rows "
                     f"{_rows(inside[wrong])} are not {info.width}x{info.height}x3 bytes"
                 )
-        elif check_images:
+        elif check_images and not r.sealed:  # a sealed image's markers are checked opened
             wrong = np.flatnonzero(_bad_jpeg(ds, off_in, len_in))
             if wrong.size:
                 out.append(
@@ -117,6 +132,42 @@ def _verify_camera(r: SessionReader, serial: int, tail: str, check_images: bool)
                     f"{_rows(inside[wrong], limit=1000)} do not match their checksums "
                     "(xxh3_64): their bytes changed after they were recorded"
                 )
+        if check_images and r.sealed and r.can_open:
+            out += _verify_opened(r, serial, side, inside, jpeg=info.encoding == "jpeg")
+    return out
+
+
+def _verify_opened(
+    r: SessionReader, serial: int, side: str, rows: np.ndarray, *, jpeg: bool
+) -> list[str]:
+    """A sealed session opened with an identity: every image opened (its AES-GCM tag checked,
+    which also catches an image moved from another row or session with its checksum) and, once
+    opened, a JPEG's markers checked."""
+    unopened, not_jpeg = [], []
+    for row in rows:
+        try:
+            image = r.image_bytes(serial, int(row), side)
+        except ImageSealError:
+            unopened.append(int(row))
+            continue
+        except ImageChecksumError:
+            continue  # reported with the checksums
+        if jpeg and not (
+            len(image) >= 4 and image[:2] == b"\xff\xd8" and image[-2:] == b"\xff\xd9"
+        ):
+            not_jpeg.append(int(row))
+    out = []
+    if unopened:
+        out.append(
+            f"error: camera {serial}: {side} images of rows "
+            f"{_rows(np.asarray(unopened), limit=1000)} do not open with the session's key "
+            "(AES-GCM tag): changed, or moved here from another row, camera or session"
+        )
+    if not_jpeg:
+        out.append(
+            f"error: camera {serial}: {side} images of rows {_rows(np.asarray(not_jpeg))} "
+            "open but are not JPEG (must start with FF D8 and end with FF D9)"
+        )
     return out
 
 

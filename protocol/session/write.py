@@ -29,10 +29,10 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-import h5py
 import numpy as np
 
-from protocol.session.chunk_sink import DIRECT_ALIGN_BYTES, ChunkSink
+from protocol.sealing import Recipient
+from protocol.session.chunk_sink import ChunkSink
 from protocol.session.datasets import (
     CameraWriter,
     append_rows,
@@ -47,6 +47,8 @@ from protocol.session.format import (
     FORMAT_VERSION,
     FRAME_COLUMNS,
     GAP_COLUMNS,
+    SEALED_FORMAT_VERSION,
+    SEALED_FRAME_COLUMNS,
     SUMMARY_COLUMNS,
     TABLE_CHUNK_ROWS,
     CameraInfo,
@@ -55,11 +57,12 @@ from protocol.session.format import (
     SessionWriteError,
     event_text,
 )
-from protocol.session.privacy import create_private_file, redact_secrets
+from protocol.session.new_file import check_arguments, check_new_file, create_file
+from protocol.session.privacy import redact_secrets
+from protocol.session.sealed import StoredSeal, WriterSeal
 
 logger = logging.getLogger(__name__)
 
-_MAX_BLOB_CHUNK = 1 << 30
 _MAX_PENDING_ROWS = 4096  # a memory bound if the caller forgets to flush()
 
 
@@ -85,8 +88,15 @@ class SessionWriter:
         direct_io: bool | None = None,
         previous_session_file: str = "",
         take_part: int = 1,
+        recipients: Sequence[Recipient] = (),
+        sealed_copy: StoredSeal | None = None,
     ) -> None:
-        """``direct_io``: write the image chunks past the page cache (``O_DIRECT``); None does
+        """``recipients``: seal the session for them (``protocol.session.sealed``): each image,
+        metadata value and the rig text is stored sealed under a fresh data key that only they
+        can unwrap; none writes a plaintext session. ``sealed_copy``: a sealed session's
+        sealing as stored, for ``recover`` (its metadata and rig text replace the arguments,
+        and images are appended sealed already, ``append_sealed_frame``).
+        ``direct_io``: write the image chunks past the page cache (``O_DIRECT``); None does
         where the file system allows it (see ``protocol.session.chunk_sink``).
         ``previous_session_file`` and ``take_part``: a take resumed after the recorder was killed
         links its new file to the previous part (its file name, same folder).
@@ -94,7 +104,7 @@ class SessionWriter:
         the file is created with mode 0600."""
         self._path = Path(path)
         serials = [c.camera_serial for c in cameras]
-        _check_arguments(
+        check_arguments(
             serials,
             session_name=session_name,
             case_metadata=case_metadata,
@@ -103,7 +113,15 @@ class SessionWriter:
             previous_session_file=previous_session_file,
             take_part=take_part,
         )
-        _check_new_file(self._path)
+        if recipients and sealed_copy is not None:
+            raise ValueError("recipients seal a new session, sealed_copy copies one: not both")
+        rig_text = redact_secrets(rig_config_text)
+        self._seal: WriterSeal | None = None
+        if recipients:
+            self._seal = WriterSeal.new(recipients, case_metadata, rig_text)
+        elif sealed_copy is not None:
+            self._seal = WriterSeal(None, sealed_copy)
+        check_new_file(self._path)
         self._serials = tuple(serials)
         self._closed = False
         self._write_error: OSError | None = None  # of the last flush, until one succeeds
@@ -113,7 +131,7 @@ class SessionWriter:
         self._gaps_rows = 0
         self._events_pending: list[tuple[int, int, bytes, int, int, bytes]] = []
         self._events_rows = 0
-        self._f = _create_file(self._path, blob_chunk_bytes)
+        self._f = create_file(self._path, blob_chunk_bytes)
         try:
             self._sink = ChunkSink(
                 self._path, blob_chunk_bytes, direct_io=direct_io, buffers_held=2 * len(serials)
@@ -128,7 +146,7 @@ class SessionWriter:
                 case_metadata=dict(case_metadata),
                 cameras=cameras,
                 tolerance_ns=tolerance_ns,
-                rig_config_text=redact_secrets(rig_config_text),
+                rig_config_text=rig_text,
                 software_version=software_version,
                 started_unix_ns=started_unix_ns,
                 blob_chunk_bytes=blob_chunk_bytes,
@@ -159,8 +177,12 @@ class SessionWriter:
     ) -> dict[int, CameraWriter]:
         f = self._f
         a = f.attrs
+        seal = self._seal
+        if seal is not None:  # the values as stored: sealed, base64 (docs/session.md)
+            case_metadata, rig_config_text = seal.stored.case_metadata, seal.stored.rig_config
+            seal.write(f)
         a["format"] = FORMAT
-        a["format_version"] = np.int64(FORMAT_VERSION)
+        a["format_version"] = np.int64(FORMAT_VERSION if seal is None else SEALED_FORMAT_VERSION)
         a["session_name"] = session_name
         a["case_metadata_json"] = json.dumps(case_metadata, sort_keys=True)
         a["started_unix_ns"] = np.int64(started_unix_ns)
@@ -183,7 +205,8 @@ class SessionWriter:
             g.attrs["fps_nominal"] = np.float64(info.fps_nominal)
             g.attrs["encoding"] = info.encoding
             g.attrs["factory_conf"] = info.factory_conf_text
-            cams[info.camera_serial] = CameraWriter(g, info, blob_chunk_bytes, self._sink)
+            columns = FRAME_COLUMNS if seal is None else SEALED_FRAME_COLUMNS
+            cams[info.camera_serial] = CameraWriter(g, info, blob_chunk_bytes, self._sink, columns)
         n_cams = len(self._serials)
         sets = f.create_group("sets")
         self._set_time = create_table(sets, "set_unix_ns", np.int64)
@@ -220,6 +243,11 @@ class SessionWriter:
         return self._serials
 
     @property
+    def sealed(self) -> bool:
+        """Whether images and case values are stored sealed for recipients."""
+        return self._seal is not None
+
+    @property
     def bytes_written(self) -> int:
         """Image bytes appended so far, both sides of every camera."""
         return sum(c.left.logical_end + c.right.logical_end for c in self._cams.values())
@@ -242,11 +270,62 @@ class SessionWriter:
         ptp_offset_ns: int,
         ptp_locked: bool,
     ) -> int:
-        """Append one stereo frame; ``left``/``right`` are bytes-like and stored as-is.
+        """Append one stereo frame; ``left``/``right`` are bytes-like and stored as-is (in a
+        sealed session, sealed for its row, side and capture stamp first).
 
         Returns the frame's row in ``/cameras/<serial>``, the index that sets refer to.
         """
         cam = self._camera(camera_serial)
+        if self._seal is not None:
+            seal, row = self._seal.seal_image, cam.rows
+            left = seal(
+                left,
+                camera_serial=camera_serial,
+                row=row,
+                side="left",
+                capture_unix_ns=capture_unix_ns,
+            )
+            right = seal(
+                right,
+                camera_serial=camera_serial,
+                row=row,
+                side="right",
+                capture_unix_ns=capture_unix_ns,
+            )
+        times = (capture_unix_ns, host_receive_unix_ns, recorder_receive_unix_ns)
+        counters = (frame_index, seq, ptp_offset_ns, 1 if ptp_locked else 0)
+        return self._append(cam, left, right, (*times, *counters), cam.rows)
+
+    def append_sealed_frame(
+        self,
+        camera_serial: int,
+        *,
+        left: Any,
+        right: Any,
+        sealed_row: int,
+        capture_unix_ns: int,
+        host_receive_unix_ns: int,
+        recorder_receive_unix_ns: int,
+        frame_index: int,
+        seq: int,
+        ptp_offset_ns: int,
+        ptp_locked: bool,
+    ) -> int:
+        """Append a frame of a sealed session whose images are sealed already, as stored in
+        the session this one copies (``sealed_copy``): ``sealed_row`` is the row their
+        associated data names. For ``recover``, which holds no key. Returns the frame's row."""
+        cam = self._camera(camera_serial)
+        if self._seal is None:
+            raise ValueError("append_sealed_frame is for a sealed session; use append_frame")
+        times = (capture_unix_ns, host_receive_unix_ns, recorder_receive_unix_ns)
+        counters = (frame_index, seq, ptp_offset_ns, 1 if ptp_locked else 0)
+        return self._append(cam, left, right, (*times, *counters), sealed_row)
+
+    def _append(
+        self, cam: CameraWriter, left: Any, right: Any, fields: tuple[int, ...], sealed_row: int
+    ) -> int:
+        """Store one frame's images and queue its table row: ``fields`` are the table's
+        columns before the offsets, ``sealed_row`` goes to a sealed session's last column."""
         if self._write_error is not None:  # the last flush failed: not past it until one works
             raise SessionWriteError(
                 f"{self._path}: writing failed ({self._write_error}); check free disk space and "
@@ -267,23 +346,8 @@ class SessionWriter:
             raise SessionWriteError(
                 f"{self._path}: writing failed ({exc}); check free disk space and the disk"
             ) from exc
-        cam.pending.append(
-            (
-                capture_unix_ns,
-                host_receive_unix_ns,
-                recorder_receive_unix_ns,
-                frame_index,
-                seq,
-                ptp_offset_ns,
-                1 if ptp_locked else 0,
-                lo,
-                ll,
-                ro,
-                rl,
-                lh,
-                rh,
-            )
-        )
+        tail = (sealed_row,) if self._seal is not None else ()
+        cam.pending.append((*fields, lo, ll, ro, rl, lh, rh, *tail))
         row = cam.rows
         cam.rows += 1
         if len(cam.pending) >= _MAX_PENDING_ROWS:
@@ -409,7 +473,7 @@ class SessionWriter:
             if cam.pending:
                 columns = list(zip(*cam.pending, strict=True))
                 start, end = cam.rows_in_file, cam.rows_in_file + len(cam.pending)
-                for (name, dtype), col in zip(FRAME_COLUMNS.items(), columns, strict=True):
+                for (name, dtype), col in zip(cam.columns.items(), columns, strict=True):
                     append_rows(cam.tables[name], start, end, np.asarray(col, dtype=dtype))
                 cam.pending.clear()
                 cam.rows_in_file = end
@@ -475,6 +539,7 @@ class SessionWriter:
             ) from exc
         finally:
             self._closed = True
+            self._forget_key()
             self._sink.close()
             self._f.close()
         logger.info("session file %s closed cleanly", self._path)
@@ -489,8 +554,15 @@ class SessionWriter:
             logger.exception("session file %s: final flush failed", self._path)
         finally:
             self._closed = True
+            self._forget_key()
             self._sink.close()
             self._f.close()
+
+    def _forget_key(self) -> None:
+        """Drop the data key when the file is done: from then on this process holds nothing
+        that opens what it wrote (the file keeps the key only wrapped for the recipients)."""
+        if self._seal is not None:
+            self._seal.sealer = None
 
     def __enter__(self) -> SessionWriter:
         return self
@@ -520,75 +592,3 @@ class SessionWriter:
             raise ValueError(
                 f"camera {serial} is not in this session; cameras are {list(self._serials)}"
             ) from None
-
-
-def _check_arguments(
-    serials: Sequence[int],
-    *,
-    session_name: str,
-    case_metadata: Mapping[str, str],
-    tolerance_ns: int,
-    blob_chunk_bytes: int,
-    previous_session_file: str,
-    take_part: int,
-) -> None:
-    """``SessionWriter``'s arguments, checked before anything touches the disk."""
-    if not serials:
-        raise ValueError("a session needs at least one camera")
-    if len(set(serials)) != len(serials):
-        raise ValueError(f"camera serials must be unique, got {list(serials)}")
-    if not session_name:
-        raise ValueError("session_name must not be empty")
-    if tolerance_ns <= 0:
-        raise ValueError(f"tolerance_ns must be > 0, got {tolerance_ns}")
-    if take_part < 1 or (take_part > 1) != bool(previous_session_file):
-        raise ValueError(
-            f"take_part {take_part} with previous_session_file {previous_session_file!r}: "
-            "a take's first part (1) has no previous file, a later part names one"
-        )
-    if not 1 <= blob_chunk_bytes <= _MAX_BLOB_CHUNK:
-        raise ValueError(f"blob_chunk_bytes must be 1 to {_MAX_BLOB_CHUNK}, got {blob_chunk_bytes}")
-    bad = {k: v for k, v in case_metadata.items() if not isinstance(v, str)}
-    if bad or not all(isinstance(k, str) for k in case_metadata):
-        raise ValueError(f"case_metadata must map str to str; bad entries: {bad}")
-
-
-def _check_new_file(path: Path) -> None:
-    """A session file is only ever new, in a folder that exists."""
-    if path.exists():
-        raise SessionWriteError(
-            f"{path}: already exists; a session file is never overwritten. "
-            "Choose another session name or move the old file away."
-        )
-    if not path.parent.is_dir():
-        raise SessionWriteError(f"{path}: directory {path.parent} does not exist; create it first")
-
-
-def _create_file(path: Path, blob_chunk_bytes: int) -> h5py.File:
-    """The new session file (mode 0600), open for writing; nothing is left behind on failure."""
-    try:
-        create_private_file(path)  # 0600 whatever the umask; HDF5 keeps the mode
-    except FileExistsError:
-        raise SessionWriteError(
-            f"{path}: already exists; a session file is never overwritten."
-        ) from None
-    except OSError as exc:
-        raise SessionWriteError(f"{path}: cannot create the session file: {exc}") from exc
-    try:
-        # Bounds v110..v110: SWMR needs the 1.10 file format, and pinning the upper bound
-        # keeps the file readable by the HDF5 1.10 tools (h5dump) of Debian and JetPack.
-        # No chunk cache: image chunks are written whole, past it, and the tables' chunks
-        # are only appended to, so a cache would only add a copy (and slow flushes).
-        # Allocations of a whole image chunk start on a disk block, as direct I/O needs.
-        aligned = blob_chunk_bytes % DIRECT_ALIGN_BYTES == 0
-        return h5py.File(
-            path,
-            "w",  # the empty file created above, exclusively
-            libver=("v110", "v110"),
-            rdcc_nbytes=0,
-            alignment_threshold=blob_chunk_bytes if aligned else 1,
-            alignment_interval=DIRECT_ALIGN_BYTES if aligned else 1,
-        )
-    except OSError as exc:
-        path.unlink(missing_ok=True)
-        raise SessionWriteError(f"{path}: cannot create the session file: {exc}") from exc

@@ -29,6 +29,9 @@ from pathlib import Path
 from typing import Any
 
 from protocol.command import add_subcommand, command_parser
+from protocol.private_files import make_owner_only, plaintext_notice
+from protocol.sealing import Identity
+from protocol.session import SessionReader
 from reconstructor.case.index import INDEX_NAME, CaseIndex, Entry, check_model
 from reconstructor.case.plan import (
     config_hash,
@@ -43,9 +46,16 @@ from reconstructor.errors import CaseFolderError
 
 
 def reconstruct_case(
-    args: argparse.Namespace, session: Path, cal_path: Path, config: ReconstructConfig
+    args: argparse.Namespace,
+    session: Path,
+    cal_path: Path,
+    config: ReconstructConfig,
+    identity: Identity | None = None,
 ) -> int:
-    """The ``--every`` form of ``egosurg reconstruct``."""
+    """The ``--every`` form of ``egosurg reconstruct``; a sealed session is read with
+    ``identity`` (each worker loads it from its file)."""
+    with SessionReader(session, identity=identity) as reader:  # refused now, not per timestamp
+        reader.require_identity("every image")
     every_s = parse_duration_s(args.every)
     times = session_times(session)
     planned = plan_timestamps(times, every_s, args.from_s, args.to_s)
@@ -75,6 +85,7 @@ def reconstruct_case(
         gpus_per_task=1 if config.raster.device == "cuda" else 0,
         force=args.force,
         depth_cache=str(Path(args.depth_cache).resolve()) if args.depth_cache else "",
+        identity=str(identity.path.resolve()) if identity and identity.path else "",
     )
     index = run_case(req, step_progress=_StepBar() if args.workers <= 1 and not args.ray else None)
     print(summary_line(req.case_dir, index))
@@ -201,6 +212,7 @@ def export(folder: Path, out: Path, at: list[str] | None, fmt: str) -> list[Path
             ply.write_splat(target, g)
         else:
             ply.write_ply(target, g, unit_quats=True)
+        make_owner_only(target)  # an earlier export's file kept its mode when rewritten
         written.append(target)
     return written
 
@@ -238,4 +250,5 @@ def main(argv: list[str]) -> int:
         return 1 if bad else 0
     files = export(Path(args.case), Path(args.out), args.at, args.format)
     print(f"{args.out}: {len(files)} file(s) exported")
+    print(plaintext_notice(f"{len(files)} model(s) as .{args.format}", args.out), file=sys.stderr)
     return 0

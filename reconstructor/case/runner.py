@@ -48,6 +48,7 @@ class CaseRequest:
     gpus_per_task: int = 0  # 1 when the config trains on CUDA: each Ray task declares a GPU
     force: bool = False
     depth_cache: str = ""  # a folder keeping each timestamp's depth stage ("": none)
+    identity: str = ""  # the identity file that opens a sealed session ("": none)
 
 
 @contextmanager
@@ -228,6 +229,7 @@ def _job(req: CaseRequest, steps: list[StepJob], threads: int = 0) -> ChainJob:
         steps=tuple(steps),
         threads=threads,
         depth_cache=req.depth_cache,
+        identity=req.identity,
     )
 
 

@@ -47,6 +47,9 @@ class ChainJob:
     steps: tuple[StepJob, ...] = ()
     threads: int = 0  # 0: leave torch's and numba's defaults
     depth_cache: str = ""  # a folder keeping each timestamp's depth stage ("": none)
+    # the identity file that opens a sealed session ("": none): its path, so the secret key
+    # never travels with the job; each worker reads it where the session is read
+    identity: str = ""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -118,6 +121,7 @@ def run_step(job: ChainJob, step: StepJob, warm_from: str, progress: Any) -> Ste
 
 def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) -> dict[str, Any]:
     from protocol.formats.rig_calibration import RigCalibration
+    from protocol.sealing import load_identity
     from reconstructor.case import storage
     from reconstructor.case.index import CaseIndex
     from reconstructor.case.warm import WarmStartConfig, seed_from_previous
@@ -127,7 +131,8 @@ def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) ->
 
     case = Path(job.case_dir)
     calibration = RigCalibration.read(job.calibration)
-    ts = load_timestamp(job.session, calibration, f"set:{step.set_index}")
+    identity = load_identity(Path(job.identity)) if job.identity else None
+    ts = load_timestamp(job.session, calibration, f"set:{step.set_index}", identity=identity)
     init = None
     counts: dict[str, int] = {}
     parent: Any = None  # the previous model as stored, when this one is stored as its changes

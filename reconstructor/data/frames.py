@@ -25,6 +25,7 @@ from protocol.camera import Camera, Intrinsics, Pose, Resolution
 from protocol.formats.rig_calibration import RigCalibration
 from protocol.formats.zed_conf import derive_intrinsics
 from protocol.images import EncodeError, decode_image
+from protocol.sealing import Identity
 from protocol.session import CameraInfo, ImageChecksumError, SessionInfo, SessionReader
 from reconstructor.errors import CalibrationMismatchError, ReconstructError, TimestampError
 
@@ -153,11 +154,14 @@ def load_timestamp(
     at: str | float | int,
     *,
     calibration_source: str = "the calibration",
+    identity: Identity | None = None,
 ) -> Timestamp:
     """Decode every sensor's image of the set ``at`` names; a camera whose image is damaged is
-    left out with a warning (see the module docstring)."""
+    left out with a warning (see the module docstring). A sealed session is opened with
+    ``identity`` (``IdentityRequiredError``, naming its recipients, without one)."""
     path = Path(session)
-    with SessionReader(path) as reader:
+    with SessionReader(path, identity=identity) as reader:
+        reader.require_identity("every image")
         info = reader.info
         check_calibration(info, calibration, calibration_source)
         sets = reader.sets()

@@ -39,6 +39,7 @@ from pathlib import Path
 
 from protocol.command import CommandArgumentError, command_parser
 from protocol.formats.eval_set import EvalSet
+from protocol.sealing.arguments import add_identity_argument, identity_from_args
 from reconstructor.case.warm import WarmStartConfig
 from reconstructor.evaluation.methods import (
     METHODS,
@@ -66,6 +67,7 @@ def _names(values: list[str]) -> tuple[str, ...]:
 def build_parser() -> argparse.ArgumentParser:
     p = command_parser("egosurg evaluate", __doc__)
     p.add_argument("eval_set", metavar="EVALSET", help="the evaluation set's folder (or manifest)")
+    add_identity_argument(p)  # the scenes' sessions
     p.add_argument("--out", required=True, help="folder for the tables and pictures")
     p.add_argument(
         "--protocol",
@@ -176,7 +178,7 @@ def main(argv: list[str]) -> int:
     # before anything is written: a plan that cannot work, or a set that lacks what it needs,
     # fails here
     jobs = plan(settings, eval_set)
-    source = EvalSource(eval_set)
+    source = EvalSource(eval_set, identity_from_args(args))
     check_plan(jobs, source)
     from reconstructor.depth.cache import DepthCache
 

@@ -23,6 +23,7 @@ import numpy as np
 
 from protocol.formats.eval_set import EvalScene, EvalSet, ReferenceView
 from protocol.formats.rig_calibration import RigCalibration
+from protocol.sealing import Identity
 from protocol.session import SessionReader
 from reconstructor.case.warm import WarmStartConfig, seed_from_previous, warm_config
 from reconstructor.config import ReconstructConfig
@@ -66,8 +67,9 @@ class EvalSource:
     the whole run, and the last timestamp read (the plan runs a timestamp's jobs one after
     another; keeping more would hold ~15 MB of images per timestamp)."""
 
-    def __init__(self, eval_set: EvalSet) -> None:
+    def __init__(self, eval_set: EvalSet, identity: Identity | None = None) -> None:
         self.eval_set = eval_set
+        self.identity = identity  # opens the scenes' sessions when they are sealed
         self._scenes = {s.name: s for s in eval_set.scenes}
         self._calibrations: dict[str, RigCalibration] = {}
         self._last: tuple[tuple[str, int], Timestamp] | None = None
@@ -84,7 +86,8 @@ class EvalSource:
     def set_count(self, name: str) -> int:
         """The number of sets in the scene's session, after checking its calibration fits."""
         scene = self.scene(name)
-        with SessionReader(self.eval_set.path(scene.session)) as reader:
+        with SessionReader(self.eval_set.path(scene.session), identity=self.identity) as reader:
+            reader.require_identity(f"scene {name}'s images")
             check_calibration(reader.info, self.calibration(name), scene.calibration)
             return len(reader.sets().set_unix_ns)
 
@@ -97,6 +100,7 @@ class EvalSource:
                 self.calibration(name),
                 f"set:{set_index}",
                 calibration_source=str(self.eval_set.path(scene.calibration)),
+                identity=self.identity,
             )
             self._last = (key, ts)
         return self._last[1]

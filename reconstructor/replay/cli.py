@@ -16,19 +16,28 @@ import logging
 import math
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from protocol.command import CommandArgumentError, command_parser, parse_size_px
 from protocol.errors import UserError
 from protocol.formats.trajectory import Trajectory, read_trajectories
+from protocol.private_files import make_owner_only, plaintext_notice
+from protocol.sealing.arguments import add_identity_argument, identity_from_args
 from reconstructor.data.views import EYE_NEAR_M
 from reconstructor.raster.device import add_device_option, check_device
+
+if TYPE_CHECKING:
+    from reconstructor.replay.session_check import CaseInputs
 
 log = logging.getLogger(__name__)
 
 
-def pick_trajectory(trajectory: str | None, role: str | None, roles: str | None) -> Trajectory:
+def pick_trajectory(
+    trajectory: str | None, role: str | None, roles: str | None, inputs: CaseInputs | None = None
+) -> Trajectory:
     """The path asked for: ``--trajectory FILE`` (its only one, or ``--role`` in it), or
-    ``--role NAME --roles FILE``."""
+    ``--role NAME --roles FILE``; with ``inputs``, the file must be made for its case's session
+    (``reconstructor/replay/session_check.py``)."""
     source = trajectory or roles
     if source is None:
         raise CommandArgumentError(
@@ -37,7 +46,7 @@ def pick_trajectory(trajectory: str | None, role: str | None, roles: str | None)
         )
     if trajectory and roles:
         raise CommandArgumentError("give --trajectory or --roles, not both")
-    found = read_trajectories(source)
+    found = read_trajectories(source) if inputs is None else inputs.trajectories(source)
     if role is None:
         if len(found) == 1:
             return found[0]
@@ -72,6 +81,8 @@ def _progress(unit: str):
 def main_replay(argv: list[str]) -> int:
     from reconstructor.replay.path import CameraPath
     from reconstructor.replay.run import ReplayConfig, replay
+    from reconstructor.replay.session_check import CaseInputs
+    from reconstructor.replay.video import seconds_span
 
     p = command_parser("egosurg replay", __doc__)
     p.add_argument("case", help="a case folder (egosurg reconstruct --every ... --out CASE/)")
@@ -88,6 +99,7 @@ def main_replay(argv: list[str]) -> int:
         action="store_true",
         help="inset the nearest real camera's frame (a damaged one shows DAMAGED and is listed)",
     )
+    add_identity_argument(p)  # --pip reads the case's session
     p.add_argument("--no-preload", action="store_true", help="read each model when first shown")
     p.add_argument("--allow-gaps", action="store_true", help="show the model before a gap")
     p.add_argument("--near-m", type=float, help=f"near plane, m ({EYE_NEAR_M:g} for a role)")
@@ -98,7 +110,7 @@ def main_replay(argv: list[str]) -> int:
     args = p.parse_args(argv)
     check_device(args.device)
     folder = Path(args.case)
-    traj = pick_trajectory(args.trajectory, args.role, args.roles)
+    traj = pick_trajectory(args.trajectory, args.role, args.roles, CaseInputs(folder))
     near = args.near_m if args.near_m is not None else (EYE_NEAR_M if args.roles else 0.0)
     if not (math.isfinite(near) and 0 <= near < 10):
         raise CommandArgumentError(f"--near-m {near}: give 0 to 10 metres")
@@ -116,28 +128,43 @@ def main_replay(argv: list[str]) -> int:
     out = Path(args.out)
     if out.suffix.lower() != ".mp4":
         raise CommandArgumentError(f"--out {out}: give a .mp4 path")
-    stats = replay(folder, CameraPath(traj), out, config, progress=_progress("frame"))
+    identity = identity_from_args(args, needed=args.pip)  # only --pip reads the session
+    stats = replay(
+        folder, CameraPath(traj), out, config, progress=_progress("frame"), identity=identity
+    )
+    span = seconds_span(stats.t_from_s, stats.t_to_s)
     print(
-        f"{out}: {stats.frames} frames, {stats.t_from_s:.3f}-{stats.t_to_s:.3f} s of case time, "
-        f"{stats.models} models; {stats.fps:.1f} frames/s rendered, "
+        f"{out}: {stats.frames} frames, {span} of case time, {stats.models} models; "
+        f"{stats.fps:.1f} frames/s rendered, "
         f"{stats.load_wait_s:.2f} s waiting on models (preload {'on' if config.preload else 'off'})"
     )
+    if stats.stale_frames:
+        print(
+            f"warning: {stats.stale_frames} of {stats.frames} frames show a model older than the "
+            f"case's spacing ({stats.spacing_s:.3f} s), marked STALE in the video",
+            file=sys.stderr,
+        )
     if stats.damaged_images:  # shown as "DAMAGED" in the inset, never as the changed image
         print(
             f"warning: --pip: {len(stats.damaged_images)} damaged real frame(s) not shown "
             f"(checksum mismatch): {', '.join(stats.damaged_images)}",
             file=sys.stderr,
         )
+    written = [out]
     if config.observed:
         from reconstructor.replay.observed_case import observed_paths
 
         print("observed versus inferred: {} and {}".format(*observed_paths(out)))
+        written.extend(observed_paths(out))
+    for path in written:
+        make_owner_only(path)  # a video from an earlier run kept its mode when rewritten
+    print(plaintext_notice("video", ", ".join(map(str, written))), file=sys.stderr)
     return 0
 
 
 def main_sightline(argv: list[str]) -> int:
-    from protocol.formats.site import read_site
     from reconstructor.replay.path import CameraPath
+    from reconstructor.replay.session_check import CaseInputs
     from reconstructor.replay.sightline import parse_offset
     from reconstructor.replay.sightline_run import VISIBLE_ENOUGH, sightline
 
@@ -153,8 +180,9 @@ def main_sightline(argv: list[str]) -> int:
     add_device_option(p)
     args = p.parse_args(argv)
     check_device(args.device)
-    traj = pick_trajectory(args.trajectory, args.viewer, args.roles)
-    boxes = read_site(args.site)
+    inputs = CaseInputs(Path(args.case))
+    traj = pick_trajectory(args.trajectory, args.viewer, args.roles, inputs)
+    boxes = inputs.boxes(args.site)
     if args.target not in boxes:
         raise CommandArgumentError(
             f"no target {args.target!r} in {args.site}; it has: {', '.join(boxes)}"
@@ -178,9 +206,10 @@ def main_sightline(argv: list[str]) -> int:
 
 def main_sterile(argv: list[str]) -> int:
     """``egosurg sterile CASE/ --field field.toml --out sterile/`` (docs/replay.md)."""
-    from protocol.formats.site import read_site
+    from reconstructor.replay.session_check import CaseInputs
     from reconstructor.replay.sterile import SterileConfig
     from reconstructor.replay.sterile_run import read_roles, sterile
+    from reconstructor.replay.video import seconds_span
 
     p = command_parser("egosurg sterile", __doc__)
     p.add_argument("case", help="a case folder")
@@ -200,7 +229,8 @@ def main_sterile(argv: list[str]) -> int:
     add_device_option(p)
     args = p.parse_args(argv)
     check_device(args.device)
-    boxes = read_site(args.field)
+    inputs = CaseInputs(Path(args.case))
+    boxes = inputs.boxes(args.field)
     if args.box is not None:
         if args.box not in boxes:
             raise CommandArgumentError(
@@ -216,7 +246,7 @@ def main_sterile(argv: list[str]) -> int:
         )  # fmt: skip
     except ValueError as exc:
         raise CommandArgumentError(str(exc)) from None
-    paths = read_roles(args.roles, sterile_roles)
+    paths = read_roles(args.roles, sterile_roles, inputs)
     out = Path(args.out)
     result = sterile(
         Path(args.case), list(boxes.values()), paths, out, config, t_from_s=args.t_from,
@@ -225,7 +255,7 @@ def main_sterile(argv: list[str]) -> int:
     )  # fmt: skip
     for k, ev in enumerate(result.events, 1):
         kind = "sterile role" if ev.sterile_role else "CONTACT"
-        print(f"{k}: {kind} {ev.role or '?'} in {ev.field} {ev.start_s:.3f}-{ev.end_s:.3f} s")
+        print(f"{k}: {kind} {ev.role or '?'} in {ev.field} {seconds_span(ev.start_s, ev.end_s)}")
     print(f"{len(result.contacts)} contact events ({len(result.events) - len(result.contacts)} "
           f"of sterile roles); wrote {out / 'events.csv'}, {out / 'timeline.png'}")  # fmt: skip
     if result.evidence == "gaussians":

@@ -49,6 +49,13 @@ class CaseModels:
     def span_s(self) -> tuple[float, float]:
         return float(self.times_s[0]), float(self.times_s[-1])
 
+    @property
+    def spacing_s(self) -> float:
+        """The case's interval between timestamps (the median of its plan, done or not: a gap
+        is what makes a model old); 0 for a case of one timestamp."""
+        t = np.array([e.t_s for e in self.all_entries])
+        return float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+
     def require_span(self, t0_s: float, t1_s: float, allow_gaps: bool = False) -> None:
         """Refuse a span outside the case, or one over unfinished timestamps."""
         c0, c1 = self.span_s

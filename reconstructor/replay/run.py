@@ -1,7 +1,12 @@
 """``replay``: render a camera path through a case's models over time into an MP4.
 
 Each output frame at case time t renders the path's camera at t into the case's model at t (the
-last done timestamp at or before t); a time code and the model's name are burned in. The
+last done timestamp at or before t); a time code and the model's name are burned in. Without
+``--from``/``--to`` it spans what both the case and the path cover: from the later of the first
+model and the first keyframe to the earlier of the last model and the last keyframe (a path
+that runs on past the case would show its last model frozen). A frame whose model is older
+than the case's spacing (past a gap, or past the case's end when ``--to`` asks for it) is
+marked ``STALE`` with the model's age, and counted in ``ReplayStats.stale_frames``. The
 models come from :class:`ModelSource`, which reads ahead in a thread when ``preload`` is on.
 
 With ``--pip`` the nearest real camera's frame is inset; an image that no longer matches its
@@ -23,6 +28,8 @@ import torch
 from protocol.camera import Camera
 from protocol.errors import UserError
 from protocol.formats.rig_calibration import RigCalibration
+from protocol.sealing import Identity
+from reconstructor.case.index import Entry
 from reconstructor.config import ReconstructConfig
 from reconstructor.data.views import novel_view
 from reconstructor.errors import CaseReplayError
@@ -43,7 +50,7 @@ class ReplayConfig:
     fps: float = 10.0
     size_px: tuple[int, int] = (960, 600)
     t_from_s: float | None = None  # default: the later of the path's and the case's starts
-    t_to_s: float | None = None
+    t_to_s: float | None = None  # default: the earlier of the path's and the case's ends
     preload: bool = True
     near_m: float = 0.0  # 0: the model's near plane; 0.2 from a person's eye (EYE_NEAR_M)
     pip: bool = False
@@ -67,6 +74,8 @@ class ReplayStats:
     t_from_s: float
     t_to_s: float
     damaged_images: tuple[str, ...] = ()  # --pip frames not shown: "SN<serial> row <r> left"
+    stale_frames: int = 0  # frames marked STALE: their model older than the case's spacing
+    spacing_s: float = 0.0  # the case's interval between timestamps
 
     @property
     def fps(self) -> float:
@@ -94,7 +103,7 @@ def frame_times(path: CameraPath, models: CaseModels, config: ReplayConfig) -> n
     p0, p1 = path.span_s
     c0, c1 = models.span_s
     t0 = max(p0, c0) if config.t_from_s is None else config.t_from_s
-    t1 = p1 if config.t_to_s is None else config.t_to_s
+    t1 = min(p1, c1) if config.t_to_s is None else config.t_to_s
     if t1 < t0:
         raise CaseReplayError(
             f"nothing to replay: trajectory {path.name!r} spans {p0:.3f}-{p1:.3f} s and the "
@@ -110,7 +119,7 @@ def frame_times(path: CameraPath, models: CaseModels, config: ReplayConfig) -> n
 class RealCameras:
     """The session's frame from the real camera nearest an eye, at the set nearest a time."""
 
-    def __init__(self, models: CaseModels) -> None:
+    def __init__(self, models: CaseModels, identity: Identity | None = None) -> None:
         from protocol.images import decode_image
         from protocol.session import ImageChecksumError, SessionReader
 
@@ -125,7 +134,12 @@ class RealCameras:
                 "at that path or replay without --pip"
             )
         self.sensors = [s for s in RigCalibration.read(cal).sensors if s.side == "left"]
-        self.reader = SessionReader(session)
+        self.reader = SessionReader(session, identity=identity)
+        try:
+            self.reader.require_identity("--pip's real frames")
+        except BaseException:
+            self.reader.close()
+            raise
         sets = self.reader.sets()
         self.set_t_s = (sets.set_unix_ns - self.reader.info.started_unix_ns) / 1e9
         self.members = sets.members
@@ -164,15 +178,35 @@ class RealCameras:
         self.reader.close()
 
 
+STALE_SLACK_S = 1e-3  # timestamps' times are stored to the millisecond
+
+
+def frame_label(t_s: float, path_name: str, entry: Entry, spacing_s: float) -> list[str]:
+    """The burned-in lines: time code and path, the model, and ``STALE`` with the model's age
+    when it is older than the case's spacing (the picture is not of this instant)."""
+    lines = [f"{timecode(t_s)}  {path_name}", f"model {entry.name}"]
+    age_s = t_s - entry.t_s
+    if age_s > spacing_s + STALE_SLACK_S:
+        lines.append(f"STALE: model {age_s:.3f} s old (case every {spacing_s:.3f} s)")
+    return lines
+
+
 def replay(
-    folder: Path, path: CameraPath, out: Path, config: ReplayConfig, progress=None
+    folder: Path,
+    path: CameraPath,
+    out: Path,
+    config: ReplayConfig,
+    progress=None,
+    identity: Identity | None = None,
 ) -> ReplayStats:
+    """``path`` through the case in ``folder`` into the MP4 ``out``; with ``config.pip`` the
+    session's real frames are read with ``identity`` (a sealed session's recipient)."""
     models = CaseModels(folder)
     times = frame_times(path, models, config)
     order = [models.entry_at(float(t)) for t in times]
     raster = case_raster(folder, config.near_m, config.device)
-    real = RealCameras(models) if config.pip else None
-    t_start = time.perf_counter()
+    real = RealCameras(models, identity) if config.pip else None
+    t_start, stale = time.perf_counter(), 0
     try:
         with (
             ModelSource(models, order, preload=config.preload) as source,
@@ -190,7 +224,9 @@ def replay(
                 camera = path.camera(float(t), config.size_px)
                 rgb, _, _ = render_view(source.get(entry), camera, raster)
                 observed.add(float(t), entry, source.get(entry), camera, rgb, raster)
-                rgb = burn_text(rgb, [f"{timecode(float(t))}  {path.name}", f"model {entry.name}"])
+                label = frame_label(float(t), path.name, entry, models.spacing_s)
+                stale += len(label) > 2
+                rgb = burn_text(rgb, label)
                 if real is not None:
                     pip = real.frame(camera.pose.centre_m, float(t))
                     if pip is not None:
@@ -213,4 +249,6 @@ def replay(
         t_from_s=float(times[0]),
         t_to_s=float(times[-1]),
         damaged_images=tuple(real.damaged) if real is not None else (),
+        stale_frames=stale,
+        spacing_s=models.spacing_s,
     )

@@ -33,6 +33,7 @@ from reconstructor.errors import SightlineError, SterileError
 from reconstructor.replay.models import CaseModels, ModelSource
 from reconstructor.replay.path import CameraPath
 from reconstructor.replay.run import case_raster, render_view
+from reconstructor.replay.session_check import CaseInputs
 from reconstructor.replay.sightline import visible_fraction
 from reconstructor.replay.sightline_run import outline_box
 from reconstructor.replay.sterile import (
@@ -44,7 +45,7 @@ from reconstructor.replay.sterile import (
     group_events,
     moving_blobs,
 )
-from reconstructor.replay.video import burn_text, timecode
+from reconstructor.replay.video import burn_text, timecode, timecode_span
 
 log = logging.getLogger(__name__)
 MIN_TIMESTAMPS = 3  # fewer cannot tell the static scene from what moves
@@ -185,7 +186,7 @@ def _event_renders(
                 cv2.circle(rgb, (int(u), int(v)), 2, (255, 40, 40), -1, cv2.LINE_AA)
         who = ev.role or "unknown role"
         rgb = burn_text(rgb, [
-            f"event {k}: {who} in {ev.field}, {timecode(ev.start_s)} - {timecode(ev.end_s)}",
+            f"event {k}: {who} in {ev.field}, {timecode_span(ev.start_s, ev.end_s)}",
             f"shown {timecode(inst.t_s)} from {name} ({frac:.0%} unoccluded)",
         ])  # fmt: skip
         path = out / f"event_{k:03d}.png"
@@ -257,14 +258,18 @@ def _plot(path: Path, result: SterileResult, config: SterileConfig) -> None:
     plt.close(fig)
 
 
-def read_roles(path: str | None, sterile_roles: tuple[str, ...]) -> list[CameraPath]:
+def read_roles(
+    path: str | None, sterile_roles: tuple[str, ...], inputs: CaseInputs | None = None
+) -> list[CameraPath]:
+    """The roles of ``path``; with ``inputs``, checked to be made for its case's session."""
     from protocol.formats.trajectory import read_trajectories
 
     if path is None:
         if sterile_roles:
             raise SterileError("--sterile-roles needs --roles (a roles TOML naming them)")
         return []
-    paths = [CameraPath(t) for t in read_trajectories(path)]
+    found = inputs.trajectories(path) if inputs is not None else read_trajectories(path)
+    paths = [CameraPath(t) for t in found]
     names = [p.name for p in paths]
     unknown = [r for r in sterile_roles if r not in names]
     if unknown:

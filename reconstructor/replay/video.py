@@ -78,6 +78,19 @@ def timecode(t_s: float) -> str:
     return f"{h:02d}:{m:02d}:{s:02d}.{ms:03d}"
 
 
+def seconds_span(start_s: float, end_s: float) -> str:
+    """``6.320-7.280 s``, or ``at 7.000 s`` when both read the same: something seen at one
+    timestamp happened at one time, not over a span that starts where it ends."""
+    a, b = f"{start_s:.3f}", f"{end_s:.3f}"
+    return f"at {a} s" if a == b else f"{a}-{b} s"
+
+
+def timecode_span(start_s: float, end_s: float) -> str:
+    """``00:00:06.320 - 00:00:07.280``, or ``at 00:00:07.000`` for one time (``seconds_span``)."""
+    a, b = timecode(start_s), timecode(end_s)
+    return f"at {a}" if a == b else f"{a} - {b}"
+
+
 def paste_pip(rgb: np.ndarray, inset_rgb: np.ndarray, label: str, fraction: float = 0.3):
     """``inset_rgb`` scaled to ``fraction`` of the width, framed, at the bottom right."""
     out = np.ascontiguousarray(rgb)

@@ -23,6 +23,6 @@ def test_a_damaged_frame_is_left_out_of_the_background(tmp_path):
     with h5py.File(path, "r+") as f:  # camera 103 records raw 8x4 images: row 12's right one
         g = f["cameras/103"]
         g["right_bytes"][int(g["right_offset"][12]) + 40] ^= 0x01
-    serial, _, right = background_work((str(path), 103, np.array([10, 11, 12, 13, 14])))
+    serial, _, right = background_work((str(path), None, 103, np.array([10, 11, 12, 13, 14])))
     others = [decode_image(_raw(row + 1), "raw_bgr8", 8, 4) for row in (10, 11, 13, 14)]
     assert serial == 103 and np.array_equal(right, temporal_median(others))

@@ -3,6 +3,7 @@ processes, calibrated by the real `egosurg calibrate`, checked against the simul
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -39,6 +40,7 @@ def wand_session(tmp_path_factory) -> Path:
     (2.7 mm); 14 s at 10 fps read 1.2 mm in most runs but 2.18 mm in one CI run, because which
     frames of the loop make the sets varies from run to run."""
     spec = SimRigSpec(
+        plaintext=True,  # the calibration under test; sealed: tests/e2e/test_sealed_session.py
         seed=SEED,
         phase="wand",
         resolution="HD1200",
@@ -63,12 +65,27 @@ def wand_file(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def calibrated(wand_session, wand_file, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("calibrated") / "calibration.toml"
-    done = run_egosurg(
-        "calibrate", str(wand_session), "--wand", str(wand_file), "--out", str(out), timeout=900
-    )  # fmt: skip
+    old_umask = os.umask(0o022)  # the usual shell default, for the owner-only check below
+    try:
+        done = run_egosurg(
+            "calibrate", str(wand_session), "--wand", str(wand_file), "--out", str(out),
+            timeout=900,
+        )  # fmt: skip
+    finally:
+        os.umask(old_umask)
     assert done.returncode == 0, done.stderr + done.stdout
     assert "timings: detection" in done.stdout
     return out
+
+
+def test_the_calibration_and_its_report_are_readable_by_their_owner_only(calibrated):
+    """The report shows the room's camera pictures: run under the umask 022, the calibration,
+    the report folder and everything in it are still 0600 files in 0700 folders."""
+    report = calibrated.with_name(calibrated.stem + "_report")
+    made = [calibrated, report, *report.rglob("*")]
+    assert any(p.suffix == ".png" for p in made) and any(p.suffix == ".html" for p in made)
+    wide = {str(p): oct(p.stat().st_mode & 0o777) for p in made if p.stat().st_mode & 0o077}
+    assert not wide, f"readable by group or others: {wide}"
 
 
 def test_calibration_recovers_the_true_rig(calibrated, wand_session, wand_file):

@@ -20,6 +20,7 @@ from protocol.formats.camera_config import (
 )
 from protocol.formats.node_config import NodeConfig, PtpConfig
 from protocol.formats.rig_config import AgentEndpoint, RigConfig
+from protocol.formats.sealing_config import RigSealingConfig
 from protocol.formats.security_config import NodeSecurityConfig, RigSecurityConfig
 from protocol.toml_config import dumps
 
@@ -158,6 +159,7 @@ def test_a_config_written_back_reads_the_same(tmp_path):
         output_dir="s",
         agents=(AgentEndpoint(node_id="a", frames="tcp://h:1", control="tcp://h:2"),),
         security=RigSecurityConfig(insecure=True),
+        sealing=RigSealingConfig(plaintext=True),
     )
     path = tmp_path / "rig.toml"
     path.write_text(dumps(rig))

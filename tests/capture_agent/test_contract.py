@@ -25,6 +25,7 @@ from capture_agent.operator.keys_cli import generate
 from capture_agent.operator.rig_client import RigClient
 from capture_agent.recorder.recorder import Recorder
 from protocol.formats.rig_config import RigConfig
+from protocol.sealing import generate_identity, load_identity, write_identity
 from protocol.session import SessionReader
 from protocol.wire.agent_info import AgentReplyError, AgentStatusReply
 from sim.deploy import free_ports
@@ -51,6 +52,9 @@ secret_key = "keys/recorder.key_secret"
 operator_keys = ["keys/operator.key"]
 operator_key = "keys/operator.key_secret"
 
+[sealing]
+recipients = ["keys/contract-site.recipient"]
+
 [[agents]]
 node_id = "{NODE}"
 frames = "tcp://127.0.0.1:{frames}"
@@ -62,6 +66,12 @@ public_key = "keys/spec-agent.key"
     return path
 
 
+def _reader(session: str) -> SessionReader:
+    """A session the contract rig recorded, opened with its site identity."""
+    identity = Path(session).parent.parent / "reader-keys" / "contract-site.identity"
+    return SessionReader(session, identity=load_identity(identity))
+
+
 @pytest.fixture(scope="module")
 def rig(tmp_path_factory):
     """The spec agent streaming two cameras to a recorder, every link CURVE: the agent admits
@@ -69,6 +79,9 @@ def rig(tmp_path_factory):
     directory = tmp_path_factory.mktemp("contract")
     for name in ("recorder", "operator", "spec-agent"):
         generate(directory / "keys", name)
+    # the sessions are sealed for a site key whose identity only the readers below hold
+    public, _ = write_identity(generate_identity("contract-site"), directory / "reader-keys")
+    (directory / "keys" / public.name).write_text(public.read_text())
     certificate = zmq.auth.load_certificate
     allowed = tuple(
         certificate(directory / "keys" / f"{n}.key")[0] for n in ("recorder", "operator")
@@ -128,8 +141,8 @@ def test_an_agent_written_from_the_contract_records_a_take(rig, agent):
     assert out.returncode == 0, out.stderr
     summary = client.status()["last_recording"]
     sent = agent.frames_sent()
-    with SessionReader(summary["file"]) as reader:
-        assert reader.info.closed_cleanly
+    with _reader(summary["file"]) as reader:
+        assert reader.sealed and reader.info.closed_cleanly
         assert reader.verify() == []
         assert reader.gaps() == []  # nothing lost, no reconnect
         for serial in SERIALS:
@@ -377,7 +390,7 @@ def test_the_console_starts_and_stops_in_the_words_of_the_cli(rig, agent):
     nothing = console.stop()
     assert not nothing and "\n" not in repr(nothing)
     assert repr(nothing).startswith("rig.stop: refused: ") and "nothing to stop" in repr(nothing)
-    with SessionReader(file) as reader:
+    with _reader(file) as reader:
         assert reader.info.case_metadata == {"surgeon": "A. Smith"}
 
 

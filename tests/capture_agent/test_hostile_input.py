@@ -39,6 +39,7 @@ from capture_agent.recorder.start import StartRefused, start_args
 from capture_agent.recorder.sync import SyncConfig, Synchroniser, group_offline
 from protocol.formats.node_config import NodeConfig
 from protocol.formats.rig_config import AgentEndpoint, RigConfig
+from protocol.formats.sealing_config import RigSealingConfig
 from protocol.formats.security_config import RigSecurityConfig
 from protocol.session import SessionReader
 from protocol.toml_config import dumps
@@ -233,6 +234,7 @@ def rig(tmp_path_factory):
         disk_reserve_gb=0.0,
         planned_duration_min=1.0,
         security=RigSecurityConfig(insecure=True),
+        sealing=RigSealingConfig(plaintext=True),
     )
     recorder = Recorder(config)
     agent.start()

@@ -17,6 +17,7 @@ from capture_agent.recorder.intake import CameraTable
 from capture_agent.recorder.recording import Recording
 from capture_agent.recorder.sync import SyncConfig, Synchroniser
 from protocol.formats.rig_config import AgentEndpoint, RigConfig
+from protocol.formats.sealing_config import RigSealingConfig
 from protocol.formats.security_config import RigSecurityConfig
 from protocol.session import CameraInfo, EventKind, GapKind, SessionReader, SessionWriter
 from tests.helpers import frame_message
@@ -45,6 +46,7 @@ def _table(tmp_path: Path) -> CameraTable:
             ),
             require_ptp_lock=False,
             security=RigSecurityConfig(insecure=True),
+            sealing=RigSealingConfig(plaintext=True),
         )
     )
 

@@ -49,6 +49,7 @@ def _rig_table(keys: Path, frames: str, control: str, cameras: list[int]) -> dic
             "operator_keys": ["keys/operator.key"],
             "operator_key": "keys/operator.key_secret",
         },
+        "sealing": {"plaintext": True},  # sealed sessions: test_rig_sealing.py
         "agents": [
             {
                 "node_id": NODE,

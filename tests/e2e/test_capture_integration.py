@@ -40,7 +40,14 @@ pytestmark = pytest.mark.slow
 def rig(tmp_path_factory):
     files = write_sim_rig(
         tmp_path_factory.mktemp("rig"),
-        SimRigSpec(seed=3, fps=FPS, drop_probability=0.03, content_fps=0.5, prerender_s=2.0),
+        SimRigSpec(
+            seed=3,
+            fps=FPS,
+            drop_probability=0.03,
+            content_fps=0.5,
+            prerender_s=2.0,
+            plaintext=True,  # the capture path under test; sealed: test_sealed_session.py
+        ),
     )
     sim_rig = SimRig(files).start()
     try:

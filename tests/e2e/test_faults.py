@@ -48,7 +48,14 @@ def rig(tmp_path_factory) -> Iterator[SimRig]:
     the fault's), with orin-b's frame link through a proxy; ``rig.proxy``."""
     files = write_sim_rig(
         tmp_path_factory.mktemp("faults"),
-        SimRigSpec(seed=3, fps=FPS, drop_probability=0.0, content_fps=0.5, prerender_s=2.0),
+        SimRigSpec(
+            seed=3,
+            fps=FPS,
+            drop_probability=0.0,
+            content_fps=0.5,
+            prerender_s=2.0,
+            plaintext=True,  # the capture path under test; sealed: test_sealed_session.py
+        ),
     )
     node_b = files.node_configs["orin-b"].read_text()
     port_b = int(re.search(r'frames_bind = "tcp://127.0.0.1:(\d+)"', node_b).group(1))

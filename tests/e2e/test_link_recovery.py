@@ -36,7 +36,14 @@ NODE = "orin-b"
 def rig(tmp_path_factory) -> Iterator[SimRig]:
     files = write_sim_rig(
         tmp_path_factory.mktemp("links"),
-        SimRigSpec(seed=5, fps=FPS, drop_probability=0.0, content_fps=0.5, prerender_s=1.0),
+        SimRigSpec(
+            seed=5,
+            fps=FPS,
+            drop_probability=0.0,
+            content_fps=0.5,
+            prerender_s=1.0,
+            plaintext=True,  # the capture path under test; sealed: test_sealed_session.py
+        ),
     )
     sim_rig = SimRig(files).start()
     try:
@@ -104,6 +111,7 @@ def test_raw_hd1200_over_curve_is_recorded(tmp_path):
     """The largest legal image (raw_bgr8 at HD1200, exactly max_image_bytes) over the default
     CURVE links: frames stream and are stored."""
     spec = SimRigSpec(
+        plaintext=True,  # the capture path under test; sealed: test_sealed_session.py
         seed=7,
         cameras=1,
         fps=2.0,

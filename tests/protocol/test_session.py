@@ -459,8 +459,8 @@ def test_clear_errors_for_files_that_are_not_sessions(tmp_path, session):
         SessionReader(other)
     path, _ = session
     with h5py.File(path, "r+") as f:
-        f.attrs["format_version"] = 3
-    with pytest.raises(SessionFormatError, match=r"version 3 was written by a newer.*Upgrade"):
+        f.attrs["format_version"] = 4  # 3 is a sealed session
+    with pytest.raises(SessionFormatError, match=r"version 4 was written by a newer.*Upgrade"):
         SessionReader(path)
     with h5py.File(path, "r+") as f:
         f.attrs["format_version"] = 2

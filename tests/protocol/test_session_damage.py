@@ -437,7 +437,14 @@ def test_a_recorder_killed_mid_take_resumes_into_a_linked_file(tmp_path):
 
     files = write_sim_rig(
         tmp_path / "rig",
-        SimRigSpec(seed=2, cameras=2, fps=15.0, prerender_s=1.0, drop_probability=0.0),
+        SimRigSpec(
+            seed=2,
+            cameras=2,
+            fps=15.0,
+            prerender_s=1.0,
+            drop_probability=0.0,
+            plaintext=True,  # the take under test; sealed ones: tests/e2e/test_sealed_session.py
+        ),
     )
     with SimRig(files) as rig:
         rig.wait_streaming(timeout_s=240)

@@ -15,7 +15,13 @@ from reconstructor.splats import ply
 from sim import World
 from sim.deploy import SimRigSpec
 from sim.truth import true_rig_calibration
-from tests.helpers import copy_sets, record_sim_session, run_egosurg
+from tests.helpers import (
+    copy_sets,
+    record_sim_session,
+    run_egosurg,
+    sim_identity,
+    sim_reader_env,
+)
 
 SEED = 2
 PHASE = "intraoperative"
@@ -23,7 +29,8 @@ PHASE = "intraoperative"
 
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory) -> tuple[Path, Path]:
-    """About 3 s of the OR at SVGA 15 fps, and the sim's true calibration beside it."""
+    """About 3 s of the OR at SVGA 15 fps, sealed for the sim's site key (the readers below run
+    with its identity in ``EGOSURG_IDENTITY``), and the sim's true calibration beside it."""
     spec = SimRigSpec(
         seed=SEED,
         phase=PHASE,
@@ -47,7 +54,7 @@ def test_one_timestamp_reconstructs_end_to_end_and_renders(recorded, tmp_path):
     done = run_egosurg(
         "reconstruct", str(session), "--calibration", str(calibration), "--at", "1.0",
         "--out", str(out), "--steps", "60", "--train-views", "left", "--evaluate",
-        timeout=900,
+        timeout=900, env=sim_reader_env(session),
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
     run = next(out.iterdir())
@@ -90,7 +97,10 @@ def test_a_session_without_a_calibration_is_refused(recorded, tmp_path):
     session, _ = recorded
     lone = tmp_path / "lone.h5"
     lone.write_bytes(session.read_bytes())
-    done = run_egosurg("reconstruct", str(lone), "--at", "1.0", "--out", str(tmp_path / "o"))
+    done = run_egosurg(
+        "reconstruct", str(lone), "--at", "1.0", "--out", str(tmp_path / "o"),
+        env=sim_reader_env(session),
+    )  # fmt: skip
     assert done.returncode == 2 and "Traceback" not in done.stderr
     assert "calibration" in done.stderr and "egosurg calibrate" in done.stderr
 
@@ -100,7 +110,7 @@ def test_a_time_out_of_range_names_the_valid_range(recorded, tmp_path):
     for at in ("600", "set:100000"):
         done = run_egosurg(
             "reconstruct", str(session), "--calibration", str(calibration), "--at", at,
-            "--out", str(tmp_path / "o"),
+            "--out", str(tmp_path / "o"), env=sim_reader_env(session),
         )  # fmt: skip
         assert done.returncode == 2 and "Traceback" not in done.stderr
         assert "out of range" in done.stderr and "set:0 to set:" in done.stderr
@@ -113,7 +123,7 @@ def test_a_set_with_a_missing_camera_reconstructs_from_the_rest(recorded, tmp_pa
     with SessionReader(session) as reader:
         k = len(reader.sets().set_unix_ns) // 2
         dropped = reader.info.camera_serials[-1]
-    copy_sets(session, partial, np.array([k]), drop_serial=dropped)
+    copy_sets(session, partial, np.array([k]), drop_serial=dropped, identity=sim_identity(session))
     out = tmp_path / "o"
     done = run_egosurg(
         "reconstruct", str(partial), "--calibration", str(calibration), "--at", "set:0",

@@ -96,7 +96,8 @@ def test_replay_writes_an_h264_mp4_with_the_model_of_each_instant(case, capsys, 
         stream = container.streams.video[0]
         frames = [f.to_ndarray(format="rgb24") for f in container.decode(stream)]
         assert stream.codec_context.name == "h264"
-    assert len(frames) == 5 and frames[0].shape == (100, 160, 3)  # 2.0 .. 2.2 s at 20 fps
+    # 2.0 .. 2.1 s at 20 fps: the roles run to 2.2 s, the case's last model is at 2.133 s
+    assert len(frames) == 3 and frames[0].shape == (100, 160, 3)
     # the burned-in time code's band: dark with white text, at the top left of every frame
     assert all(f[2:10, 2:40].max() > 200 and f[2:10, 2:40].min() < 40 for f in frames)
 
@@ -204,7 +205,8 @@ def test_replay_pip_shows_a_damaged_real_frame_as_damaged_and_lists_it(case, cap
                    str(case["roles"]), "--out", str(out), "--size", "160x100", "--pip")  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
     assert "damaged real frame(s) not shown (checksum mismatch)" in done.stderr, done.stderr
-    named = done.stderr.rsplit("checksum mismatch): ", 1)[1].strip().split(", ")
+    (line,) = [ln for ln in done.stderr.splitlines() if "checksum mismatch): " in ln]
+    named = line.rsplit("checksum mismatch): ", 1)[1].strip().split(", ")
     assert named and set(named) <= set(damaged)
     assert out.stat().st_size > 0  # the replay itself is whole
 
@@ -229,3 +231,122 @@ def test_reconstruct_leaves_out_a_damaged_view_names_it_and_records_it(case, tmp
     summary = json.loads(summary_path.read_text())
     assert summary["damaged_images"] == [damaged]
     assert not any(name.startswith(f"SN{serial}-") for name in summary["sensors"])
+
+
+# ---- no silent wrong answers: files of another session, the span, stale models --------------
+
+
+def _demo_style_session(path: Path) -> Path:
+    """A session as the demo records one: live, named by the rig, started on 2026-11-28 at
+    09:00 UTC, of the same sim seed and phase as the case's, its sets at 2.0-2.2 s."""
+    import cv2
+
+    from protocol.session import CameraInfo, SessionWriter
+
+    start = 1_795_856_400_000_000_000
+    jpeg = cv2.imencode(".jpg", np.zeros((8, 8, 3), np.uint8))[1].tobytes()
+    cam = CameraInfo(camera_serial=7, node_id="demo-node", resolution="HD1200", width=8, height=8,
+                     fps_nominal=15.0, encoding="jpeg", factory_conf_text="")  # fmt: skip
+    meta = {"source": "egosurg demo", "seed": "3", "phase": "intraoperative"}
+    with SessionWriter(path, session_name="demo-or1", case_metadata=meta, cameras=[cam],
+                       tolerance_ns=33_000_000, software_version="test",
+                       started_unix_ns=start) as writer:  # fmt: skip
+        for k in range(4):
+            t = start + 2_000_000_000 + k * 66_666_667
+            row = writer.append_frame(7, left=jpeg, right=jpeg, capture_unix_ns=t,
+                                      host_receive_unix_ns=t, recorder_receive_unix_ns=t,
+                                      frame_index=k, seq=k, ptp_offset_ns=0,
+                                      ptp_locked=True)  # fmt: skip
+            writer.append_set(t, [row], 0)
+        writer.close(t + 1)
+    return path
+
+
+def test_review_files_of_another_session_are_refused_in_one_line_naming_both(case, capsys):
+    """The demo's roles (a real ``egosurg sim roles`` of another session, covering the case's
+    times) on this case: a viewer's eye a metre from where that person stood. Refused, by
+    sightline, replay and sterile alike, with both sessions named."""
+    root = case["root"]
+    demo = _demo_style_session(root / "demo.h5")
+    done = run_egosurg("sim", "roles", str(demo), "--every", "0.05", "--out",
+                       str(root / "demo_roles.toml"), "--site-out",
+                       str(root / "demo_site.toml"))  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    los = egosurg(capsys, "sightline", str(case["case"]), "--viewer", "anaesthetist", "--roles",
+                  str(root / "demo_roles.toml"), "--target", "monitor-b", "--site",
+                  str(case["site"]), "--out", str(root / "los_demo"))  # fmt: skip
+    assert los.returncode == 2 and "Traceback" not in los.stderr, los.stderr
+    (line,) = los.stderr.strip().splitlines()
+    assert "demo_roles.toml was made for session 'demo-or1' started 2026-11-28 09:00:00.000" in line
+    assert "session 'sim-intraoperative-seed3' started 2026-01-01 00:00:00.000 UTC" in line
+    assert not (root / "los_demo" / "sightline.csv").exists()
+    site = egosurg(capsys, "sightline", str(case["case"]), "--viewer", "anaesthetist", "--roles",
+                   str(case["roles"]), "--target", "monitor-b", "--site",
+                   str(root / "demo_site.toml"), "--out", str(root / "los_demo"))  # fmt: skip
+    assert site.returncode == 2 and "demo_site.toml was made for session 'demo-or1'" in site.stderr
+    video = egosurg(capsys, "replay", str(case["case"]), "--role", "surgeon", "--roles",
+                    str(root / "demo_roles.toml"), "--out", str(root / "demo.mp4"))  # fmt: skip
+    assert video.returncode == 2 and "made for session 'demo-or1'" in video.stderr
+    field = egosurg(capsys, "sterile", str(case["case"]), "--field", str(root / "demo_site.toml"),
+                    "--out", str(root / "sterile_demo"))  # fmt: skip
+    assert field.returncode == 2 and "made for session 'demo-or1'" in field.stderr
+
+
+def test_a_file_that_names_no_session_is_used_with_a_one_line_warning(case, tmp_path):
+    """A path written by hand (or by an egosurg before files named their session) still
+    works, and the command says it could not check it."""
+    from protocol.formats.site import site_toml
+
+    hand = tmp_path / "hand.toml"
+    write_trajectories(hand, read_trajectories(case["roles"]))  # no [session] table
+    assert "[session]" not in hand.read_text() and "[session]" in case["roles"].read_text()
+    site = tmp_path / "site.toml"
+    site.write_text(site_toml(list(read_site(case["site"]).values())))
+    done = run_egosurg("sightline", str(case["case"]), "--viewer", "anaesthetist", "--roles",
+                       str(hand), "--target", "monitor-b", "--site", str(site), "--out",
+                       str(tmp_path / "los"))  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    warnings = [ln for ln in done.stderr.splitlines() if "does not say which session" in ln]
+    assert len(warnings) == 2, done.stderr  # one line for each file
+    assert "hand.toml does not say which session it was made for" in warnings[0]
+    assert (tmp_path / "los" / "sightline.csv").is_file()
+
+
+def test_replay_spans_what_both_the_case_and_the_roles_cover_and_marks_stale_models(
+    case, capsys, tmp_path
+):
+    """Roles that run on 0.87 s past the case's last model (2.133 s): by default the replay
+    stops with the case; asked to go on (--to), every frame whose model is older than the
+    case's spacing (1/15 s) says so on the picture and the command counts them."""
+    long = tmp_path / "long.toml"
+    done = run_egosurg("sim", "roles", str(case["session"]), "--from", "2.0", "--to", "3.0",
+                       "--every", "0.1", "--out", str(long))  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    out = tmp_path / "default.mp4"
+    ran = egosurg(capsys, "replay", str(case["case"]), "--role", "surgeon", "--roles", str(long),
+                  "--out", str(out), "--fps", "20", "--size", "320x200")  # fmt: skip
+    assert ran.returncode == 0, ran.stderr[-2000:]
+    assert "STALE" not in ran.stderr
+    with av.open(str(out)) as container:
+        assert container.streams.video[0].frames == 3  # 2.0, 2.05, 2.1: not to 3.0
+    out = tmp_path / "asked.mp4"
+    ran = egosurg(capsys, "replay", str(case["case"]), "--role", "surgeon", "--roles", str(long),
+                  "--out", str(out), "--fps", "20", "--size", "320x200", "--to", "3.0")  # fmt: skip
+    assert ran.returncode == 0, ran.stderr[-2000:]
+    # 21 frames, 2.0-3.0 s; from 2.25 s on the 2.133 s model is more than 1/15 s old
+    assert "16 of 21 frames show a model older than the case's spacing (0.067 s)" in ran.stderr
+    with av.open(str(out)) as container:
+        frames = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+    third_line = slice(30, 44), slice(4, 120)  # the burned-in text's third line: STALE ...
+    fresh, stale = frames[4][third_line], frames[5][third_line]
+    assert stale.max() > 200 and (stale < 40).mean() > 0.4  # white text on its dark band
+    assert not (fresh.max() > 200 and (fresh < 40).mean() > 0.4)
+
+
+def test_one_time_reads_as_one_time_and_a_span_as_a_span():
+    from reconstructor.replay.video import seconds_span, timecode_span
+
+    assert seconds_span(7.0, 7.0) == "at 7.000 s"  # an event seen at one timestamp
+    assert seconds_span(6.32, 7.28) == "6.320-7.280 s"
+    assert timecode_span(7.0, 7.0) == "at 00:00:07.000"
+    assert timecode_span(6.32, 7.28) == "00:00:06.320 - 00:00:07.280"

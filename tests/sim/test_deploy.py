@@ -46,7 +46,9 @@ def test_an_insecure_rig_says_so_in_every_file(tmp_path):
     (path,) = files.node_configs.values()
     cfg = NodeConfig.from_toml(path)
     assert cfg.security.insecure and cfg.cameras[0].pre_encode is None  # type: ignore[union-attr]
-    assert not (tmp_path / "keys").exists()
+    # no link keys; the sessions are still sealed (plaintext is a setting of its own)
+    assert sorted(p.name for p in (tmp_path / "keys").iterdir()) == ["sim-site.recipient"]
+    assert not RigConfig.from_toml(files.rig_config).sealing.plaintext
 
 
 def test_the_simulator_is_the_rig_a_sim_camera_table_names():
