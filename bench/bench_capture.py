@@ -56,7 +56,7 @@ _ROOT = Path(__file__).resolve().parents[1]
 if str(_ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(_ROOT))
 
-from bench.capture import measure  # noqa: E402  (after the path, as a script)
+from bench.capture import measure, rigs  # noqa: E402  (after the path, as a script)
 from bench.capture.limits import (  # noqa: E402
     file_limit,
     hdf5_limit,
@@ -161,6 +161,11 @@ def parse_args() -> argparse.Namespace:
         "--no-plaintext-steps",
         action="store_true",
         help="skip the agents' load steps with plaintext links (CURVE's cost at the limit)",
+    )
+    parser.add_argument(
+        "--plaintext-sessions",
+        action="store_true",
+        help="record plaintext sessions (the default seals them for a site key, as a rig does)",
     )
     parser.add_argument("--keep", action="store_true", help="keep the session files")
     parser.add_argument("--workdir", type=Path, default=_ROOT / "out" / "bench_capture")
@@ -333,6 +338,7 @@ def part4_profile(
 def main() -> None:
     args = parse_args()
     measure.QUIET_WAIT_S[0] = args.quiet_wait_s
+    rigs.PLAINTEXT_SESSIONS[0] = args.plaintext_sessions
     require_imagezmq()
     steps, replay_steps = check_steps(args)
     args.workdir.mkdir(parents=True, exist_ok=True)

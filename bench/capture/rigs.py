@@ -10,12 +10,17 @@ from pathlib import Path
 
 from bench.capture.measure import JPEG_QUALITY, REPLAY_SERIAL0, RESOLUTION, pair_header
 
+# Sessions sealed for a site key, as a deployed rig records them; [True] records plaintext
+# sessions (bench_capture.py --plaintext-sessions: sealing's cost against the same rig)
+PLAINTEXT_SESSIONS = [False]
+
 
 def rig_spec(fps: float, duration_s: float, seed: int = 0, insecure: bool = False):
     from sim.deploy import SimRigSpec
 
     return SimRigSpec(
         insecure=insecure,
+        plaintext=PLAINTEXT_SESSIONS[0],
         seed=seed,
         resolution=RESOLUTION,
         fps=fps,

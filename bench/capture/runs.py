@@ -127,7 +127,7 @@ def run_recording(
     )
     session = Path(started["file"])
     if payload_out is not None:
-        payload_out.extend(read_pairs(session))
+        payload_out.extend(read_pairs(session, files.identity))
     if not keep:
         session.unlink(missing_ok=True)  # its dirty pages are dropped, not written
     _log_result(result)
@@ -299,12 +299,17 @@ def _log_result(result: RunResult) -> None:
     )
 
 
-def read_pairs(session: Path, per_camera: int = 2) -> list[tuple[bytes, bytes]]:
-    """A few real (left, right) JPEG pairs per camera from a session file."""
+def read_pairs(
+    session: Path, identity_path: Path | None, per_camera: int = 2
+) -> list[tuple[bytes, bytes]]:
+    """A few real (left, right) JPEG pairs per camera from a session file (opened with the rig's
+    site identity when it is sealed)."""
+    from protocol.sealing import load_identity
     from protocol.session import SessionReader
 
+    identity = load_identity(identity_path) if identity_path is not None else None
     pairs = []
-    with SessionReader(session) as r:
+    with SessionReader(session, identity=identity) as r:
         for serial in r.info.camera_serials:
             n = r.frame_count(serial)
             for row in range(min(per_camera, n)):
