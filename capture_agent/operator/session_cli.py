@@ -8,9 +8,11 @@ Examples::
     egosurg session recover damaged.h5 --out recovered.h5
 
 A sealed session (rig.toml's ``[sealing]``) is opened with the identity of one of its
-recipients: ``--identity FILE`` or ``EGOSURG_IDENTITY``; ``info``, ``verify`` and
-``export-frames`` refuse one without it in one line naming its recipients (exit 2). ``recover``
-needs none: it copies the sealed images as they are.
+recipients: ``--identity FILE`` or ``EGOSURG_IDENTITY``. Without it ``info`` shows the
+session's structure and its recipients (the metadata values read ``<sealed>``), ``verify`` checks
+the structure and every image's checksum (taken over the ciphertext; with the identity each image
+is also opened), and ``export-frames`` refuses in one line naming the recipients (exit 2).
+``recover`` needs none: it copies the sealed images as they are.
 
 ``info`` and ``verify`` also list the take's session events, per kind with their count and
 nodes: links that dropped or came back, frames the recorder refused (a node over its rate, a
@@ -44,6 +46,7 @@ from protocol.command import CommandArgumentError, add_subcommand, command_parse
 from protocol.errors import UserError
 from protocol.images import decode_image
 from protocol.private_files import make_owner_only, plaintext_notice
+from protocol.sealing import IDENTITY_ENV
 from protocol.sealing.arguments import add_identity_argument, identity_from_args
 from protocol.session import GapKind, ImageChecksumError, SessionFormatError, SessionReader
 from protocol.session.recover import recover_session
@@ -202,15 +205,32 @@ def open_session(args: argparse.Namespace, needs: str) -> SessionReader:
     return reader
 
 
+def sealed_line(reader: SessionReader) -> str | None:
+    """For a sealed session opened without an identity: what it is sealed for and what needs
+    the key (docs/session.md, "Sealed sessions": its structure reads without one)."""
+    if reader.can_open:
+        return None
+    names = ", ".join(r.label() for r in reader.recipients)
+    return (
+        f"sealed for {names}: the case's metadata values, the rig text and the images need the "
+        f"identity of one of them (--identity FILE or {IDENTITY_ENV})"
+    )
+
+
 def cmd_info(args: argparse.Namespace) -> int:
-    with open_session(args, "the case metadata") as reader:
+    with SessionReader(args.file, identity=identity_from_args(args)) as reader:
         s = summarise(reader)
+        sealed = sealed_line(reader)
     print(json.dumps(s, indent=2) if args.json else format_info(s))
+    if sealed and not args.json:
+        print(_safe(sealed))
     return 0
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    with open_session(args, "every image") as reader:
+    # without an identity a sealed session's images are checked by their checksums (taken over
+    # the ciphertext); with one, each is also opened (reader.verify)
+    with SessionReader(args.file, identity=identity_from_args(args)) as reader:
         problems = reader.verify(check_images=not args.quick)
         events = describe_events(reader)  # what happened in the take: not problems
     errors = [p for p in problems if p.startswith("error")]
