@@ -128,6 +128,7 @@ def format_status(st: dict[str, Any]) -> str:
     else:
         head += "idle"
     lines = [head, f"disk: {st['disk_free_bytes'] / 1e9:.1f} GB free in {_t(st['output_dir'])}"]
+    lines += _sessions_at_rest(st)
     if st.get("write_error"):
         lines.append(
             f"WRITING FAILS for {st['write_failing_s']:.0f} s: {_t(st['write_error'])}; "
@@ -178,6 +179,16 @@ def _link_line(agent: dict[str, Any]) -> list[str]:
     if link.get("last_cause"):
         line += f"; last: {_t(link['last_cause'])}"
     return [line]
+
+
+def _sessions_at_rest(st: dict[str, Any]) -> list[str]:
+    """How sessions are stored: sealed for which recipients, or in clear (said loudly)."""
+    at_rest = st.get("sessions")
+    if not at_rest:  # a recorder older than sealed sessions
+        return []
+    if not at_rest.get("sealed"):
+        return ["sessions: PLAINTEXT (rig.toml [sealing] plaintext = true): not encrypted at rest"]
+    return ["sessions: sealed for " + ", ".join(_t(r) for r in at_rest.get("recipients", []))]
 
 
 def _refusals(st: dict[str, Any]) -> list[str]:

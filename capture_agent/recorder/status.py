@@ -9,6 +9,7 @@ the recorder adds what its loop owns (``loop``)."""
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from typing import Any
 
 from capture_agent.recorder.disk import DiskBudget
@@ -16,6 +17,7 @@ from capture_agent.recorder.intake import CameraTable
 from capture_agent.recorder.links import AgentLinks
 from capture_agent.recorder.recording import Recording
 from capture_agent.recorder.take import TakeState
+from protocol.formats.sealing_config import RigSealingConfig
 from protocol.safe_text import safe_text
 from protocol.session import EventKind
 
@@ -61,6 +63,8 @@ def status(
         "frames_refused_rate": refused(table, EventKind.RATE_CAPPED),
         "frames_refused_bytes": refused(table, EventKind.BYTES_CAPPED),
         "max_clock_skew_s": config.max_clock_skew_s,
+        # how sessions are stored, so the operator sees a rig that writes patient video in clear
+        "sessions": sessions_at_rest(config.sealing),
         **loop,
     }
     if rec is not None:
@@ -70,6 +74,14 @@ def status(
     if take.resume is not None:  # a take resumed (or to resume) after the recorder was killed
         out["take_resume"] = take.resume.status()
     return out
+
+
+def sessions_at_rest(sealing: RigSealingConfig) -> dict[str, Any]:
+    """``{"sealed": bool, "recipients": [file names]}``: rig.toml's ``[sealing]``, as loaded."""
+    return {
+        "sealed": not sealing.plaintext,
+        "recipients": [Path(r).name for r in sealing.recipients],
+    }
 
 
 def refused(table: CameraTable, why: EventKind) -> int:

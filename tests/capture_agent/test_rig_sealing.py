@@ -16,6 +16,7 @@ import pytest
 import zmq.auth
 from cryptography.hazmat.primitives.asymmetric.x25519 import X25519PrivateKey
 
+from capture_agent.operator.control import format_status
 from capture_agent.recorder.recorder import Recorder
 from capture_agent.recorder.sealing import load_recipients
 from protocol.errors import ConfigError
@@ -144,6 +145,18 @@ def test_plaintext_sessions_warn_at_every_start(tmp_path, caplog):
         Recorder(RigConfig.from_toml(_rig(tmp_path, "[sealing]\nplaintext = true\n")))
         warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
         assert any("PLAINTEXT sessions" in w for w in warned)
+
+
+def test_status_says_how_sessions_are_stored(tmp_path, site):
+    """`egosurg status` tells the operator whether the rig writes patient video in clear."""
+    plain = Recorder(RigConfig.from_toml(_rig(tmp_path, "[sealing]\nplaintext = true\n")))
+    st = plain.status()
+    assert st["sessions"] == {"sealed": False, "recipients": []}
+    assert "sessions: PLAINTEXT" in format_status(st)
+    names = f'"{site}/site.recipient", "{site}/escrow.recipient"'
+    sealed = Recorder(RigConfig.from_toml(_rig(tmp_path, f"[sealing]\nrecipients = [{names}]\n")))
+    printed = format_status(sealed.status())
+    assert "sessions: sealed for site.recipient, escrow.recipient" in printed
 
 
 def _x25519_public(secret: bytes) -> bytes:
