@@ -1,4 +1,4 @@
-"""Wand calibration time for a 2-minute wand session at 30 fps on 2 cores (issue 4's benchmark).
+"""Wand calibration time for a 2-minute wand session at 30 fps on 2 cores.
 
     .venv/bin/python bench/bench_calibrate.py                      # record once, then time
     .venv/bin/python bench/bench_calibrate.py --max-sets 300,600   # compare set budgets

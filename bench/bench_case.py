@@ -1,4 +1,4 @@
-"""Warm start against cold reconstruction of the same timestamps, in one run (issue 20).
+"""Warm start against cold reconstruction of the same timestamps, in one run.
 
 A sim case (the intraoperative phase, people moving) is reconstructed twice: every timestamp
 cold, with the evaluation's EgoSurg settings (``--steps`` split 25 % warm-up and 75 %
@@ -9,7 +9,7 @@ on the left sensors and are scored on the held-out right ones (the near-field pr
 timestamp's row is printed when it is done: process CPU seconds of each, their ratio, the
 near-field PSNR of each and their difference, and where the warm timestamp's time went.
 
-The issue's comparison, at the evaluation's settings (EVALUATION.md)::
+The comparison, at the evaluation's settings (EVALUATION.md)::
 
     nice -n 10 .venv/bin/python bench/bench_case.py --sets 6 --steps 2000 --train-width 480 \\
         --config docs/evaluation_cpu.toml

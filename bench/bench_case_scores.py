@@ -1,5 +1,5 @@
 """A finished case (``egosurg reconstruct --every ... --train-views left``) scored timestamp by
-timestamp against the cameras it did not train on, with its seconds and stored bytes (issue 20).
+timestamp against the cameras it did not train on, with its seconds and stored bytes.
 
 Each model is loaded as stored (a keyframe, or a warm timestamp rebuilt from its chain's
 changes) and rendered into that instant's held-out right cameras; the table has one row per

@@ -1,4 +1,4 @@
-"""Compact storage of a warm-started case against a full PLY per timestamp (issue 20).
+"""Compact storage of a warm-started case against a full PLY per timestamp.
 
 A short sim case (intraoperative, people moving) is reconstructed as one warm chain: the first
 timestamp cold, each later one from the one before as stored (as ``egosurg reconstruct

@@ -1,5 +1,5 @@
 """How much of each egocentric view the rig saw at all, from the simulator's exact geometry, and
-how the reconstruction scores on what it saw against what it did not (issue 22: the distance
+how the reconstruction scores on what it saw against what it did not (the distance
 to the egocentric goal).
 
 For every reference view of a sim evaluation set: the view's true surface point at each pixel

@@ -1,4 +1,4 @@
-"""Observed versus inferred on the evaluation set's egocentric views (issue 21's goal): do the
+"""Observed versus inferred on the evaluation set's egocentric views: do the
 pixels the observed map marks well observed render closer to the sim's exact view than the
 pixels it marks inferred?
 

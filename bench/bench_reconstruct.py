@@ -15,7 +15,7 @@ or, with ``--steps N``, extrapolated from N steps (the table says which).
 After a run it also times a few more steps part by part (``--part-steps``), and renders of
 the model from the input views without gradients (the novel-view render path).
 
-Goal (issue 5): at most 10 minutes per timestamp on 2 cores; the paper's RTX 4090 takes about 2.
+Goal: at most 10 minutes per timestamp on 2 cores; the paper's RTX 4090 takes about 2.
 """
 
 from __future__ import annotations

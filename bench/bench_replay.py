@@ -1,4 +1,4 @@
-"""Replay throughput at 960x600 with a model switch at every frame (issue 21's goal: at least 10
+"""Replay throughput at 960x600 with a model switch at every frame (the goal: at least 10
 frames/s on 2 cores with preloading on; the rate with preloading off beside it).
 
     .venv/bin/python bench/bench_replay.py [--timestamps 20] [--gaussians-from .gpu/scene.npz]

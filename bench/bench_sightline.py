@@ -1,4 +1,4 @@
-"""Line of sight against the simulator's exact truth (issue 21's goal): over every person x every
+"""Line of sight against the simulator's exact truth: over every person x every
 screen x two positions (their own eye and a counterfactual offset) x 20 timestamps over a span in
 which people walk, the sightline answer against rays cast through the true scene
 (``sim.roles.true_visible_fraction``). Prints, per viewer and in all: how often "at least half
@@ -49,7 +49,7 @@ from reconstructor.splats.gaussians import GaussianInitConfig, Gaussians, init_f
 from sim.roles import role_trajectories, site_boxes, true_visible_fraction
 from sim.world import World
 
-VISIBLE_ENOUGH = 0.5  # the issue's binary answer: at least half visible
+VISIBLE_ENOUGH = 0.5  # the binary answer: at least half visible
 
 
 def true_surface_gaussians(world: World, t_s: float, shrink: int = 4) -> Gaussians:

@@ -1,6 +1,6 @@
 """Stereo depth against the sim's true depth: our SGBM+WLS matcher with each check changed one at
 a time, with the fill stage that follows it, beside OpenCV's textbook SGBM+WLS on the same
-rectified frames, per phase and per camera (issue 22, part 0).
+rectified frames, per phase and per camera.
 
     nice -n 10 .venv/bin/python bench/bench_stereo.py [--seed 11] [--t-s 1.0] \\
         [--phases empty,setup,intraoperative,turnover] [--jpeg-quality 90] [--per-camera NAME]
@@ -52,7 +52,7 @@ COLUMNS = (
 
 
 class TextbookSgbmWls(StereoMatcher):
-    """OpenCV's textbook SGBM+WLS (the ximgproc disparity-filtering sample with the issue's
+    """OpenCV's textbook SGBM+WLS (the ximgproc disparity-filtering sample with these
     numbers): block 5, P1/P2 = 8/32 x 3 x 25, uniqueness 10, speckle 100/2, WLS lambda 8000 and
     sigma 1.5, no padding and no checks beyond SGBM's own; the filtered map wherever it is in
     range."""
@@ -135,7 +135,7 @@ NEW = "ours (the defaults)"
 
 
 def rows(base: StereoConfig) -> dict[str, Row]:
-    """Each row: one change from the checks before issue 22's retune (``old``), the defaults
+    """Each row: one change from the checks before the retune (``old``), the defaults
     (``base``), then the fill stage, then the textbook."""
     r = replace
     old = r(base, min_zncc=0.5, wls_max_change_px=0.5)

@@ -77,6 +77,11 @@ def stage_capture(out: Path, seed: int, record_s: float) -> tuple[Path, SimRigFi
         out / "capture",
         SimRigSpec(seed=seed, fps=15.0, content_fps=1.0, prerender_s=record_s + 2.0),
     )
+    print(
+        f"      the cameras run at {files.spec.fps:.0f} fps; the sim renders the people's motion "
+        f"{files.spec.content_fps:.0f} time(s) a second (rendering every frame would take a CPU "
+        "minutes), so frames within one second show the same picture"
+    )
     for node, path in files.node_configs.items():
         print(f"      egosurg agent --config {path}        ({node})")
     print(f"      egosurg recorder --config {files.rig_config}")
@@ -325,18 +330,26 @@ def stage_evaluation(out: Path, seed: int, phase: str, stamp: DemoTimestamp, ste
         print("      evaluation failed; see the message above")
 
 
-def stage_batch(out: Path, stamp: DemoTimestamp, steps: int) -> None:
+def stage_batch(out: Path, stamp: DemoTimestamp, steps: int, content_fps: float) -> None:
     _stage(6, "batch: three consecutive timestamps as a case, warm-started, then its summary")
     with SessionReader(stamp.session) as reader:
         started = reader.info.started_unix_ns
         set_ns = reader.sets().set_unix_ns
+    first_s, last_s = (int(set_ns[0]) - started) / 1e9, (int(set_ns[-1]) - started) / 1e9
+    # one second apart, as the sim renders the people's motion (stage 2): three timestamps
+    # closer together would be three reconstructions of the same picture
+    every_s = 1.0 / content_fps
+    if last_s - first_s < 2 * every_s + 0.1:
+        every_s = max((last_s - first_s - 0.1) / 2, 0.05)
+        print(f"      the recording is short: timestamps {every_s:.2f} s apart (the same picture)")
     t_s = (int(set_ns[stamp.set_index]) - started) / 1e9
-    t_s = min(t_s, (int(set_ns[-1]) - started) / 1e9 - 0.45)  # room for three at 0.2 s
+    t_s = max(min(t_s, last_s - 2 * every_s - 0.05), first_s)
     case = out / "case"
     done = _egosurg(
         "reconstruct", str(stamp.session), "--calibration", str(stamp.calibration),
-        "--config", str(stamp.config), "--every", "0.2s", "--from", f"{t_s:.3f}",
-        "--to", f"{t_s + 0.4:.3f}", "--out", str(case), "--steps", str(max(steps // 4, 1)),
+        "--config", str(stamp.config), "--every", f"{every_s:.3f}s", "--from", f"{t_s:.3f}",
+        "--to", f"{t_s + 2 * every_s:.3f}", "--out", str(case),
+        "--steps", str(max(steps // 4, 1)),
         "--train-views", "left", "--no-refinement", "--warm-start",
         "--warm-steps", str(max(steps // 32, 1)),
     )  # fmt: skip
@@ -401,7 +414,7 @@ def main(argv: list[str]) -> int:
     stamp = stage_reconstruction(out, args.seed, session, files, calibration, args.steps)
     if stamp is not None:
         stage_evaluation(out, args.seed, files.spec.phase, stamp, args.steps)
-        stage_batch(out, stamp, args.steps)
+        stage_batch(out, stamp, args.steps, files.spec.content_fps)
         stage_review(out, args.seed, files.spec.phase, stamp)
     print(f"demo finished in {time.perf_counter() - t0:.0f} s; everything is under {out}/")
     return 0

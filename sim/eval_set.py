@@ -15,7 +15,7 @@ on a real site: the exact view from each person's eyes at the same instant.
   are also near-field instants;
 - ``eval_set.toml``: the manifest (format in ``protocol/formats/eval_set.py``).
 
-The defaults are the paper's scale (issue 22): every phase at 5 instants 8 s apart, each with
+The defaults are the paper's scale: every phase at 5 instants 8 s apart, each with
 every person's view (60 egocentric views over the three phases that have people: setup 3,
 intraoperative 6, turnover 3 a instant), 3 near-field instants per phase, and 10 consecutive
 sets at 15 fps for temporal stability.

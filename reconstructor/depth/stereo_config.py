@@ -25,7 +25,7 @@ class StereoConfig:
     wls_lambda: float = 8000.0
     wls_sigma_color: float = 1.5
     lr_max_diff_px: float = 1.0
-    # Retuned on the sim's true depth (issue 22, EVALUATION.md "Stereo depth against the sim's
+    # Retuned on the sim's true depth (EVALUATION.md "Stereo depth against the sim's
     # truth"): ZNCC 0.3 instead of 0.5 answers on 84 % of textured pixels instead of 74 % (the
     # right edge as dense as the centre there) for 12.5 % of depths > 3 % off instead of 10.6 %.
     # The WLS agreement of 1.0 px as well (92 %, 18 %) was measured and not adopted: with both,

@@ -5,7 +5,7 @@ Each pixel of a depth map becomes a square splat of its footprint, drawn far to 
 (``reconstructor/depth/reproject.py``, shared with the training's depth term). Pixels no point
 reaches stay at the background and are counted as holes. This is what the paper's "depth
 reprojection" row measures: the geometry and colours of the depth maps alone, at full
-resolution, with no fusion, no cap and no optimisation. (Until issue 22 the row drew the fused
+resolution, with no fusion, no cap and no optimisation. (Before the retune the row drew the fused
 cloud after its 200k-point cap, which measured the cap.)
 """
 

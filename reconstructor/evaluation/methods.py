@@ -10,11 +10,11 @@ Methods (``--methods`` keys), each a switch of ``ReconstructConfig`` (see config
 - ``no-refinement``: "EgoSurg w/o refinement" (the paper's "w/o diffusion"): depth init,
   ``auxiliary.enabled = false``;
 - ``egosurg``: the full method: depth init and auxiliary views refined by ``--refiner``;
-- ``egosurg-eye`` (not one of the paper's rows; issue 22): EgoSurg with 24 auxiliary cameras
+- ``egosurg-eye`` (not one of the paper's rows): EgoSurg with 24 auxiliary cameras
   more, at standing and seated eye height inside the room (``refine/eye_views.py``), each
   refined against the recorded views that see what it looks at;
 - ``egosurg-warm`` (not one of the paper's rows; temporal protocol only): a case's warm start
-  (``reconstructor/case/warm.py``, issue 20). A sequence's first frame is EgoSurg's cold model;
+  (``reconstructor/case/warm.py``). A sequence's first frame is EgoSurg's cold model;
   each later frame starts from the previous frame's warm model, drops what the new stereo depth
   shows to be gone, seeds what is new and trains ``--warm-steps`` on the input views, as
   ``egosurg reconstruct --every ... --warm-start`` does.

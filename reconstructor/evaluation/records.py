@@ -1,6 +1,6 @@
 """What each finished job of an evaluation leaves on disk, so that a stopped run resumes.
 
-A full-scale evaluation is hours of work on a CPU (issue 22: 81 reconstructions overnight);
+A full-scale evaluation is hours of work on a CPU (81 reconstructions overnight);
 a power cut, a killed terminal or a machine that must be given back would otherwise lose all
 of it. After each job (one timestamp, every method) the runner writes, in ``OUT/jobs/``:
 

@@ -76,7 +76,7 @@ class AuxiliaryConfig:
     seed: int = 0
     save_pictures: bool = True  # auxiliary_views.jpg in the run folder
     guided: GuidedConfig = field(default_factory=GuidedConfig)
-    # cameras where people's eyes will be, besides the shell (eye_views.py; issue 22)
+    # cameras where people's eyes will be, besides the shell (eye_views.py)
     eye: EyeViewConfig = field(default_factory=EyeViewConfig)
 
     def __post_init__(self) -> None:

@@ -1,4 +1,4 @@
-"""Auxiliary views where people's eyes will be (issue 22, part 3).
+"""Auxiliary views where people's eyes will be.
 
 The paper's auxiliary cameras (``auxiliary.py``) stay within 0.4 m of each wall camera; the
 people whose views a team replays stand 1.7-3.0 m from the nearest one, so nothing trains the

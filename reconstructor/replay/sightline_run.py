@@ -23,7 +23,7 @@ from reconstructor.replay.sightline import Offset, in_view_fraction, visible_fra
 from reconstructor.replay.video import burn_text, timecode
 
 log = logging.getLogger(__name__)
-VISIBLE_ENOUGH = 0.5  # "at least half visible": the binary answer
+VISIBLE_ENOUGH = 0.5  # "at least half visible": the binary answer
 
 
 @dataclass(frozen=True)

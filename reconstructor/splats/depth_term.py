@@ -1,4 +1,4 @@
-"""The depth term (issue 22, part 3): the input views' stereo depth as a second target, so that
+"""The depth term: the input views' stereo depth as a second target, so that
 Gaussians stay on the surfaces the cameras measured and do not drift along their rays where the
 image alone cannot tell depth (seen from the wall cameras they look right; from a person's eye,
 far off those rays, they are misplaced).

@@ -69,7 +69,7 @@ class TrainConfig:
     anisotropy_max_ratio: float = 4.0
     anisotropy_reg_weight: float = 10.0
     # not in the paper: weight of the depth term on input views with a stereo depth target
-    # (splats/depth_term.py; issue 22). 0: off
+    # (splats/depth_term.py). 0: off
     depth_weight: float = 0.0
     # 0: |D - alpha t| / t everywhere stereo answered (also asks for coverage there); > 0: the
     # depth error |D / alpha - t| / t only where the render covers at least this

@@ -94,7 +94,7 @@ def test_calibration_recovers_the_true_rig(calibrated, wand_session, wand_file):
     errors = calibration_errors(cal, truth)
     for e in errors:
         print(f"{e.name}: rotation {e.rotation_deg:.4f} deg, translation {e.translation_mm:.2f} mm")
-    # after the best rigid fit of the rig onto the truth: issue 4's limits (measured on this
+    # after the best rigid fit of the rig onto the truth: the limits (measured on this
     # session: 0.023 deg and 1.2 mm; 0.012 deg and 0.8 mm with 15 fps)
     assert max(e.rotation_deg for e in errors) <= 0.05
     assert max(e.translation_mm for e in errors) <= 2.0

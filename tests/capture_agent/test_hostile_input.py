@@ -1,4 +1,4 @@
-"""The recorder and the agent cannot be stopped or exhausted by input (issue 24).
+"""The recorder and the agent cannot be stopped or exhausted by input.
 
 A real recorder (its I/O thread running) and a real agent (two simulated cameras) on loopback,
 plaintext links (CURVE is test_security.py's), recording one take while every attack of

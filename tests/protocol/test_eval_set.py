@@ -127,7 +127,7 @@ def test_later_instants_are_a_second_scene_of_the_phase_with_every_person_s_view
 
 
 def test_the_default_set_is_the_paper_s_scale():
-    """Issue 22: every phase, at least 10 instants over the phases, 60+ egocentric views and at
+    """Every phase, at least 10 instants over the phases, 60+ egocentric views and at
     least 3 near-field instants per phase, by default (counted without rendering)."""
     from sim.eval_set import EvalSetSpec
 

@@ -426,7 +426,7 @@ def test_pipeline_random_init_with_auxiliary_views(small_timestamp, tmp_path):
 @pytest.mark.slow  # the whole reconstruction chain
 def test_pipeline_trains_eye_views_as_a_group_with_their_share(small_timestamp, tmp_path):
     """With ``[auxiliary.eye] num_views`` the refinement stage also trains on cameras at eye
-    height (issue 22), their share of the steps as configured; the summary counts them."""
+    height, their share of the steps as configured; the summary counts them."""
     eye = EyeViewConfig(num_views=3, share=0.25)
     cfg = _small_config(
         auxiliary=AuxiliaryConfig(num_views=2, input_share=0.8, eye=eye),

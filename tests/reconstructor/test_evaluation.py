@@ -513,7 +513,7 @@ def test_a_run_split_over_machines_is_merged_by_copying_its_jobs(eval_set, tmp_p
 def test_the_report_names_the_libraries_that_made_the_depth_and_says_when_they_differ(
     eval_set, tmp_path, capsys, caplog
 ):
-    """Another OpenCV gives other depths (issue 22: 5.0 against 4.x), and a run spread over
+    """Another OpenCV gives other depths (5.0 against 4.x), and a run spread over
     machines, or resumed on an upgraded one, can mix them: each job's record names the
     libraries that made its depth stage, and the tables say which, or that they differ."""
     out, args = _quick_run(eval_set, tmp_path, "--protocol", "temporal")

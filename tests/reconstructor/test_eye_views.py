@@ -1,4 +1,4 @@
-"""Auxiliary views where people's eyes will be (issue 22, part 3): where they are drawn, which
+"""Auxiliary views where people's eyes will be: where they are drawn, which
 recorded views supervise them, and that training on them helps the views people see."""
 
 from __future__ import annotations
@@ -175,7 +175,7 @@ def test_each_reference_fills_what_the_ones_before_it_left(scene):
 
 
 def test_training_on_true_eye_views_improves_the_views_people_see(scene, world):
-    """The premise of issue 22's part 3, with a perfect refiner: after the same warm-up and the
+    """The premise of the eye views, with a perfect refiner: after the same warm-up and the
     same number of refinement steps, a model that also trained on eye views renders held-out
     eye-height views (other positions, drawn with another seed) better than one trained on
     the wall cameras alone. At 80x50 pixels an eye 2 m from every camera sees much that no

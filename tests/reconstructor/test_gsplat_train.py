@@ -23,7 +23,7 @@ pytestmark = [
     pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA"),
 ]
 STEPS = 300
-PSNR_TOLERANCE_DB = 0.3  # the issue's bound between the backends' evaluation numbers
+PSNR_TOLERANCE_DB = 0.3  # the bound between the backends' evaluation numbers
 
 
 @pytest.fixture(scope="module")

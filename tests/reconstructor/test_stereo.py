@@ -179,7 +179,7 @@ def test_svga_depth_through_the_rational_lens_is_as_accurate(world):
 
 def test_svga_depth_covers_textured_surfaces_and_rejects_blank_walls(svga, world):
     """>= 85 % of textured pixels (floor, people, instruments) get a depth (measured 87 % with
-    issue 22's ZNCC 0.3, 83 % with the old 0.5); blank walls almost none (under 10 %), instead
+    the retuned ZNCC 0.3, 83 % with the old 0.5); blank walls almost none (under 10 %), instead
     of a smooth sheet at the wrong depth."""
     left, stereo, depth, names = svga
     rect = rectifier(stereo.left, stereo.right, stereo.right_from_left)

@@ -1,5 +1,5 @@
 """The SGBM+WLS matcher answers up to the right edge of the image: a user's depth maps are not
-missing the right-most ``max_disparity`` columns of every camera (issue 22, part 0)."""
+missing the right-most ``max_disparity`` columns of every camera."""
 
 from __future__ import annotations
 
