@@ -10,10 +10,16 @@ STAMP  := $(VENV)/.egosurg-installed
 TORCH  := torch==2.13.0
 PYTEST_MARKERS ?= not hardware and not gpu
 
-.PHONY: demo test lint typecheck bench edge-check system-deps clean
+.PHONY: demo test lint typecheck bench edge-check system-deps clean report-screenshot
 
 demo: $(STAMP)
 	$(BIN)/egosurg demo --out out/demo
+
+# docs/report.png: the case report of the demo's case (docs/report.md) as headless Chromium
+# shows it (the demo first, when out/demo has no report yet)
+report-screenshot: $(STAMP)
+	test -f out/demo/review/report.html || $(BIN)/egosurg demo --out out/demo
+	$(BIN)/python bench/screenshot_report.py out/demo/review/report.html --out docs/report.png
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -m "$(PYTEST_MARKERS)" $(PYTEST_ARGS)

@@ -59,6 +59,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "moving things entering a sterile field box over a case: events, renders",
     ),
     "view": ("reconstructor.replay.cli:main_view", "browse a case in a web browser (localhost)"),
+    "people": (
+        "reconstructor.people.cli:main",
+        "who stood where and looked where: people tracked from a case, tracks named as roles",
+    ),
+    "report": (
+        "reconstructor.report.cli:main",
+        "one self-contained HTML report of a case: health, timeline, events, views",
+    ),
     "evaluate": (
         "reconstructor.evaluation.cli:main",
         "the paper's evaluation protocols and baselines on an evaluation set",

@@ -220,6 +220,9 @@ def main_reconstruct(argv: list[str]) -> int:
 
             evaluate(result, run_dir)
             print((run_dir / "eval.md").read_text())
+        if ts.sealing is not None:  # a sealed session's model, written plain where asked
+            print(plaintext_notice("model and points (splats.ply, points.ply)", run_dir),
+                  file=sys.stderr)  # fmt: skip
     return 0
 
 

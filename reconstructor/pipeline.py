@@ -173,8 +173,10 @@ def reconstruct(
     refine: RefineHook | None = None,
     init: InitHook | None = None,
     depth_cache: DepthCache | None = None,
+    write_models: bool = True,
 ) -> Reconstruction:
-    """Reconstruct one timestamp; write the outputs when ``out_dir`` is given.
+    """Reconstruct one timestamp; write the outputs when ``out_dir`` is given (without
+    ``splats.ply`` and ``points.ply`` unless ``write_models``: a sealed case seals its own).
 
     The stages, in order: depth (stereo and hole filling), init (fusion and the Gaussians),
     warm-up, auxiliary views (the refiner's, or the caller's ``refine`` hook), refinement, and
@@ -235,7 +237,7 @@ def reconstruct(
         )
         del refinement  # its auxiliary views: nothing needs them after the stage
         if out_dir is not None:
-            write_outputs(result)
+            write_outputs(result, models=write_models)
         return result
 
 
@@ -425,11 +427,12 @@ def _refinement_stage(
         )
 
 
-def write_outputs(result: Reconstruction) -> None:
+def write_outputs(result: Reconstruction, *, models: bool = True) -> None:
     out = result.out_dir
     assert out is not None
-    ply.write_ply(out / "splats.ply", result.gaussians)
-    ply.write_points_ply(out / "points.ply", result.fused.points_m, result.fused.colours)
+    if models:
+        ply.write_ply(out / "splats.ply", result.gaussians)
+        ply.write_points_ply(out / "points.ply", result.fused.points_m, result.fused.colours)
     ts = result.timestamp
     summary: dict[str, Any] = {
         "session": str(ts.session),
@@ -451,7 +454,8 @@ def write_outputs(result: Reconstruction) -> None:
         "ms_per_step": _ms_per_step(result),
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default) + "\n")
-    log.info("wrote %s (%d Gaussians)", out / "splats.ply", result.gaussians.num)
+    if models:
+        log.info("wrote %s (%d Gaussians)", out / "splats.ply", result.gaussians.num)
 
 
 def _ms_per_step(result: Reconstruction) -> dict[str, float]:

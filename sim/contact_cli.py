@@ -4,6 +4,10 @@ session made with ``egosurg sim eval-set --contact`` (the script is in ``sim/con
 Example::
 
     egosurg sim contact es/intraoperative/session.h5 --field-out field.toml --truth-out truth.csv
+    egosurg sim contact take.h5 --identity site.identity --field-out f.toml --truth-out t.csv
+
+The seed, phase and contact script are the session's metadata: a sealed session's opens with
+``--identity FILE`` (or ``$EGOSURG_IDENTITY``).
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ from pathlib import Path
 
 from protocol.command import CommandArgumentError, add_subcommand
 from protocol.formats.site import site_toml
+from protocol.sealing.arguments import add_identity_argument, identity_from_args
 from sim.contact import DRAPE_FIELD
 from sim.contact_truth import true_field_intervals, write_truth_csv
 
@@ -22,8 +27,10 @@ def cmd_contact(args: argparse.Namespace) -> int:
     from sim.world import World
 
     path = Path(args.session)
-    clock = read_session_clock(path)
+    clock = read_session_clock(path, identity_from_args(args))
     meta, set_s = clock.case_metadata, clock.set_times_s
+    if clock.sealed_for:
+        raise clock.metadata_needed(path, "sim seed, phase and contact script")
     if meta.get("contact") != "1" or "seed" not in meta or "phase" not in meta:
         raise CommandArgumentError(
             f"{path} is not a sim session with the scripted contact; make one with "
@@ -51,3 +58,4 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("session", help="a sim session made with 'egosurg sim eval-set --contact'")
     p.add_argument("--field-out", required=True, help="the field box as a site file (TOML)")
     p.add_argument("--truth-out", required=True, help="CSV of true in-field intervals")
+    add_identity_argument(p)

@@ -21,6 +21,10 @@ Stages so far:
    refinement and EgoSurg against those views;
 6. batch-reconstruct three consecutive timestamps from there as a case (``egosurg reconstruct
    --every ... --warm-start``, a short schedule) and print its summary (``egosurg case info``).
+7. review the case: replay the surgeon's view (``egosurg replay --pip``) and the anaesthetist's
+   line of sight to a monitor (``egosurg sightline``);
+8. the case report (``egosurg report``, docs/report.md): the drape's sterile field judged
+   (``egosurg sterile``) and everything in one HTML file.
 
 Each stage runs through the ``egosurg`` command as a user would run it.
 """
@@ -52,7 +56,7 @@ from sim.timing import ClockSpec
 from sim.truth import align_to_truth, calibration_errors, content_time_s, true_rig_calibration
 from sim.world import World
 
-STAGES = 7
+STAGES = 8
 
 
 def _stage(k: int, text: str) -> None:
@@ -390,6 +394,40 @@ def stage_review(out: Path, seed: int, phase: str, stamp: DemoTimestamp) -> None
         print("      line of sight failed; see the message above")
 
 
+def stage_report(out: Path) -> None:
+    """The case report of stage 6's case: the session's health, the timeline with the sterile
+    field (the drape) and stage 7's line of sight, each role's view beside the nearest real
+    camera, one HTML file (docs/report.md)."""
+    import json
+
+    from protocol.formats.site import site_toml
+    from sim.contact import DRAPE_FIELD
+    from sim.timing import read_session_clock
+
+    _stage(8, "report: the case in one HTML file (health, timeline, events, views)")
+    case, review = out / "case", out / "review"
+    roles = review / "roles.toml"
+    if not roles.is_file():
+        print("      no roles from stage 7: no report")
+        return
+    session = Path(json.loads((case / "case.json").read_text())["session"])
+    field = review / "field.toml"  # the drape, made for this session
+    field.write_text(site_toml([DRAPE_FIELD], session=read_session_clock(session).session))
+    done = _egosurg(
+        "sterile", str(case), "--field", str(field), "--roles", str(roles),
+        "--sterile-roles", "surgeon,assistant,nurse_scrub", "--out", str(review / "sterile"),
+    )  # fmt: skip
+    sterile = ("--sterile", str(review / "sterile")) if done.returncode == 0 else ()
+    sightline = review / "sightline"
+    sight = ("--sightline", str(sightline)) if (sightline / "sightline.csv").is_file() else ()
+    done = _egosurg(
+        "report", str(case), "--roles", str(roles), *sterile, *sight,
+        "--out", str(review / "report.html"),
+    )  # fmt: skip
+    if done.returncode != 0:
+        print("      the report failed; see the message above")
+
+
 def main(argv: list[str]) -> int:
     parser = command_parser("egosurg demo", __doc__)
     parser.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
@@ -416,5 +454,6 @@ def main(argv: list[str]) -> int:
         stage_evaluation(out, args.seed, files.spec.phase, stamp, args.steps)
         stage_batch(out, stamp, args.steps, files.spec.content_fps)
         stage_review(out, args.seed, files.spec.phase, stamp)
+        stage_report(out)
     print(f"demo finished in {time.perf_counter() - t0:.0f} s; everything is under {out}/")
     return 0

@@ -10,6 +10,10 @@ sessions start at the sim epoch, so there the two are equal.
 Examples::
 
     egosurg sim roles evalset/intraoperative/session.h5 --out roles.toml --site-out site.toml
+    egosurg sim roles take.h5 --identity reader-keys/site.identity --out roles.toml
+
+A sealed session's seed and phase are in its sealed metadata: ``--identity FILE`` (or
+``$EGOSURG_IDENTITY``) opens them, or give ``--seed`` and ``--phase``.
     egosurg sim roles --seed 3 --phase intraoperative --from 2 --to 4 --every 0.1 --out roles.toml
 """
 
@@ -25,6 +29,7 @@ from protocol.command import CommandArgumentError, add_subcommand
 from protocol.formats.session_id import SessionId
 from protocol.formats.site import SiteBox, site_toml, surface_points
 from protocol.formats.trajectory import Keyframe, Trajectory, write_trajectories
+from protocol.sealing.arguments import add_identity_argument, identity_from_args
 from sim.phases import PHASES
 from sim.timing import read_session_clock
 from sim.world import World
@@ -121,7 +126,7 @@ def cmd_roles(args: argparse.Namespace) -> int:
     first_s = last_s = float("nan")
     if args.session:
         path = Path(args.session)
-        clock = read_session_clock(path)
+        clock = read_session_clock(path, identity_from_args(args))
         meta, set_s = clock.case_metadata, clock.set_times_s
         if len(set_s) == 0:
             raise CommandArgumentError(f"the session {path} holds no synchronised sets")
@@ -129,11 +134,19 @@ def cmd_roles(args: argparse.Namespace) -> int:
         offset_s, session = clock.sim_offset_s, clock.session
         if seed is None:
             if "seed" not in meta:
-                raise CommandArgumentError(f"{path} does not say its sim seed: pass --seed")
+                raise clock.metadata_needed(path, "sim seed", "--seed and --phase")
             seed = int(meta["seed"])
         phase = phase or meta.get("phase")
         if phase is None:
-            raise CommandArgumentError(f"{path} does not say its sim phase: pass --phase")
+            raise clock.metadata_needed(path, "sim phase", "--phase")
+        if clock.sealed_for:
+            log.warning(
+                "%s is sealed and read without an identity: the world is --seed %s --phase %s "
+                "without the session's scripted drape contact, if it had one (pass --identity)",
+                path,
+                seed,
+                phase,
+            )
     elif args.t_from is None or args.t_to is None:
         raise CommandArgumentError("without a session, give --from and --to (seconds)")
     if phase not in PHASES:
@@ -171,3 +184,4 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fov", type=float, default=90.0, help="horizontal field of view, degrees")
     p.add_argument("--out", required=True, help="roles TOML to write")
     p.add_argument("--site-out", help="also write the room's screens as a site file")
+    add_identity_argument(p)

@@ -17,12 +17,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from protocol.command import CommandArgumentError
 from protocol.formats.session_id import SessionId
 from sim.errors import SimTimeError
+
+if TYPE_CHECKING:
+    from protocol.sealing import Identity
 
 SIM_EPOCH_UNIX_NS = 1_767_225_600_000_000_000  # 2026-01-01T00:00:00Z: sim time 0
 
@@ -35,22 +39,43 @@ class SessionClock:
     sim_offset_s: float  # the session's start on the sim clock
     set_times_s: np.ndarray  # (N,) case time of each synchronised set; may be empty
     session: SessionId  # what a roles or field file written for it records (its [session])
+    # a sealed session read without an identity: its recipients (its metadata is then empty)
+    sealed_for: str = ""
+
+    def metadata_needed(self, path: Path, what: str, instead: str = "") -> CommandArgumentError:
+        """The one-line error for metadata the session does not give: sealed and read without
+        an identity (name the identity option and its recipients), or not written there."""
+        from protocol.sealing import IDENTITY_ENV
+
+        other = f" or {instead}" if instead else ""
+        if self.sealed_for:
+            return CommandArgumentError(
+                f"{path} is sealed: its {what} can be read with the identity of one of its "
+                f"recipients ({self.sealed_for}): pass --identity FILE (or set "
+                f"{IDENTITY_ENV}){other}"
+            )
+        return CommandArgumentError(f"{path} does not say its {what}: pass {instead}")
 
 
-def read_session_clock(path: Path) -> SessionClock:
+def read_session_clock(path: Path, identity: Identity | None = None) -> SessionClock:
     """The case metadata and set times of the session file ``path``, on the sim clock (what
-    ``egosurg sim roles`` and ``egosurg sim contact`` line their worlds up with)."""
+    ``egosurg sim roles`` and ``egosurg sim contact`` line their worlds up with). A sealed
+    session's metadata is read with ``identity``; without one it is empty and ``sealed_for``
+    names the recipients (the set times are never sealed)."""
     from protocol.session import SessionReader  # h5py: only when a session is read
 
     if not path.is_file():
         raise CommandArgumentError(f"the session {path} does not exist")
-    with SessionReader(path) as reader:
-        meta, start = reader.info.case_metadata, reader.info.started_unix_ns
-        name = reader.info.session_name
+    with SessionReader(path, identity=identity) as reader:
+        start, name = reader.info.started_unix_ns, reader.info.session_name
+        opened = reader.can_open
+        sealed_for = "" if opened else ", ".join(r.label() for r in reader.recipients)
+        meta = dict(reader.info.case_metadata) if opened else {}
         set_ns = reader.sets().set_unix_ns
     return SessionClock(
         session=SessionId(name=name, started_unix_ns=int(start)),
         case_metadata=meta,
+        sealed_for=sealed_for,
         sim_offset_s=(start - SIM_EPOCH_UNIX_NS) / 1e9,
         set_times_s=(set_ns - start) / 1e9,
     )

@@ -20,6 +20,7 @@ from protocol.camera import Pose
 from protocol.formats.rig_calibration import RigCalibration
 
 if TYPE_CHECKING:
+    from protocol.sealing import Recipient
     from sim.deploy import SimRigSpec
 
 REPO = Path(__file__).resolve().parents[1]
@@ -58,10 +59,12 @@ def copy_sets(
     *,
     drop_serial: int | None = None,
     identity: Path | None = None,
+    recipients: Sequence[Recipient] = (),
 ) -> None:
-    """A plaintext session holding only the sets ``set_rows`` of ``source`` (their frames, byte
-    for byte; a sealed ``source`` is opened with the ``identity`` file); ``drop_serial``'s
-    frames are left out, so its members read -1 (a missing camera)."""
+    """A session holding only the sets ``set_rows`` of ``source`` (their frames, byte for
+    byte; a sealed ``source`` is opened with the ``identity`` file), plaintext, or sealed for
+    ``recipients`` when given; ``drop_serial``'s frames are left out, so its members read -1
+    (a missing camera)."""
     # conftest imports this module for every test, the capture tests' too: the session
     # and sim modules load only when a helper that needs them runs
     from protocol.sealing import load_identity
@@ -80,6 +83,7 @@ def copy_sets(
             tolerance_ns=reader.info.tolerance_ns,
             software_version="test",
             started_unix_ns=reader.info.started_unix_ns,
+            recipients=recipients,
         ) as writer:
             for k in set_rows:
                 members = []

@@ -46,6 +46,10 @@ RECONSTRUCTOR_PARTS: dict[str, set[str]] = {
     "case": {"data", "depth", "splats", "refine", "raster", "config", "pipeline"} | _SHARED,
     # reviewing a case (docs/replay.md): reads the case index and renders its models
     "replay": {"case", "data", "splats", "raster", "config"} | _SHARED,
+    # finding people (docs/replay.md): a case's stored points or a session's stereo depth
+    "people": {"case", "data", "depth", "config", "pipeline", "replay"} | _SHARED,
+    # the case report (docs/report.md): the review outputs and the pictures replay makes
+    "report": {"replay", "case", "data", "splats", "raster", "config"} | _SHARED,
     "cli": {"data", "depth", "splats", "refine", "raster", "config", "pipeline", "evaluation"}
     | {"case"}
     | _SHARED,

@@ -40,7 +40,6 @@ import sys
 from pathlib import Path
 
 import cv2
-import numpy as np
 
 from protocol.command import CommandArgumentError, add_subcommand, command_parser
 from protocol.errors import UserError
@@ -48,10 +47,10 @@ from protocol.images import decode_image
 from protocol.private_files import make_owner_only, plaintext_notice
 from protocol.sealing import IDENTITY_ENV
 from protocol.sealing.arguments import add_identity_argument, identity_from_args
-from protocol.session import GapKind, ImageChecksumError, SessionFormatError, SessionReader
+from protocol.session import ImageChecksumError, SessionFormatError, SessionReader
+from protocol.session.health import summarise  # also egosurg report's
 from protocol.session.recover import recover_session
 from protocol.session.verify import describe_events
-from protocol.set_counts import missing_in_sets
 
 # What reading a damaged file may still raise past the reader's own checks (h5py, numpy, cv2).
 READ_ERRORS = (OSError, RuntimeError, KeyError, ValueError, TypeError, IndexError, MemoryError)
@@ -75,82 +74,6 @@ def _slice(text: str | None, n: int) -> range:
     if start < 0 or start >= max(n, 1) or stop <= start:
         raise CommandArgumentError(f"range {text!r} is outside 0:{n}")
     return range(start, min(stop, n))
-
-
-def summarise(reader: SessionReader) -> dict:
-    info = reader.info
-    sets = reader.sets()
-    missing = missing_in_sets(sets.members, info.camera_serials)  # as the stop summary counts
-    cams = []
-    for serial in info.camera_serials:
-        table = reader.frame_table(serial)
-        stamps = table["capture_unix_ns"]
-        fps = (len(stamps) - 1) / ((stamps[-1] - stamps[0]) / 1e9) if len(stamps) > 1 else 0.0
-        ci = info.camera(serial)
-        cams.append(
-            {
-                "serial": serial,
-                "node_id": ci.node_id,
-                "mode": f"{ci.resolution} {ci.width}x{ci.height} @ {ci.fps_nominal:g} fps",
-                "encoding": ci.encoding,
-                "frames": len(stamps),
-                "fps_measured": round(float(fps), 2),
-                "missing_in_sets": missing[serial],
-            }
-        )
-    gaps: dict[str, dict[str, int]] = {}
-    for g in reader.gaps():
-        per = gaps.setdefault(str(g.camera_serial), {})
-        name = GapKind(g.kind).name.lower()
-        per[name] = per.get(name, 0) + max(g.missing_count, 1 if g.missing_count < 0 else 0)
-    first = min(
-        (
-            int(reader.frame_table(s)["capture_unix_ns"][0])
-            for s in info.camera_serials
-            if reader.frame_count(s)
-        ),
-        default=0,
-    )
-    last = max(
-        (
-            int(reader.frame_table(s)["capture_unix_ns"][-1])
-            for s in info.camera_serials
-            if reader.frame_count(s)
-        ),
-        default=0,
-    )
-    spread_ms = sets.spread_ns / 1e6
-    complete = int((sets.members >= 0).all(axis=1).sum()) if len(sets.members) else 0
-    return {
-        "file": str(reader.path),
-        "session": info.session_name,
-        "metadata": info.case_metadata,
-        "closed_cleanly": info.closed_cleanly,
-        "format_version": info.format_version,
-        "take_part": info.take_part,
-        "previous_session_file": info.previous_session_file,
-        "duration_s": round((last - first) / 1e9, 3) if last > first else 0.0,
-        "sets": len(sets.set_unix_ns),
-        "complete_sets": complete,
-        "spread_ms": {
-            "median": round(float(np.median(spread_ms)), 3) if len(spread_ms) else None,
-            "p95": round(float(np.percentile(spread_ms, 95)), 3) if len(spread_ms) else None,
-            "max": round(float(spread_ms.max()), 3) if len(spread_ms) else None,
-        },
-        "tolerance_ms": info.tolerance_ns / 1e6,
-        "cameras": cams,
-        "drops_and_gaps": gaps,
-        "events": event_counts(reader),
-    }
-
-
-def event_counts(reader: SessionReader) -> dict[str, dict[str, int]]:
-    """Per event kind, per node: how many times it happened (a row may stand for many)."""
-    out: dict[str, dict[str, int]] = {}
-    for e in reader.events():
-        per = out.setdefault(e.kind.name.lower(), {})
-        per[e.node_id] = per.get(e.node_id, 0) + e.count
-    return out
 
 
 def format_info(s: dict) -> str:

@@ -21,6 +21,12 @@ Format (version 1)::
     look_at_m = [0.1, 0.0, 1.0]         # a point it looks at (image up towards +z) ...
     # orientation_wxyz = [w, x, y, z]   # ... or the world-from-camera rotation (OpenCV axes)
     fov_deg = 90.0                      # horizontal field of view
+    # confidence = 0.93                 # optional, 0..1: how sure an estimate is (egosurg people)
+    # gaps_s = [[12.0, 14.5]]           # optional, in [[trajectories]]: spans the person was hidden
+
+An estimated trajectory (``egosurg people``) marks each keyframe's ``confidence`` and the spans
+in which the person was seen by no camera (``gaps_s``: the last keyframe before, the first
+after); a replay moves through a gap as through any interval, and says so.
 
 ``[session]`` names the recording the times belong to (``protocol/formats/session_id.py``):
 the review commands refuse a file made for another session than the case's, and warn about one
@@ -90,8 +96,11 @@ class Keyframe:
     look_at_m: tuple[float, float, float] | None = None
     orientation_wxyz: tuple[float, float, float, float] | None = None  # world-from-camera
     fov_deg: float = 90.0
+    confidence: float | None = None  # 0..1 for an estimate; None: given (truth, or by hand)
 
     def __post_init__(self) -> None:
+        if self.confidence is not None and not 0.0 <= self.confidence <= 1.0:
+            raise ValueError(f"confidence {self.confidence} must be between 0 and 1")
         if (self.look_at_m is None) == (self.orientation_wxyz is None):
             raise ValueError("give exactly one of look_at_m and orientation_wxyz")
         if not math.isfinite(self.time_s):
@@ -135,8 +144,12 @@ class Keyframe:
 class Trajectory:
     name: str
     keyframes: tuple[Keyframe, ...]
+    gaps_s: tuple[tuple[float, float], ...] = ()  # hidden from every camera: (from, to)
 
     def __post_init__(self) -> None:
+        for gap in self.gaps_s:
+            if len(gap) != 2 or not gap[0] < gap[1]:
+                raise ValueError(f"gap {list(gap)} must be [from, to] seconds with from < to")
         if not self.name or not self.name.replace("-", "").replace("_", "").isalnum():
             raise ValueError(f"name {self.name!r}: use letters, digits, '-' or '_'")
         if not self.keyframes:
@@ -200,6 +213,8 @@ def trajectories_toml(
     lines += session_toml_lines(session)
     for tr in trajectories:
         lines += ["", "[[trajectories]]", f'name = "{tr.name}"']
+        if tr.gaps_s:
+            lines.append("gaps_s = [" + ", ".join(_fmt(g) for g in tr.gaps_s) + "]")
         for k in tr.keyframes:
             lines += ["[[trajectories.keyframes]]", f"time_s = {k.time_s:.6f}"]
             lines.append(f"eye_m = {_fmt(k.eye_m)}")
@@ -208,6 +223,8 @@ def trajectories_toml(
             else:
                 lines.append(f"orientation_wxyz = {_fmt(k.orientation_wxyz)}")
             lines.append(f"fov_deg = {k.fov_deg:g}")
+            if k.confidence is not None:
+                lines.append(f"confidence = {k.confidence:.3f}")
     return "\n".join(lines) + "\n"
 
 

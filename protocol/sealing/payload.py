@@ -15,6 +15,7 @@ for 24 hours seals about 2**26.3, and :class:`Sealer` refuses past the bound all
 
 from __future__ import annotations
 
+import itertools
 import os
 import struct
 from dataclasses import dataclass
@@ -84,7 +85,7 @@ class Sealer:
             raise ValueError("a data key is 32 bytes and a session uid 16")
         self._aead = AESGCM(data_key)
         self._uid = session_uid
-        self._sealed = 0
+        self._sealed = itertools.count()  # next() is atomic: seal_into is called from threads
 
     @property
     def session_uid(self) -> bytes:
@@ -94,16 +95,30 @@ class Sealer:
         """``version || nonce || ciphertext || tag``, ``OVERHEAD_BYTES`` longer than
         ``payload``. Encrypted in place into the one output buffer: joining the header to a
         returned ciphertext would copy a raw HD1200 image once more and halve the rate."""
-        self._sealed += 1
-        if self._sealed > MAX_PAYLOADS_PER_KEY:
+        out = bytearray(len(payload) + OVERHEAD_BYTES)
+        self.seal_into(payload, ctx, memoryview(out))
+        return out
+
+    def seal_into(
+        self, payload: bytes | bytearray | memoryview, ctx: PayloadContext, out: memoryview
+    ) -> None:
+        """``seal``, written into ``out`` (writable, contiguous bytes, exactly
+        ``len(payload) + OVERHEAD_BYTES`` long): the session writer seals each image straight
+        into the chunk buffer it is stored from, without allocating or copying it. The AEAD
+        releases the GIL, so two threads seal two payloads at once."""
+        if out.nbytes != len(payload) + OVERHEAD_BYTES:
+            raise ValueError(
+                f"a sealed payload of {len(payload)} bytes takes {len(payload) + OVERHEAD_BYTES}"
+                f" bytes, not {out.nbytes}"
+            )
+        if next(self._sealed) >= MAX_PAYLOADS_PER_KEY:
             raise RuntimeError("2**32 payloads sealed under one data key: start a new session")
         nonce = os.urandom(NONCE_BYTES)
-        out = bytearray(len(payload) + OVERHEAD_BYTES)
         out[0] = PAYLOAD_VERSION
         out[1 : 1 + NONCE_BYTES] = nonce
-        body = memoryview(out)[1 + NONCE_BYTES :]
-        self._aead.encrypt_into(nonce, payload, associated_data(self._uid, ctx), body)
-        return out
+        self._aead.encrypt_into(
+            nonce, payload, associated_data(self._uid, ctx), out[1 + NONCE_BYTES :]
+        )
 
     def open(self, sealed: bytes | bytearray | memoryview, ctx: PayloadContext) -> bytes:
         """The payload, or :class:`SealedPayloadError` naming ``ctx`` and what failed."""

@@ -77,6 +77,35 @@ class Blob:
                 self.fill = 0
         return offset, n, digest
 
+    def reserve(self, n: int) -> memoryview | None:
+        """The next ``n`` bytes of the unfinished chunk, to be filled in place and then
+        ``commit``-ted (a sealed image is encrypted straight into it); None when they do not
+        fit in what is left of the chunk (``append`` a copy instead)."""
+        if self.buffer is None:
+            if n > self.chunk:
+                return None
+            self.buffer = self.sink.take_buffer()
+            self.zero_from = self.chunk  # old contents
+            self.flushed = 0
+        if n > self.chunk - self.fill:
+            return None
+        return memoryview(self.buffer)[self.fill : self.fill + n]  # type: ignore[arg-type]
+
+    def commit(self, n: int) -> tuple[int, int, int]:
+        """Keep the ``n`` bytes written into ``reserve(n)``: (offset, length, XXH3-64), as
+        ``append`` returns for the same bytes."""
+        assert self.buffer is not None and n <= self.chunk - self.fill
+        digest = xxhash.xxh3_64_intdigest(self.buffer[self.fill : self.fill + n].data)
+        offset = self.logical_end
+        self.fill += n
+        self.logical_end += n
+        if self.fill == self.chunk:
+            self.sink.submit(self.buffer, self._file_offset())
+            self.buffer = None
+            self.chunk_start += self.chunk
+            self.fill = 0
+        return offset, n, digest
+
     def flush_partial(self) -> None:
         """Write the unfinished chunk (call after ``sink.drain()``), then flush the dataset."""
         # (the last block again even with nothing new: a failing disk shows at every flush)

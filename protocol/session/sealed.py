@@ -15,6 +15,13 @@ the metadata *keys*, the camera descriptions (serials, modes, factory calibratio
 not the patient), every table (times, counters, offsets, checksums), the sets, gaps, events and
 summary. docs/session.md ("Sealed sessions") is the format, exactly.
 
+Speed. Sealing is AES-GCM at about 2.5-3 GB/s a core here, so an image's AEAD (110-130 us for a
+325 kB JPEG) is most of what sealing adds; around it, each image is sealed straight into the
+chunk buffer it is stored from where it fits (no allocation, no copy), and a frame's two images
+are sealed at once, the left one on a sealing thread (the AEAD releases the GIL), so the thread
+that appends (the recorder's session-queue thread) spends about what it spends on a plaintext
+session (BENCHMARKS.md, "Sealing").
+
 Images are bound to ``sealed_row``, a frame table column, rather than to the row itself: the two
 are equal in a recorded file, and ``recover`` (which holds no key) keeps each frame's original
 ``sealed_row`` when it leaves damaged frames out. Moving an image to another row still fails its
@@ -27,15 +34,18 @@ import base64
 import binascii
 import json
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import h5py
 import numpy as np
 
+from protocol.os_thread import name_os_thread
 from protocol.sealing import (
     IDENTITY_ENV,
+    OVERHEAD_BYTES,
     Identity,
     IdentityRequiredError,
     KeyBlock,
@@ -50,6 +60,9 @@ from protocol.sealing import (
 )
 from protocol.session.format import SessionFormatError
 
+if TYPE_CHECKING:
+    from protocol.session.datasets import Blob
+
 GROUP = "sealing"
 KEY_BLOCK = "key_block"
 RECIPIENTS_SEALED = "recipients_sealed"
@@ -58,6 +71,10 @@ IMAGE_FIELD = "image"
 RIG_FIELD = "rig_config_toml"
 RECIPIENTS_FIELD = "recipients"
 SEALED_TEXT = "<sealed>"  # what a reader without an identity sees for a sealed value
+_SIDES: tuple[Literal["left", "right"], ...] = ("left", "right")
+# a frame smaller than this is sealed on the calling thread: handing half of it to the sealing
+# thread costs more than sealing it (about 30 us of a 2.8 GB/s AEAD)
+_PARALLEL_MIN_BYTES = 64 << 10
 _MAX_KEY_BLOCK_BYTES = 1 << 16  # 16 recipients take under 2 KiB: more is damage
 
 
@@ -118,6 +135,8 @@ class WriterSeal:
     def __init__(self, sealer: Sealer | None, stored: StoredSeal) -> None:
         self.sealer = sealer
         self.stored = stored
+        self._scratch: dict[str, bytearray] = {}  # by side: images that do not fit in place
+        self._executor: ThreadPoolExecutor | None = None
 
     @classmethod
     def new(
@@ -144,28 +163,76 @@ class WriterSeal:
         )
         return cls(sealer, stored)
 
-    def seal_image(
+    def store_pair(
         self,
-        data: object,
+        blobs: tuple[Blob, Blob],
+        images: tuple[object, object],
         *,
         camera_serial: int,
         row: int,
-        side: Literal["left", "right"],
         capture_unix_ns: int,
-    ) -> bytearray:
-        if self.sealer is None:
+    ) -> tuple[tuple[int, int, int], tuple[int, int, int]]:
+        """Seal a frame's two images for their row, sides and capture stamp and append them to
+        their blobs: (offset, length, XXH3-64 of the sealed bytes) of each. Each is sealed
+        straight into its chunk buffer when it fits in what is left of the chunk, else into a
+        buffer kept for the side and copied from there (across a chunk boundary, or larger
+        than a chunk). Large images are sealed at once, the left one on the sealing thread:
+        the AEAD releases the GIL."""
+        sealer = self.sealer
+        if sealer is None:
             raise ValueError(
                 "this session copies a sealed session: append images sealed already "
                 "(append_sealed_frame)"
             )
-        ctx = PayloadContext(
-            field=IMAGE_FIELD,
-            camera_serial=camera_serial,
-            row=row,
-            side=side,
-            capture_unix_ns=capture_unix_ns,
+        jobs = []
+        for blob, data, side in zip(blobs, images, _SIDES, strict=True):
+            src = memoryview(data).cast("B")  # type: ignore[arg-type]
+            n = src.nbytes + OVERHEAD_BYTES
+            ctx = PayloadContext(
+                field=IMAGE_FIELD,
+                camera_serial=camera_serial,
+                row=row,
+                side=side,
+                capture_unix_ns=capture_unix_ns,
+            )
+            dest = blob.reserve(n)
+            jobs.append((src, ctx, dest if dest is not None else self._scratch_for(side, n), dest))
+        (lsrc, lctx, lout, _), (rsrc, rctx, rout, _) = jobs
+        if lsrc.nbytes + rsrc.nbytes >= _PARALLEL_MIN_BYTES:
+            left_done = self._pool().submit(sealer.seal_into, lsrc, lctx, lout)
+            try:
+                sealer.seal_into(rsrc, rctx, rout)
+            finally:  # never leave the thread writing into a buffer after an error here
+                wait([left_done])
+            left_done.result()
+        else:
+            sealer.seal_into(lsrc, lctx, lout)
+            sealer.seal_into(rsrc, rctx, rout)
+        left, right = (
+            blob.commit(out.nbytes) if dest is not None else blob.append(out)
+            for blob, (_, _, out, dest) in zip(blobs, jobs, strict=True)
         )
-        return self.sealer.seal(memoryview(data).cast("B"), ctx)  # type: ignore[arg-type]
+        return left, right
+
+    def _scratch_for(self, side: str, n: int) -> memoryview:
+        scratch = self._scratch.get(side)
+        if scratch is None or len(scratch) < n:
+            scratch = self._scratch[side] = bytearray(n)
+        return memoryview(scratch)[:n]
+
+    def _pool(self) -> ThreadPoolExecutor:
+        if self._executor is None:
+            self._executor = ThreadPoolExecutor(
+                1, "session-seal", initializer=name_os_thread, initargs=("session-seal",)
+            )
+        return self._executor
+
+    def forget(self) -> None:
+        """Drop the data key (the writer is done) and stop the sealing thread."""
+        self.sealer = None
+        if self._executor is not None:
+            self._executor.shutdown(wait=True)
+            self._executor = None
 
     def write(self, f: h5py.File) -> None:
         """The ``/sealing`` group (before the file turns SWMR: nothing is added later)."""

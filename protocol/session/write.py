@@ -24,7 +24,7 @@ import json
 import logging
 import os
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -276,25 +276,23 @@ class SessionWriter:
         Returns the frame's row in ``/cameras/<serial>``, the index that sets refer to.
         """
         cam = self._camera(camera_serial)
-        if self._seal is not None:
-            seal, row = self._seal.seal_image, cam.rows
-            left = seal(
-                left,
-                camera_serial=camera_serial,
-                row=row,
-                side="left",
-                capture_unix_ns=capture_unix_ns,
-            )
-            right = seal(
-                right,
-                camera_serial=camera_serial,
-                row=row,
-                side="right",
-                capture_unix_ns=capture_unix_ns,
-            )
         times = (capture_unix_ns, host_receive_unix_ns, recorder_receive_unix_ns)
         counters = (frame_index, seq, ptp_offset_ns, 1 if ptp_locked else 0)
-        return self._append(cam, left, right, (*times, *counters), cam.rows)
+        seal = self._seal
+        if seal is None:
+            return self._append(cam, left, right, (*times, *counters), cam.rows)
+        row = cam.rows
+
+        def store() -> tuple[tuple[int, int, int], tuple[int, int, int]]:
+            return seal.store_pair(
+                (cam.left, cam.right),
+                (left, right),
+                camera_serial=camera_serial,
+                row=row,
+                capture_unix_ns=capture_unix_ns,
+            )
+
+        return self._append(cam, None, None, (*times, *counters), row, store)
 
     def append_sealed_frame(
         self,
@@ -322,10 +320,18 @@ class SessionWriter:
         return self._append(cam, left, right, (*times, *counters), sealed_row)
 
     def _append(
-        self, cam: CameraWriter, left: Any, right: Any, fields: tuple[int, ...], sealed_row: int
+        self,
+        cam: CameraWriter,
+        left: Any,
+        right: Any,
+        fields: tuple[int, ...],
+        sealed_row: int,
+        store: Callable[[], tuple[tuple[int, int, int], tuple[int, int, int]]] | None = None,
     ) -> int:
         """Store one frame's images and queue its table row: ``fields`` are the table's
-        columns before the offsets, ``sealed_row`` goes to a sealed session's last column."""
+        columns before the offsets, ``sealed_row`` goes to a sealed session's last column.
+        ``store``: stores the images itself (sealing them), instead of ``left`` and ``right``
+        as they are; (offset, length, checksum) of each."""
         if self._write_error is not None:  # the last flush failed: not past it until one works
             raise SessionWriteError(
                 f"{self._path}: writing failed ({self._write_error}); check free disk space and "
@@ -338,8 +344,10 @@ class SessionWriter:
                 f"{self._path}: writing failed ({exc}); check free disk space and the disk"
             ) from exc
         try:
-            lo, ll, lh = cam.left.append(left)
-            ro, rl, rh = cam.right.append(right)
+            if store is None:
+                (lo, ll, lh), (ro, rl, rh) = cam.left.append(left), cam.right.append(right)
+            else:
+                (lo, ll, lh), (ro, rl, rh) = store()
         except SessionWriteError:
             raise
         except OSError as exc:  # growing the dataset failed: the frame's row is not recorded
@@ -562,7 +570,7 @@ class SessionWriter:
         """Drop the data key when the file is done: from then on this process holds nothing
         that opens what it wrote (the file keeps the key only wrapped for the recipients)."""
         if self._seal is not None:
-            self._seal.sealer = None
+            self._seal.forget()
 
     def __enter__(self) -> SessionWriter:
         return self

@@ -9,6 +9,7 @@ Examples::
     egosurg case info case/
     egosurg case info case/ --verify    # also read every model and compare its checksum
     egosurg case export case/ --out ply/ [--at t00060.000] [--format splat]
+    egosurg case export case/ --out ply/ --identity site.identity   # a sealed session's case
 
 Rerunning the same ``reconstruct`` command resumes: finished timestamps are checked by checksum
 and skipped; the rest are (re)done. docs/case.md describes the folder and its index.
@@ -17,6 +18,11 @@ and skipped; the rest are (re)done. docs/case.md describes the folder and its in
 stat per model) and, with ``--verify``, its checksum (reading every model). A missing or damaged
 model is shown as MISSING or DAMAGED, not done, and the command exits 1; a model from before
 checksums were recorded is "unchecked".
+
+A sealed session's case (docs/case.md, "Sealed cases") keeps its models sealed for the
+session's recipients: ``case info`` and ``--verify`` need no key (the checksums are over the
+sealed bytes); ``case export`` opens them with ``--identity FILE`` (or ``$EGOSURG_IDENTITY``)
+and says where it wrote the plaintext copies.
 """
 
 from __future__ import annotations
@@ -31,7 +37,9 @@ from typing import Any
 from protocol.command import add_subcommand, command_parser
 from protocol.private_files import make_owner_only, plaintext_notice
 from protocol.sealing import Identity
+from protocol.sealing.arguments import add_identity_argument, identity_from_args
 from protocol.session import SessionReader
+from protocol.session.derived import derived_seal, sealing_record
 from reconstructor.case.index import INDEX_NAME, CaseIndex, Entry, check_model
 from reconstructor.case.plan import (
     config_hash,
@@ -56,6 +64,7 @@ def reconstruct_case(
     ``identity`` (each worker loads it from its file)."""
     with SessionReader(session, identity=identity) as reader:  # refused now, not per timestamp
         reader.require_identity("every image")
+        seal = derived_seal(reader, identity)  # its models are sealed for its recipients
     every_s = parse_duration_s(args.every)
     times = session_times(session)
     planned = plan_timestamps(times, every_s, args.from_s, args.to_s)
@@ -86,6 +95,7 @@ def reconstruct_case(
         force=args.force,
         depth_cache=str(Path(args.depth_cache).resolve()) if args.depth_cache else "",
         identity=str(identity.path.resolve()) if identity and identity.path else "",
+        sealing=sealing_record(seal) if seal is not None else None,
     )
     index = run_case(req, step_progress=_StepBar() if args.workers <= 1 and not args.ray else None)
     print(summary_line(req.case_dir, index))
@@ -140,6 +150,12 @@ def info(folder: Path, *, verify: bool = False) -> tuple[str, int]:
         f"{c['failed']} failed",
         _checked_line(checks, verify),
     ]
+    if index.sealing is not None:  # the recipients are public: no key needed to name them
+        from reconstructor.case.sealing import case_seal
+
+        seal = case_seal(folder, index, None)
+        assert seal is not None
+        lines.append(f"models sealed for {seal.describe()} (open them with --identity)")
     if done:
         from reconstructor.case.storage import is_compact
 
@@ -187,13 +203,18 @@ def _entry_line(e: Entry, check: tuple[str, str] | None) -> str:
     )
 
 
-def export(folder: Path, out: Path, at: list[str] | None, fmt: str) -> list[Path]:
+def export(
+    folder: Path, out: Path, at: list[str] | None, fmt: str, identity: Identity | None = None
+) -> list[Path]:
     """Each done (or each named) timestamp as a standard 3DGS PLY (or .splat) with unit
-    quaternions, checked against its checksum (and those of the files it is stored against)."""
+    quaternions, checked against its checksum (and those of the files it is stored against);
+    a sealed case's models are opened with ``identity`` (refused at once without one)."""
+    from reconstructor.case.sealing import reader_seal
     from reconstructor.case.storage import load_model
     from reconstructor.splats import ply
 
     index = _read(folder)
+    seal = reader_seal(folder, index, identity, "its models")
     rows = index.by_name()
     names = at or [e.name for e in index.timestamps if e.status == "done"]
     unknown = [n for n in names if n not in rows]
@@ -206,7 +227,7 @@ def export(folder: Path, out: Path, at: list[str] | None, fmt: str) -> list[Path
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for name in names:
-        g = load_model(folder, rows[name])  # one clear line if not done or damaged
+        g = load_model(folder, rows[name], seal)  # one clear line if not done or damaged
         target = out / f"{name}.{fmt}"
         if fmt == "splat":
             ply.write_splat(target, g)
@@ -243,12 +264,16 @@ def main(argv: list[str]) -> int:
     p_exp.add_argument("--out", required=True, help="folder to write the files to")
     p_exp.add_argument("--at", action="append", help="a timestamp's name (repeatable; default all)")
     p_exp.add_argument("--format", choices=("ply", "splat"), default="ply")
+    add_identity_argument(p_exp)  # a sealed session's case
     args = parser.parse_args(argv)
     if args.verb == "info":
         text, bad = info(Path(args.case), verify=args.verify)
         print(text)
         return 1 if bad else 0
-    files = export(Path(args.case), Path(args.out), args.at, args.format)
+    folder = Path(args.case)
+    needed = _read(folder).sealing is not None  # a plaintext case needs no identity
+    identity = identity_from_args(args, needed=needed)
+    files = export(folder, Path(args.out), args.at, args.format, identity)
     print(f"{args.out}: {len(files)} file(s) exported")
     print(plaintext_notice(f"{len(files)} model(s) as .{args.format}", args.out), file=sys.stderr)
     return 0

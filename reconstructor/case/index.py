@@ -11,6 +11,9 @@ Format (``CASE_FORMAT_VERSION``; docs/case.md has the whole folder)::
         "status": "done", "seconds": 5.2, "gaussians": 194185, "config_hash": "9f2c...",
         "warm_from": "", "error": ""}, ...]}
 
+A sealed session's case adds ``"sealing": {"session_uid": "<32 hex>", "recipients": [{"name",
+"kind", "key_id", "public"}, ...]}``: its models are sealed for those recipients.
+
 ``status`` is ``pending`` (not started, or started and interrupted), ``done`` or ``failed``.
 The file is replaced atomically (a temp file, fsync, ``os.replace``) after each timestamp, and an
 entry is marked done only after its model has been renamed into place, so the index never
@@ -22,7 +25,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import xxhash
 
@@ -60,6 +63,10 @@ class CaseIndex:
     warm_start: bool
     created_unix_ns: int
     timestamps: tuple[Entry, ...] = field(default_factory=tuple)
+    # a sealed session's case: {"session_uid": hex, "recipients": [...]} (reconstructor/case/
+    # sealing.py); its models are sealed for those recipients. None (and absent from the file)
+    # for a plaintext session's case
+    sealing: dict[str, Any] | None = None
 
     def by_name(self) -> dict[str, Entry]:
         return {e.name: e for e in self.timestamps}
@@ -76,6 +83,8 @@ class CaseIndex:
 
     def to_json(self) -> str:
         table = {"format": CASE_FORMAT, "format_version": CASE_FORMAT_VERSION, **asdict(self)}
+        if table["sealing"] is None:  # a plaintext session's case.json is as it always was
+            del table["sealing"]
         return json.dumps(table, indent=1) + "\n"
 
     def write(self, folder: Path) -> None:
@@ -108,6 +117,7 @@ class CaseIndex:
                 warm_start=bool(table["warm_start"]),
                 created_unix_ns=int(table["created_unix_ns"]),
                 timestamps=rows,
+                sealing=table.get("sealing"),
             )
         except (KeyError, TypeError) as exc:
             raise CaseFolderError(f"{path} is damaged ({exc}); restore it") from None

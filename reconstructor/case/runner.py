@@ -49,6 +49,7 @@ class CaseRequest:
     force: bool = False
     depth_cache: str = ""  # a folder keeping each timestamp's depth stage ("": none)
     identity: str = ""  # the identity file that opens a sealed session ("": none)
+    sealing: dict | None = None  # a sealed session's CaseIndex.sealing (None: plaintext)
 
 
 @contextmanager
@@ -114,8 +115,13 @@ def open_index(req: CaseRequest) -> CaseIndex:
             warm_start=bool(req.warm_toml),
             created_unix_ns=time.time_ns(),
         )
-    index = replace(index, warm_start=bool(req.warm_toml))
-    from reconstructor.case.storage import entry_is_intact  # torch: not before workers start
+    # a case made before models were sealed takes its session's seal; its plaintext models
+    # fail entry_is_intact below and are redone sealed
+    index = replace(index, warm_start=bool(req.warm_toml), sealing=req.sealing)
+    from reconstructor.case.sealing import identity_file_seal
+    from reconstructor.case.storage import SEALED_SUFFIX, entry_is_intact  # torch: not before
+
+    seal = identity_file_seal(folder, index, req.identity)
 
     known = index.by_name()
     names = [p.name for p in req.planned]
@@ -131,8 +137,10 @@ def open_index(req: CaseRequest) -> CaseIndex:
             e = replace(e, chain=chain_of[e.name])
         # a compact model is checked with the files it is stored against: one whose parent is
         # damaged (and so redone) is redone too
-        if e.status == "done" and not entry_is_intact(folder, e):
+        if e.status == "done" and not entry_is_intact(folder, e, seal):
             log.warning("%s: its model is missing or damaged; it is redone", e.name)
+            if seal is not None and e.model and not e.model.endswith(SEALED_SUFFIX):
+                (folder / e.model).unlink(missing_ok=True)  # plaintext in a sealed case
             e = replace(e, status="pending", model="", xxh3_64="", bytes=0)
         out.append(e)
     return replace(index, timestamps=tuple(out))

@@ -29,6 +29,12 @@ which a warm model carries forward and training moves, so the sterile-field tool
 
 ``load_model(case, entry)`` reads any done entry (a compact file, or the full PLY of older
 cases) after checking its checksum and its parents'; replay and ``egosurg case export`` use it.
+
+A sealed session's case stores each model as ``models/<name>.npz.sealed``: the same file,
+sealed for the session's recipients (``protocol.sealing.derived``, role ``model``, bound to
+``<name>``) in memory before it is written. Every function here takes the case's ``seal``
+(``reconstructor/case/sealing.py``); the index's checksum is over the sealed bytes, so it is
+checked without a key, and a parent is named by its sealed file's checksum.
 """
 
 from __future__ import annotations
@@ -48,6 +54,8 @@ import numpy as np
 import torch
 
 from protocol.durable import atomic_write_bytes
+from protocol.sealing import SealedPayloadError
+from protocol.sealing.derived import DerivedSeal, is_sealed_file
 from reconstructor.case.index import Entry, checksum_file
 from reconstructor.errors import CaseStorageError
 from reconstructor.splats import ply
@@ -58,6 +66,7 @@ log = logging.getLogger(__name__)
 STORE_FORMAT = "egosurg-splat-store"
 STORE_FORMAT_VERSION = 1
 SUFFIX = ".npz"
+SEALED_SUFFIX = ".npz.sealed"  # a sealed session's case: the same file, sealed
 POINTS_STEP_M = 2.0**-8  # 3.9 mm: the sterile tool's voxels are 5 cm
 _MAX_INFLATE_RATIO = 1032  # deflate's most: a stream of N bytes inflates to at most ~1032 N
 _CACHE_SIZE = 4  # decoded models kept: a chain is read forward, each from the one before
@@ -153,11 +162,14 @@ def write_model(
     alive: np.ndarray | None = None,
     steps: QuantSteps | None = None,
     points_m: np.ndarray | None = None,
+    seal: DerivedSeal | None = None,
 ) -> Stored:
     """Store ``g`` at ``path`` (atomically), as changes to ``parent`` when given (with
     ``parent_ref`` = the parent's ``{model, xxh3_64, bytes}`` and ``alive`` = which of the
     parent's rows ``g`` kept, in order, as its first rows), with the timestamp's fused points
-    ``points_m`` (M, 3) when given. Returns what a reader decodes."""
+    ``points_m`` (M, 3) when given; sealed with ``seal`` (a sealed session's; the path then
+    ends ``SEALED_SUFFIX``) in memory, so no plaintext reaches the disk. Returns what a reader
+    decodes."""
     if parent is not None:
         if alive is None or parent_ref is None or len(alive) != parent.num:
             raise ValueError("a delta needs the parent's reference and one alive flag per row")
@@ -189,9 +201,44 @@ def write_model(
             # a fixed entry time (np.savez stamps the clock): the same model, the same bytes
             with zf.open(zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0)), "w") as f:
                 np.lib.format.write_array(f, value, allow_pickle=False)
+    data = buf.getvalue()
+    if seal is not None:
+        data = seal.seal("model", model_name(path.name), data)
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(path, buf.getvalue())
+    atomic_write_bytes(path, data)
     return stored
+
+
+def model_name(file_name: str) -> str:
+    """The timestamp a model file is of (``t00012.000`` of ``t00012.000.npz.sealed``): the
+    name a sealed model is bound to."""
+    for suffix in (SEALED_SUFFIX, SUFFIX, ".ply"):
+        if file_name.endswith(suffix):
+            return file_name[: -len(suffix)]
+    return file_name
+
+
+def _source(path: Path, seal: DerivedSeal | None) -> Path | io.BytesIO:
+    """What to read a model file from: the file, or (in a sealed case) its opened bytes. A
+    sealed file in a plaintext case, or a plaintext one in a sealed case, is refused."""
+    with path.open("rb") as f:
+        sealed = is_sealed_file(f.read(4))
+    if seal is None:
+        if sealed:
+            raise CaseStorageError(
+                f"{path} is sealed (a sealed session's case): open the case with --identity "
+                "FILE; if its case.json no longer names the recipients, restore it"
+            )
+        return path
+    if not sealed:
+        raise CaseStorageError(
+            f"{path} is not sealed, but its case's session is; rerun the case's reconstruct "
+            "command, which redoes it sealed"
+        )
+    try:
+        return io.BytesIO(seal.open("model", model_name(path.name), path.read_bytes(), str(path)))
+    except SealedPayloadError as exc:
+        raise CaseStorageError(str(exc)) from None
 
 
 def _points_grid(points_m: np.ndarray) -> np.ndarray:
@@ -204,7 +251,9 @@ def _points_grid(points_m: np.ndarray) -> np.ndarray:
     return grid
 
 
-def load_points(case: Path | str, entry: Entry) -> np.ndarray | None:
+def load_points(
+    case: Path | str, entry: Entry, seal: DerivedSeal | None = None
+) -> np.ndarray | None:
     """(M, 3) float64: the fused stereo points stored with a done entry, after checking its
     checksum; None for a model stored without them (a PLY, or a case made before they were
     stored)."""
@@ -212,8 +261,9 @@ def load_points(case: Path | str, entry: Entry) -> np.ndarray | None:
     if entry.status != "done" or not is_compact(entry):
         return None
     path = _checked(folder, entry.model, entry.xxh3_64, entry.bytes, entry.name)
+    source = _source(path, seal)  # no identity, or not a recipient's: said as such
     try:
-        z = _read_arrays(path, ("meta", "points"))
+        z = _read_arrays(source, ("meta", "points"))
         meta = json.loads(z["meta"].tobytes())
         info = meta.get("points")
         if info is None:
@@ -260,7 +310,7 @@ def _unpack(blob: np.ndarray, rows: int, cols: int) -> np.ndarray:
     return (z >> 1) ^ -(z & 1)
 
 
-def _read_arrays(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+def _read_arrays(path: Path | io.BytesIO, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
     """The named uint8 arrays of a model file (``points`` may be absent). Every entry must be
     stored uncompressed in the zip, as ``write_model`` writes it, and hold the bytes its
     header claims, checked before reading: a file cannot make the reader allocate more than
@@ -293,9 +343,12 @@ def _read_arrays(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
     return out
 
 
-def _read_file(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+def _read_file(
+    path: Path, seal: DerivedSeal | None
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    source = _source(path, seal)
     try:
-        arrays = _read_arrays(path, ("meta", "alive", "diff", "new"))
+        arrays = _read_arrays(source, ("meta", "alive", "diff", "new"))
         meta = json.loads(arrays["meta"].tobytes())
     except (OSError, ValueError, KeyError, zlib.error, zipfile.BadZipFile) as exc:
         raise CaseStorageError(
@@ -327,7 +380,7 @@ def _read_file(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     return meta, arrays
 
 
-_cache: OrderedDict[tuple[str, str, int, int], Stored] = OrderedDict()
+_cache: OrderedDict[tuple[str, str, int, int, bool], Stored] = OrderedDict()
 _cache_lock = Lock()
 
 
@@ -345,11 +398,20 @@ def _checked(folder: Path, model: str, xxh3: str, size: int, name: str) -> Path:
     return path
 
 
-def load_stored(folder: Path, model: str, xxh3: str, size: int, name: str = "") -> Stored:
+def load_stored(
+    folder: Path,
+    model: str,
+    xxh3: str,
+    size: int,
+    name: str = "",
+    seal: DerivedSeal | None = None,
+) -> Stored:
     """A compact model and, through its parents, everything it is stored against; each file
-    is checked against the checksum that names it (the index's, or its child's)."""
+    is checked against the checksum that names it (the index's, or its child's), and in a
+    sealed case opened with ``seal`` (its identity)."""
     folder = Path(folder)
-    chain: list[tuple[tuple[str, str, int, int], dict[str, Any], dict[str, np.ndarray]]] = []
+    chain: list[tuple[tuple[str, str, int, int, bool], dict[str, Any], dict[str, np.ndarray]]]
+    chain = []
     ref: tuple[str, str, int] | None = (model, xxh3, size)
     base: Stored | None = None
     while ref is not None:
@@ -358,13 +420,14 @@ def load_stored(folder: Path, model: str, xxh3: str, size: int, name: str = "") 
             mtime_ns = path.stat().st_mtime_ns
         except OSError:
             mtime_ns = -1
-        key = (str(path.resolve()), ref[1], ref[2], mtime_ns)
+        # opened with a seal or not: a plaintext read of a sealed file must fail, not hit
+        key = (str(path.resolve()), ref[1], ref[2], mtime_ns, seal is not None)
         with _cache_lock:
             base = _cache.get(key)
         if base is not None:
             break
         path = _checked(folder, *ref, name or Path(ref[0]).stem)
-        meta, arrays = _read_file(path)
+        meta, arrays = _read_file(path, seal)
         chain.append((key, meta, arrays))
         parent = meta["parent"]
         ref = None if parent is None else (parent["model"], parent["xxh3_64"], parent["bytes"])
@@ -398,31 +461,35 @@ def load_stored(folder: Path, model: str, xxh3: str, size: int, name: str = "") 
 
 
 def is_compact(entry: Entry) -> bool:
-    return entry.model.endswith(SUFFIX)
+    return entry.model.endswith((SUFFIX, SEALED_SUFFIX))
 
 
-def load_model(case: Path | str, entry: Entry) -> Gaussians:
+def load_model(case: Path | str, entry: Entry, seal: DerivedSeal | None = None) -> Gaussians:
     """The model of a done entry, compact or a full PLY (older cases), after checking it and
-    the files it is stored against; one clear error line otherwise."""
+    the files it is stored against (opened with ``seal`` in a sealed case); one clear error
+    line otherwise."""
     folder = Path(case)
     if entry.status != "done" or not entry.model:
         raise CaseStorageError(
             f"{entry.name} is {entry.status}; rerun the case's reconstruct command to make it"
         )
     if is_compact(entry):
-        return load_stored(folder, entry.model, entry.xxh3_64, entry.bytes, entry.name).gaussians()
+        stored = load_stored(folder, entry.model, entry.xxh3_64, entry.bytes, entry.name, seal)
+        return stored.gaussians()
     path = _checked(folder, entry.model, entry.xxh3_64, entry.bytes, entry.name)
+    _source(path, seal)  # a sealed case holds no PLY: refused in one line
     return ply.read_ply(path)
 
 
-def entry_is_intact(folder: Path, entry: Entry) -> bool:
+def entry_is_intact(folder: Path, entry: Entry, seal: DerivedSeal | None = None) -> bool:
     """True when a done entry's file, and every file it is stored against, is there with the
-    checksum that names it (a resume redoes the rest)."""
+    checksum that names it, and (in a sealed case, ``seal``) is sealed and opens where it is
+    (a resume redoes the rest)."""
     try:
         if is_compact(entry):
-            load_stored(folder, entry.model, entry.xxh3_64, entry.bytes, entry.name)
+            load_stored(folder, entry.model, entry.xxh3_64, entry.bytes, entry.name, seal)
         else:
-            _checked(folder, entry.model, entry.xxh3_64, entry.bytes, entry.name)
+            _source(_checked(folder, entry.model, entry.xxh3_64, entry.bytes, entry.name), seal)
     except CaseStorageError:
         return False
     return entry.status == "done"

@@ -10,12 +10,17 @@ normalised on the way out: viewers
 assume unit length, and training leaves them between about 0.74 and 1.06. The run folder (log,
 summary, config) goes to ``runs/<name>/``.
 
+A sealed session's timestamp (``Timestamp.sealing``) is published as ``models/<name>.npz.sealed``
+(sealed in memory), its depth cache entry sealed too, and its run folder gets no ``splats.ply``,
+``points.ply`` or ``auxiliary_views.jpg``: no plaintext of it is written anywhere.
+
 This module imports torch only inside functions, so a spawned worker can set its thread count
 (``limit_threads``) before torch or numba start their pools.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import shutil
@@ -133,6 +138,7 @@ def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) ->
     calibration = RigCalibration.read(job.calibration)
     identity = load_identity(Path(job.identity)) if job.identity else None
     ts = load_timestamp(job.session, calibration, f"set:{step.set_index}", identity=identity)
+    seal = ts.sealing  # a sealed session's: its models and cached depth are sealed too
     init = None
     counts: dict[str, int] = {}
     parent: Any = None  # the previous model as stored, when this one is stored as its changes
@@ -142,11 +148,13 @@ def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) ->
         # the runner records each timestamp in the index before its follower starts
         entry = CaseIndex.read(case).by_name()[warm_from]
         if storage.is_compact(entry):
-            parent = storage.load_stored(case, entry.model, entry.xxh3_64, entry.bytes, warm_from)
+            parent = storage.load_stored(
+                case, entry.model, entry.xxh3_64, entry.bytes, warm_from, seal
+            )
             previous = parent.gaussians()
             lineage["ref"] = {"model": entry.model, "xxh3_64": entry.xxh3_64, "bytes": entry.bytes}
         else:
-            previous = storage.load_model(case, entry)
+            previous = storage.load_model(case, entry, seal)
         warm = WarmStartConfig(**job.warm)
 
         def init(ts_, fused, depths):
@@ -157,6 +165,10 @@ def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) ->
             return seed.gaussians
     else:
         config = ReconstructConfig.from_toml(job.config_toml, "the case's config")
+    if seal is not None:  # the run folder keeps no picture of the room
+        config = dataclasses.replace(
+            config, auxiliary=dataclasses.replace(config.auxiliary, save_pictures=False)
+        )
     work = case / ".work" / f"{step.name}.{os.getpid()}"
     shutil.rmtree(work, ignore_errors=True)
     from reconstructor.depth.cache import DepthCache
@@ -164,15 +176,16 @@ def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) ->
     # memory 0: a worker sees each timestamp once; the folder serves reruns and other machines
     cache = DepthCache(Path(job.depth_cache), memory=0) if job.depth_cache else None
     result = reconstruct(
-        ts, config, work, calibration=calibration, progress=progress, init=init, depth_cache=cache
-    )
-    rel = f"models/{step.name}{storage.SUFFIX}"
+        ts, config, work, calibration=calibration, progress=progress, init=init,
+        depth_cache=cache, write_models=seal is None,
+    )  # fmt: skip
+    rel = f"models/{step.name}{storage.SUFFIX if seal is None else storage.SEALED_SUFFIX}"
     alive = lineage.get("alive")
     if parent is None or alive is None or int(alive.sum()) != counts.get("kept"):
         parent, alive = None, None  # a keyframe, or a chain that cannot be followed
     # with the fused points: what the stereo saw, for the sterile-field tool (storage.py)
     storage.write_model(case / rel, result.gaussians, parent=parent, parent_ref=lineage.get("ref"),
-                        alive=alive, points_m=result.fused.points_m)  # fmt: skip
+                        alive=alive, points_m=result.fused.points_m, seal=seal)  # fmt: skip
     model = case / rel
     digest, size = _checksum(model)
     _keep_run_folder(work, case / "runs" / step.name)

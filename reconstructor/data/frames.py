@@ -26,7 +26,9 @@ from protocol.formats.rig_calibration import RigCalibration
 from protocol.formats.zed_conf import derive_intrinsics
 from protocol.images import EncodeError, decode_image
 from protocol.sealing import Identity
+from protocol.sealing.derived import DerivedSeal
 from protocol.session import CameraInfo, ImageChecksumError, SessionInfo, SessionReader
+from protocol.session.derived import derived_seal
 from reconstructor.errors import CalibrationMismatchError, ReconstructError, TimestampError
 
 log = logging.getLogger(__name__)
@@ -56,6 +58,9 @@ class Timestamp:
     resolution: Resolution
     # the images left out because they no longer match their checksums: "SN<serial> row <r> <side>"
     damaged_images: tuple[str, ...] = ()
+    # a sealed session's: what is made from this timestamp (models, cached depth) is sealed
+    # with it for the session's recipients, and opened with the identity it holds
+    sealing: DerivedSeal | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def sensor(self, camera_serial: int, side: str) -> SensorFrame:
         for f in self.frames:
@@ -218,6 +223,7 @@ def load_timestamp(
             missing_serials=tuple(missing),
             resolution=resolution,
             damaged_images=tuple(damaged),
+            sealing=derived_seal(reader, identity),
         )
 
 

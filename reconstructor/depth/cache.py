@@ -12,6 +12,12 @@ image bytes, its calibration, and the resolved stereo, fill and fusion settings,
 its weights path, and the room box. A changed image or setting is a different key, never a stale
 hit. Entries are written to a temporary name and renamed, so a killed run leaves no partial one.
 
+A sealed session's timestamp (``Timestamp.sealing``) is kept sealed for the session's
+recipients, as ``<key>.npz.sealed`` (``protocol.sealing.derived``, role ``depth``, name
+``<key>``): the depth maps show the room as the cameras saw it. It is sealed in memory and read
+back with the identity the timestamp was loaded with; a plaintext ``<key>.npz`` is never
+written or read for it.
+
 Each entry also names the libraries that made it (``made_by``: OpenCV, whose matcher and
 filter make the depth, and open3d, which fuses it): they are not part of the key, because a
 machine without them must read what one with them made, but a depth stage made by another
@@ -29,6 +35,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import importlib.metadata
+import io
 import json
 import logging
 import os
@@ -47,6 +54,7 @@ from reconstructor.depth.stereo import DepthMap, rectifier
 from reconstructor.errors import DepthCacheError
 
 if TYPE_CHECKING:
+    from protocol.sealing.derived import DerivedSeal
     from reconstructor.depth.fill import FillConfig
     from reconstructor.depth.fusion import FusedCloud, FusionConfig
     from reconstructor.depth.stereo_config import StereoConfig
@@ -72,6 +80,7 @@ class DepthSettings(Protocol):
     def room_bounds_m(self) -> tuple[float, ...]: ...
 
 
+SEALED_SUFFIX = ".npz.sealed"
 FORMAT_VERSION = 1  # bump when what the stage computes, or the stored layout, changes
 
 
@@ -167,10 +176,10 @@ class DepthCache:
         key = stage_key(ts, cfg)
         stage = self._recent.get(key)
         if stage is None and self.folder is not None:
-            path = self.folder / f"{key}.npz"
+            path = self.folder / _file_name(key, ts.sealing)
             if path.is_file():
                 try:
-                    stage = _read(path, ts, cfg)
+                    stage = _read(path, ts, cfg, key)
                 except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
                     log.warning("depth cache entry %s unreadable (%s); computing it again", path, e)
         if stage is None:
@@ -186,7 +195,7 @@ class DepthCache:
         self.served.append(stage.made_by)
         self._remember(key, stage)
         if self.folder is not None:
-            _write(self.folder / f"{key}.npz", stage)
+            _write(self.folder / _file_name(key, ts.sealing), stage, key, ts.sealing)
 
     def _remember(self, key: str, stage: DepthStage) -> None:
         if self.memory <= 0:
@@ -197,7 +206,14 @@ class DepthCache:
             self._recent.popitem(last=False)
 
 
-def _write(path: Path, stage: DepthStage) -> None:
+def _file_name(key: str, seal: DerivedSeal | None) -> str:
+    """A plaintext session's entry is ``<key>.npz``; a sealed one's, ``<key>.npz.sealed``:
+    the same ``.npz`` sealed for the session's recipients (``protocol.sealing.derived``), so a
+    folder shared by both never serves one as the other."""
+    return f"{key}.npz" if seal is None else f"{key}{SEALED_SUFFIX}"
+
+
+def _write(path: Path, stage: DepthStage, key: str, seal: DerivedSeal | None) -> None:
     arrays: dict[str, np.ndarray] = {
         "fused_points_m": stage.fused.points_m,
         "fused_colours": stage.fused.colours,
@@ -215,21 +231,29 @@ def _write(path: Path, stage: DepthStage) -> None:
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        with open(tmp, "wb") as f:
-            # numpy's stubs (2.1 on) let a ** key fill savez's allow_pickle flag; no key here is
-            # that name, and numpy 1.26 (supported) has no flag to pass instead: the arrays as Any
-            np.savez_compressed(f, **cast(dict[str, Any], arrays))
+        # numpy's stubs (2.1 on) let a ** key fill savez's allow_pickle flag; no key here is
+        # that name, and numpy 1.26 (supported) has no flag to pass instead: the arrays as Any
+        if seal is None:
+            with open(tmp, "wb") as f:
+                np.savez_compressed(f, **cast(dict[str, Any], arrays))
+        else:  # sealed in memory: the plaintext never reaches the disk
+            buf = io.BytesIO()
+            np.savez_compressed(buf, **cast(dict[str, Any], arrays))
+            tmp.write_bytes(seal.seal("depth", key, buf.getbuffer()))
         os.replace(tmp, path)
     except OSError as e:  # a full disk loses the cache entry, never the reconstruction
         log.warning("could not write depth cache entry %s: %s", path, e)
         tmp.unlink(missing_ok=True)
 
 
-def _read(path: Path, ts: Timestamp, cfg: DepthSettings) -> DepthStage:
+def _read(path: Path, ts: Timestamp, cfg: DepthSettings, key: str) -> DepthStage:
     from reconstructor.depth.fusion import FusedCloud
 
     assert cfg.stereo is not None, "resolve the config first"
-    with np.load(path, allow_pickle=False) as z:
+    source: Path | io.BytesIO = path
+    if ts.sealing is not None:
+        source = io.BytesIO(ts.sealing.open("depth", key, path.read_bytes(), str(path)))
+    with np.load(source, allow_pickle=False) as z:
         meta = json.loads(z["meta"].tobytes().decode())
         fused = FusedCloud(z["fused_points_m"], z["fused_colours"], meta["fused_stats"])
         depths: dict[str, DepthMap] = {}

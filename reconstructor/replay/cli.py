@@ -4,6 +4,7 @@ Examples::
 
     egosurg replay case/ --role surgeon --roles roles.toml --out surgeon.mp4 --pip
     egosurg replay case/ --trajectory walk.toml --out walk.mp4 --fps 15 --size 960x600
+    egosurg replay case/ --role surgeon --roles roles.toml --out grid.mp4 --layout grid
     egosurg sightline case/ --viewer anaesthetist --roles roles.toml --target monitor-a \\
         --site site.toml --offset "1m left-posterior" --out los/
     egosurg sterile case/ --field field.toml --roles roles.toml \\
@@ -23,6 +24,7 @@ from protocol.errors import UserError
 from protocol.formats.trajectory import Trajectory, read_trajectories
 from protocol.private_files import make_owner_only, plaintext_notice
 from protocol.sealing.arguments import add_identity_argument, identity_from_args
+from reconstructor.case.sealing import is_sealed_case
 from reconstructor.data.views import EYE_NEAR_M
 from reconstructor.raster.device import add_device_option, check_device
 
@@ -78,7 +80,16 @@ def _progress(unit: str):
     return update
 
 
+def add_timezone_argument(parser) -> None:
+    parser.add_argument(
+        "--timezone",
+        help="the zone the time of day is shown in, an IANA name (Europe/Berlin) or UTC "
+        "(default: this machine's)",
+    )
+
+
 def main_replay(argv: list[str]) -> int:
+    from reconstructor.replay.clock import pick_zone
     from reconstructor.replay.path import CameraPath
     from reconstructor.replay.run import ReplayConfig, replay
     from reconstructor.replay.session_check import CaseInputs
@@ -99,7 +110,15 @@ def main_replay(argv: list[str]) -> int:
         action="store_true",
         help="inset the nearest real camera's frame (a damaged one shows DAMAGED and is listed)",
     )
-    add_identity_argument(p)  # --pip reads the case's session
+    p.add_argument(
+        "--layout",
+        choices=("render", "grid"),
+        default="render",
+        help="grid: the render beside a 2x2 grid of the real cameras nearest the path, "
+        "the video twice --size's width (render)",
+    )
+    add_timezone_argument(p)
+    add_identity_argument(p)  # --pip and --layout grid read the case's session
     p.add_argument("--no-preload", action="store_true", help="read each model when first shown")
     p.add_argument("--allow-gaps", action="store_true", help="show the model before a gap")
     p.add_argument("--near-m", type=float, help=f"near plane, m ({EYE_NEAR_M:g} for a role)")
@@ -119,16 +138,20 @@ def main_replay(argv: list[str]) -> int:
             fps=args.fps, size_px=parse_size_px(args.size, "--size", even=True),
             t_from_s=args.t_from, t_to_s=args.t_to, preload=not args.no_preload, near_m=near,
             pip=args.pip, allow_gaps=args.allow_gaps, observed=args.observed,
-            device=args.device or "cpu",
+            device=args.device or "cpu", layout=args.layout, timezone=args.timezone,
         )  # fmt: skip
     except ValueError as exc:
         if isinstance(exc, UserError):
             raise
         raise CommandArgumentError(str(exc)) from None
+    pick_zone(args.timezone)  # a wrong name: one line before any work
     out = Path(args.out)
     if out.suffix.lower() != ".mp4":
         raise CommandArgumentError(f"--out {out}: give a .mp4 path")
-    identity = identity_from_args(args, needed=args.pip)  # only --pip reads the session
+    # only the real cameras (--pip, the grid) read the session
+    identity = identity_from_args(
+        args, needed=args.pip or args.layout == "grid" or is_sealed_case(folder)
+    )  # the real cameras (--pip, the grid) read the session; a sealed case's models need it
     stats = replay(
         folder, CameraPath(traj), out, config, progress=_progress("frame"), identity=identity
     )
@@ -163,10 +186,11 @@ def main_replay(argv: list[str]) -> int:
 
 
 def main_sightline(argv: list[str]) -> int:
+    from reconstructor.replay.clock import pick_zone
     from reconstructor.replay.path import CameraPath
     from reconstructor.replay.session_check import CaseInputs
     from reconstructor.replay.sightline import parse_offset
-    from reconstructor.replay.sightline_run import VISIBLE_ENOUGH, sightline
+    from reconstructor.replay.sightline_run import VISIBLE_ENOUGH, obstruction_words, sightline
 
     p = command_parser("egosurg sightline", __doc__)
     p.add_argument("case", help="a case folder")
@@ -176,12 +200,19 @@ def main_sightline(argv: list[str]) -> int:
     p.add_argument("--target", required=True, help="a box's name in --site")
     p.add_argument("--site", required=True, help="the site file naming the boxes")
     p.add_argument("--offset", help='a counterfactual position, e.g. "1m left-posterior"')
-    p.add_argument("--out", required=True, help="folder: sightline.csv, timeline.png, worst_*.png")
+    p.add_argument(
+        "--out", required=True, help="folder: sightline.csv, timeline.png, plan_*.png, worst_*.png"
+    )
+    add_identity_argument(p)  # a sealed session's case
+    add_timezone_argument(p)
     add_device_option(p)
     args = p.parse_args(argv)
     check_device(args.device)
+    pick_zone(args.timezone)  # a wrong name: one line before any work
     inputs = CaseInputs(Path(args.case))
     traj = pick_trajectory(args.trajectory, args.viewer, args.roles, inputs)
+    # the other people, for who blocks the line (the file was checked just above)
+    others = tuple(CameraPath(t) for t in read_trajectories(args.roles)) if args.roles else ()
     boxes = inputs.boxes(args.site)
     if args.target not in boxes:
         raise CommandArgumentError(
@@ -192,6 +223,8 @@ def main_sightline(argv: list[str]) -> int:
     rows = sightline(
         Path(args.case), CameraPath(traj), boxes[args.target], offset, out,
         progress=_progress("timestamp"), device=args.device or "cpu",
+        identity=identity_from_args(args, needed=is_sealed_case(Path(args.case))),
+        others=others, site_boxes=tuple(boxes.values()), timezone=args.timezone,
     )  # fmt: skip
     for label in dict.fromkeys(r.position for r in rows):
         sel = [r.visible_fraction for r in rows if r.position == label]
@@ -200,12 +233,16 @@ def main_sightline(argv: list[str]) -> int:
         print(f"{args.viewer} {label}: {args.target} visible {min(sel):.2f}-{max(sel):.2f}, "
               f"less than half visible at {blocked} of {len(sel)} timestamps; the answer "
               f"rests on inferred content at {inferred}")  # fmt: skip
-    print(f"wrote {out / 'sightline.csv'}, {out / 'timeline.png'} and the worst instants' renders")
+        print(f"{args.viewer} {label}: {obstruction_words(rows, label)}")
+    print(f"wrote {out / 'sightline.csv'}, {out / 'timeline.png'}, a plan of each answer "
+          "(plan_*.png) and the worst instants' views (worst_*.png)")  # fmt: skip
+    print(plaintext_notice("renders of the case (worst_*.png)", out), file=sys.stderr)
     return 0
 
 
 def main_sterile(argv: list[str]) -> int:
     """``egosurg sterile CASE/ --field field.toml --out sterile/`` (docs/replay.md)."""
+    from reconstructor.replay.clock import pick_zone
     from reconstructor.replay.session_check import CaseInputs
     from reconstructor.replay.sterile import SterileConfig
     from reconstructor.replay.sterile_run import read_roles, sterile
@@ -226,9 +263,12 @@ def main_sterile(argv: list[str]) -> int:
     p.add_argument("--static-fraction", type=float, default=0.5,
                    help="occupied this often: static scene (0.5)")  # fmt: skip
     p.add_argument("--allow-gaps", action="store_true", help="skip pending or failed timestamps")
+    add_identity_argument(p)  # a sealed session's case
+    add_timezone_argument(p)
     add_device_option(p)
     args = p.parse_args(argv)
     check_device(args.device)
+    pick_zone(args.timezone)  # a wrong name: one line before any work
     inputs = CaseInputs(Path(args.case))
     boxes = inputs.boxes(args.field)
     if args.box is not None:
@@ -252,12 +292,15 @@ def main_sterile(argv: list[str]) -> int:
         Path(args.case), list(boxes.values()), paths, out, config, t_from_s=args.t_from,
         t_to_s=args.t_to, allow_gaps=args.allow_gaps, progress=_progress("timestamp"),
         device=args.device or "cpu",
+        identity=identity_from_args(args, needed=is_sealed_case(Path(args.case))),
+        timezone=args.timezone,
     )  # fmt: skip
     for k, ev in enumerate(result.events, 1):
         kind = "sterile role" if ev.sterile_role else "CONTACT"
         print(f"{k}: {kind} {ev.role or '?'} in {ev.field} {seconds_span(ev.start_s, ev.end_s)}")
     print(f"{len(result.contacts)} contact events ({len(result.events) - len(result.contacts)} "
           f"of sterile roles); wrote {out / 'events.csv'}, {out / 'timeline.png'}")  # fmt: skip
+    print(plaintext_notice("renders of the case (event_*.png)", out), file=sys.stderr)
     if result.evidence == "gaussians":
         print("judged on the models' Gaussian centres: this case was stored without its fused "
               "points (made before 2026-11-27, or PLY models); rerun its reconstruct command in "
@@ -267,6 +310,7 @@ def main_sterile(argv: list[str]) -> int:
 
 def main_view(argv: list[str]) -> int:
     """``egosurg view CASE/ [--roles roles.toml] [--site site.toml] [--field field.toml]``."""
+    from reconstructor.replay.session_check import CaseInputs
     from reconstructor.replay.view import CaseViewer, ViewConfig
 
     p = command_parser(
@@ -283,12 +327,16 @@ def main_view(argv: list[str]) -> int:
     p.add_argument("--save-to", default="viewpoints.toml", help="'Save viewpoint' adds here")
     p.add_argument("--name", default="viewer", help="the trajectory saved viewpoints go in")
     p.add_argument("--camera-from", help="a trajectory TOML: the page opens at its first keyframe")
+    add_identity_argument(p)  # a sealed session's case
+    add_timezone_argument(p)
     args = p.parse_args(argv)
-    start = read_trajectories(args.camera_from)[0].keyframes[0] if args.camera_from else None
+    inputs = CaseInputs(Path(args.case))  # --camera-from too: a start from another session
+    start = inputs.trajectories(args.camera_from)[0].keyframes[0] if args.camera_from else None
     config = ViewConfig(
         host=args.host, port=args.port, roles=Path(args.roles) if args.roles else None,
         sites=tuple(map(Path, args.site)), fields=tuple(map(Path, args.field)),
         save_to=Path(args.save_to), viewpoint_name=args.name, start=start,
+        timezone=args.timezone,
     )  # fmt: skip
     if args.host not in ("127.0.0.1", "localhost", "::1"):
         log.warning(
@@ -296,7 +344,8 @@ def main_view(argv: list[str]) -> int:
             "token gets the case",
             args.host,
         )
-    viewer = CaseViewer(Path(args.case), config)
+    identity = identity_from_args(args, needed=is_sealed_case(Path(args.case)))
+    viewer = CaseViewer(Path(args.case), config, identity)
     print(f"egosurg view: {args.case} at {viewer.url} (Ctrl-C to stop)", flush=True)
     try:
         viewer.wait()

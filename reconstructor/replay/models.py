@@ -3,7 +3,8 @@ and the next ones read in a background thread so that a replay does not wait on 
 
 The model at time t is the case's last done timestamp at or before t (what the rig had seen by
 then; never a later one, which would show the future). A case whose timestamps in the asked
-span are pending or failed is refused unless the caller allows the gaps.
+span are pending or failed is refused unless the caller allows the gaps. A sealed session's
+case is opened with the identity given to the command (docs/case.md, "Sealed cases").
 """
 
 from __future__ import annotations
@@ -16,8 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
+from protocol.sealing import Identity
 from reconstructor.case.index import INDEX_NAME, CaseIndex, Entry
-from reconstructor.case.storage import load_model
+from reconstructor.case.sealing import reader_seal
+from reconstructor.case.storage import load_model, load_points
 from reconstructor.errors import CaseReplayError
 from reconstructor.splats.gaussians import Gaussians
 
@@ -27,7 +30,9 @@ log = logging.getLogger(__name__)
 class CaseModels:
     """The done timestamps of a case folder, in time order."""
 
-    def __init__(self, folder: Path | str) -> None:
+    def __init__(self, folder: Path | str, identity: Identity | None = None) -> None:
+        """``identity``: a recipient's, which opens a sealed session's case (refused here, in
+        one line naming the recipients, without one)."""
         self.folder = Path(folder)
         if not (self.folder / INDEX_NAME).is_file():
             raise CaseReplayError(
@@ -35,6 +40,7 @@ class CaseModels:
                 "'egosurg reconstruct SESSION.h5 --every 1s --out CASE/'"
             )
         self.index = CaseIndex.read(self.folder)
+        self.seal = reader_seal(self.folder, self.index, identity, "its models")
         rows = sorted(self.index.timestamps, key=lambda e: e.t_s)
         self.all_entries = tuple(rows)
         self.entries = tuple(e for e in rows if e.status == "done")
@@ -83,7 +89,11 @@ class CaseModels:
     def load(self, entry: Entry) -> Gaussians:
         """The entry's model (a full PLY or compact storage), after checking it is the file
         the index names; one line naming the file and what to do otherwise."""
-        return load_model(self.folder, entry)
+        return load_model(self.folder, entry, self.seal)
+
+    def load_points(self, entry: Entry) -> np.ndarray | None:
+        """The fused stereo points stored with the entry's model (``storage.load_points``)."""
+        return load_points(self.folder, entry, self.seal)
 
 
 class ModelSource:

@@ -9,9 +9,14 @@ than the case's spacing (past a gap, or past the case's end when ``--to`` asks f
 marked ``STALE`` with the model's age, and counted in ``ReplayStats.stale_frames``. The
 models come from :class:`ModelSource`, which reads ahead in a thread when ``preload`` is on.
 
-With ``--pip`` the nearest real camera's frame is inset; an image that no longer matches its
-recorded checksum is never shown: the inset says "DAMAGED" with its camera and row instead, the
-run logs a warning and ``ReplayStats.damaged_images`` lists it.
+Each frame is for a team to read (``frame.py``, ``clock.py``): the time of day and the case's
+id are burned in above the case time, and pixels no Gaussian covers show as a magenta hatch with
+a legend ("no data"), not as black. With ``--pip`` the nearest real camera's frame is inset;
+with ``--layout grid`` four of the rig's real cameras (the nearest the path) fill a 2 x 2 grid
+beside the render, each a quarter of its size, at the set nearest the frame's time. An image
+that no longer matches its recorded checksum is never shown: the inset or cell says "DAMAGED"
+with its camera and row instead, the run logs a warning and ``ReplayStats.damaged_images``
+lists it.
 """
 
 from __future__ import annotations
@@ -35,6 +40,8 @@ from reconstructor.data.views import novel_view
 from reconstructor.errors import CaseReplayError
 from reconstructor.raster import RasterConfig
 from reconstructor.raster.device import for_device
+from reconstructor.replay.clock import CaseClock, pick_zone
+from reconstructor.replay.frame import grid_layout, no_data_legend, show_no_data
 from reconstructor.replay.models import CaseModels, ModelSource
 from reconstructor.replay.observed_case import ReplayObserved
 from reconstructor.replay.path import CameraPath
@@ -43,6 +50,8 @@ from reconstructor.splats.gaussians import Gaussians
 from reconstructor.splats.train import render
 
 log = logging.getLogger(__name__)
+LAYOUTS = ("render", "grid")  # the render alone (--pip: one inset), or beside 4 real cameras
+GRID_CAMERAS = 4
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -57,12 +66,24 @@ class ReplayConfig:
     allow_gaps: bool = False
     observed: bool = False  # also OUT.observed.mp4 and .csv (replay/observed_case.py)
     device: str = "cpu"  # "cuda": render on gsplat's CUDA rasterizer (docs/gpu.md)
+    layout: str = "render"  # "grid": the render beside a 2 x 2 grid of real cameras (2W x H)
+    timezone: str | None = None  # the time of day's zone (IANA name); None: the machine's
 
     def __post_init__(self) -> None:
+        if self.layout not in LAYOUTS:
+            raise ValueError(f"--layout {self.layout!r}: give one of {', '.join(LAYOUTS)}")
+        if self.layout == "grid" and self.pip:
+            raise ValueError("--pip and --layout grid both show the real cameras: give one")
         if not 0.1 <= self.fps <= 240:
             raise ValueError(f"fps {self.fps}: give 0.1 to 240 frames per second")
         if not (16 <= self.size_px[0] <= 8192 and 16 <= self.size_px[1] <= 8192):
             raise ValueError(f"size {self.size_px}: 16 to 8192 px a side")
+
+    @property
+    def video_size_px(self) -> tuple[int, int]:
+        """The MP4's width and height: twice as wide with the grid beside the render."""
+        w, h = self.size_px
+        return (2 * w, h) if self.layout == "grid" else (w, h)
 
 
 @dataclass(frozen=True)
@@ -119,7 +140,9 @@ def frame_times(path: CameraPath, models: CaseModels, config: ReplayConfig) -> n
 class RealCameras:
     """The session's frame from the real camera nearest an eye, at the set nearest a time."""
 
-    def __init__(self, models: CaseModels, identity: Identity | None = None) -> None:
+    def __init__(
+        self, models: CaseModels, identity: Identity | None = None, clock: CaseClock | None = None
+    ) -> None:
         from protocol.images import decode_image
         from protocol.session import ImageChecksumError, SessionReader
 
@@ -130,31 +153,44 @@ class RealCameras:
         cal = models.folder / "calibration.toml"
         if not session.is_file() or not cal.is_file():
             raise CaseReplayError(
-                f"--pip needs the case's session ({session}) and {cal}; put the session back "
-                "at that path or replay without --pip"
+                f"the real cameras (--pip, --layout grid) need the case's session ({session}) "
+                f"and {cal}; put the session back at that path or replay without them"
             )
         self.sensors = [s for s in RigCalibration.read(cal).sensors if s.side == "left"]
         self.reader = SessionReader(session, identity=identity)
         try:
-            self.reader.require_identity("--pip's real frames")
+            self.reader.require_identity("the real cameras' frames (--pip, --layout grid)")
         except BaseException:
             self.reader.close()
             raise
         sets = self.reader.sets()
         self.set_t_s = (sets.set_unix_ns - self.reader.info.started_unix_ns) / 1e9
         self.members = sets.members
+        self.clock = clock
         self._cache: dict[tuple[int, int], np.ndarray] = {}
 
+    def nearest(self, eyes_m: np.ndarray, count: int) -> list:
+        """The ``count`` left sensors nearest the mean of ``eyes_m`` ((N, 3)), nearest first."""
+        centre = np.asarray(eyes_m, float).reshape(-1, 3).mean(axis=0)
+        order = np.argsort([np.linalg.norm(s.pose.centre_m - centre) for s in self.sensors])
+        return [self.sensors[int(k)] for k in order[:count]]
+
     def frame(self, eye_m: np.ndarray, t_s: float) -> tuple[np.ndarray, str] | None:
-        dist = [np.linalg.norm(s.pose.centre_m - eye_m) for s in self.sensors]
-        sensor = self.sensors[int(np.argmin(dist))]
+        """The nearest camera's frame at the set nearest ``t_s``; None when it has none there."""
+        image, label = self.sensor_frame(self.nearest(eye_m, 1)[0], t_s)
+        return None if image is None else (image, label)
+
+    def sensor_frame(self, sensor, t_s: float) -> tuple[np.ndarray | None, str]:
+        """(RGB image or None when the camera has no frame in that set, label) of ``sensor``'s
+        left image at the set nearest ``t_s``."""
         k = int(np.argmin(np.abs(self.set_t_s - t_s)))
         col = self.reader.info.camera_serials.index(sensor.camera_serial)
         row = int(self.members[k, col])
+        when = self.clock.time_of_day(self.set_t_s[k]) if self.clock is not None else ""
+        label = f"{sensor.name} {when or timecode(self.set_t_s[k])}"
         if row < 0:
-            return None
+            return None, f"{sensor.name}: no frame in this set"
         key = (sensor.camera_serial, row)
-        label = f"{sensor.name} {timecode(self.set_t_s[k])}"
         if key not in self._cache:
             info = self.reader.info.camera(sensor.camera_serial)
             try:
@@ -162,7 +198,9 @@ class RealCameras:
             except self._damage_error:
                 return self._damaged(sensor.camera_serial, row, info.width, info.height)
             bgr = self._decode(left, info.encoding, info.width, info.height)
-            self._cache = {key: np.ascontiguousarray(bgr[:, :, ::-1])}  # keep one: small memory
+            if len(self._cache) >= 2 * GRID_CAMERAS:  # a set's worth and the next: small memory
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[key] = np.ascontiguousarray(bgr[:, :, ::-1])
         return self._cache[key], label
 
     def _damaged(self, serial: int, row: int, width: int, height: int) -> tuple[np.ndarray, str]:
@@ -181,12 +219,21 @@ class RealCameras:
 STALE_SLACK_S = 1e-3  # timestamps' times are stored to the millisecond
 
 
-def frame_label(t_s: float, path_name: str, entry: Entry, spacing_s: float) -> list[str]:
-    """The burned-in lines: time code and path, the model, and ``STALE`` with the model's age
-    when it is older than the case's spacing (the picture is not of this instant)."""
-    lines = [f"{timecode(t_s)}  {path_name}", f"model {entry.name}"]
-    age_s = t_s - entry.t_s
-    if age_s > spacing_s + STALE_SLACK_S:
+def is_stale(t_s: float, entry: Entry, spacing_s: float) -> bool:
+    """The model shown at ``t_s`` is older than the case's spacing: not of this instant."""
+    return t_s - entry.t_s > spacing_s + STALE_SLACK_S
+
+
+def frame_label(
+    t_s: float, path_name: str, entry: Entry, spacing_s: float, clock: CaseClock | None = None
+) -> list[str]:
+    """The burned-in lines: the date, time of day and case id (given the case's ``clock``); the
+    case time, path and model; and ``STALE`` with the model's age when it is older than the
+    case's spacing (the picture is not of this instant)."""
+    lines = [clock.stamp(t_s)] if clock is not None else []
+    lines.append(f"case time {timecode(t_s)}  {path_name}  model {entry.name}")
+    if is_stale(t_s, entry, spacing_s):
+        age_s = t_s - entry.t_s
         lines.append(f"STALE: model {age_s:.3f} s old (case every {spacing_s:.3f} s)")
     return lines
 
@@ -199,18 +246,25 @@ def replay(
     progress=None,
     identity: Identity | None = None,
 ) -> ReplayStats:
-    """``path`` through the case in ``folder`` into the MP4 ``out``; with ``config.pip`` the
-    session's real frames are read with ``identity`` (a sealed session's recipient)."""
-    models = CaseModels(folder)
+    """``path`` through the case in ``folder`` into the MP4 ``out``; with ``config.pip`` or the
+    grid layout the session's real frames are read with ``identity`` (a sealed session's
+    recipient)."""
+    models = CaseModels(folder, identity)  # a sealed session's case opens with it
     times = frame_times(path, models, config)
     order = [models.entry_at(float(t)) for t in times]
     raster = case_raster(folder, config.near_m, config.device)
-    real = RealCameras(models, identity) if config.pip else None
+    clock = CaseClock.for_case(folder, pick_zone(config.timezone))
+    real_wanted = config.pip or config.layout == "grid"
+    real = RealCameras(models, identity, clock) if real_wanted else None
+    grid = []
+    if real is not None and config.layout == "grid":
+        eyes = np.array([path.pose(float(t)).centre_m for t in times])
+        grid = real.nearest(eyes, GRID_CAMERAS)
     t_start, stale = time.perf_counter(), 0
     try:
         with (
             ModelSource(models, order, preload=config.preload) as source,
-            Mp4Writer(out, config.size_px, config.fps) as video,
+            Mp4Writer(out, config.video_size_px, config.fps) as video,
             ReplayObserved(
                 folder,
                 out,
@@ -222,16 +276,21 @@ def replay(
         ):
             for k, (t, entry) in enumerate(zip(times, order, strict=True)):
                 camera = path.camera(float(t), config.size_px)
-                rgb, _, _ = render_view(source.get(entry), camera, raster)
+                rgb, _, alpha = render_view(source.get(entry), camera, raster)
                 observed.add(float(t), entry, source.get(entry), camera, rgb, raster)
-                label = frame_label(float(t), path.name, entry, models.spacing_s)
-                stale += len(label) > 2
-                rgb = burn_text(rgb, label)
-                if real is not None:
+                stale += is_stale(float(t), entry, models.spacing_s)
+                shown = burn_text(
+                    show_no_data(rgb, alpha),
+                    frame_label(float(t), path.name, entry, models.spacing_s, clock),
+                )
+                shown = no_data_legend(shown)
+                if real is not None and config.pip:
                     pip = real.frame(camera.pose.centre_m, float(t))
                     if pip is not None:
-                        rgb = paste_pip(rgb, *pip)
-                video.write(rgb)
+                        shown = paste_pip(shown, *pip)
+                if real is not None and grid:
+                    shown = grid_layout(shown, [real.sensor_frame(s, float(t)) for s in grid])
+                video.write(shown)
                 if progress is not None:
                     progress(k + 1, len(times))
             waited, loads = source.waited_s, len({e.name for e in order})

@@ -12,18 +12,27 @@ import cv2
 import numpy as np
 
 from protocol.camera import Camera
-from protocol.formats.site import SiteBox
+from protocol.formats.site import SiteBox, surface_points
+from protocol.sealing import Identity
 from reconstructor.data.views import EYE_NEAR_M
 from reconstructor.errors import CaseReplayError
+from reconstructor.replay.clock import CaseClock, add_time_of_day_axis, pick_zone
 from reconstructor.replay.models import CaseModels, ModelSource
 from reconstructor.replay.observed_case import CaseObserved
 from reconstructor.replay.path import CameraPath
-from reconstructor.replay.run import case_raster, render_view
+from reconstructor.replay.plan import TURNED_AWAY, describe_blockers, who_blocks
+from reconstructor.replay.run import case_raster
+from reconstructor.replay.session_check import write_made_for
 from reconstructor.replay.sightline import Offset, in_view_fraction, visible_fraction
-from reconstructor.replay.video import burn_text, timecode
+from reconstructor.replay.sightline_pictures import (
+    VISIBLE_ENOUGH,  # "at least half visible": the binary answer
+    SightScene,
+    answer_plan,
+    worst_picture,
+)
 
 log = logging.getLogger(__name__)
-VISIBLE_ENOUGH = 0.5  # "at least half visible": the binary answer
+SAMPLES_PER_FACE = 12  # visible_fraction's grid (its default), to name who blocks each point
 
 
 @dataclass(frozen=True)
@@ -36,14 +45,22 @@ class SightRow:
     in_view_fraction: float
     observed_share: float = float("nan")  # of the target's pixels (replay/observed_case.py)
     rests_on_inferred: bool = False
+    # (role or plan.OTHER, share of the target's points) on the line, largest first; () none
+    blockers: tuple[tuple[str, float], ...] = ()
 
 
 def sightline(
     folder: Path, path: CameraPath, box: SiteBox, offset: Offset | None, out: Path,
     *, size_px: tuple[int, int] = (480, 300), worst: int = 2, progress=None,
-    device: str = "cpu",
+    device: str = "cpu", identity: Identity | None = None,
+    others: tuple[CameraPath, ...] = (), site_boxes: tuple[SiteBox, ...] = (),
+    timezone: str | None = None,
 ) -> list[SightRow]:  # fmt: skip
-    models = CaseModels(folder)
+    """Rows for each timestamp and position; ``others`` (the roles file's people) say who
+    blocks the line and stand on the plans with ``site_boxes`` (sightline_pictures.py)."""
+    models = CaseModels(folder, identity)  # a sealed session's case opens with it
+    scene = SightScene.for_case(folder, site_boxes, others, CaseClock.for_case(folder,
+                                pick_zone(timezone)))  # fmt: skip
     p0, p1 = path.span_s
     entries = [e for e in models.entries if p0 - 1e-6 <= e.t_s <= p1 + 1e-6]
     if not entries:
@@ -60,18 +77,55 @@ def sightline(
     with ModelSource(models, entries) as source:
         for k, e in enumerate(entries):
             g = source.get(e)
+            people = scene.people_at(e.t_s, path.name)
             for label, cam in _positions(path, e.t_s, size_px, offset):
                 frac, det = visible_fraction(g, cam.pose.centre_m, box, raster)
                 eye = tuple(float(v) for v in cam.pose.centre_m)
                 share = observed.target_share(e, g, det, raster)
                 rows.append(SightRow(e.t_s, e.name, label, eye, frac, in_view_fraction(cam, box),  # type: ignore[arg-type]
-                                     share, observed.rests_on_inferred(share)))  # fmt: skip
+                                     share, observed.rests_on_inferred(share),
+                                     _blockers(cam.pose.centre_m, box, det, people)))  # fmt: skip
+            at_t = [r for r in rows if r.t_s == e.t_s]
+            plan = answer_plan(at_t, path.name, box, scene, path=path)
+            _write_png(out / f"plan_{e.t_s:09.3f}.png", plan)
             if progress is not None:
                 progress(k + 1, len(entries))
         _write_csv(out / "sightline.csv", rows, box)
-        _plot(out / "timeline.png", rows, box, path.name)
-        _worst_renders(out, rows, path, box, source, models, raster, size_px, offset, worst)
+        _plot(out / "timeline.png", rows, box, path.name, scene.clock)
+        _worst_renders(out, rows, path, box, source, models, raster, size_px, worst, scene)
+    # egosurg report checks the folder's session
+    write_made_for(out, folder, "sightline", f"{path.name} sees {box.name}")
     return rows
+
+
+def obstruction_words(rows: list[SightRow], position: str) -> str:
+    """``no obstruction at 5 of 7 timestamps; blocked by circulator at 2``: who stood on the line
+    at how many of the position's timestamps."""
+    sel = [r for r in rows if r.position == position]
+    clear = sum(not r.blockers for r in sel)
+    counts: dict[str, int] = {}
+    for r in sel:
+        for role, _ in r.blockers:
+            counts[role] = counts.get(role, 0) + 1
+    words = f"no obstruction at {clear} of {len(sel)} timestamps"
+    if counts:
+        ranked = sorted(counts.items(), key=lambda kv: -kv[1])
+        words += "; blocked by " + ", ".join(f"{role} at {n}" for role, n in ranked)
+    return words
+
+
+def _blockers(eye_m, box: SiteBox, det: dict, people) -> tuple[tuple[str, float], ...]:
+    """Who stands on the line to each blocked sample point of the box (plan.who_blocks)."""
+    if "visible" not in det:  # no counted face of the box faces the eye: seen from behind
+        return ((TURNED_AWAY, 1.0),)
+    points = surface_points(box, np.asarray(eye_m, float), SAMPLES_PER_FACE)
+    if len(points) != len(det["visible"]):
+        raise CaseReplayError("sightline: the blocked points and their samples disagree")
+    return tuple(who_blocks(eye_m, points, ~det["visible"], people).items())
+
+
+def _write_png(path: Path, rgb: np.ndarray) -> None:
+    cv2.imwrite(str(path), np.ascontiguousarray(rgb[:, :, ::-1]))
 
 
 def _positions(
@@ -90,15 +144,18 @@ def _write_csv(path: Path, rows: list[SightRow], box: SiteBox) -> None:
         w = csv.writer(fh)
         w.writerow(["t_s", "model", "position", "eye_x_m", "eye_y_m", "eye_z_m", "target",
                     "visible_fraction", "in_view_fraction", "observed_share",
-                    "rests_on_inferred"])  # fmt: skip
+                    "rests_on_inferred", "blocked_by"])  # fmt: skip
         for r in rows:
             eye = [f"{v:.3f}" for v in r.eye_m]
             fractions = [f"{r.visible_fraction:.3f}", f"{r.in_view_fraction:.3f}",
                          f"{r.observed_share:.3f}", int(r.rests_on_inferred)]  # fmt: skip
-            w.writerow([f"{r.t_s:.3f}", r.model, r.position, *eye, box.name, *fractions])
+            w.writerow([f"{r.t_s:.3f}", r.model, r.position, *eye, box.name, *fractions,
+                        describe_blockers(dict(r.blockers), box.name)])  # fmt: skip
 
 
-def _plot(path: Path, rows: list[SightRow], box: SiteBox, viewer: str) -> None:
+def _plot(
+    path: Path, rows: list[SightRow], box: SiteBox, viewer: str, clock: CaseClock | None = None
+) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -120,37 +177,19 @@ def _plot(path: Path, rows: list[SightRow], box: SiteBox, viewer: str) -> None:
     ax.set(xlabel="case time (s)", ylabel=f"{box.name} visible", ylim=(-0.03, 1.03))
     ax.set_title(f"line of sight to {box.name} (shaded: less than half visible)", fontsize=10)
     ax.legend(fontsize=8, loc="lower left")
+    if clock is not None:
+        add_time_of_day_axis(ax, clock)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
 
 
-def _worst_renders(out, rows, path, box, source, models, raster, size_px, offset, worst):
-    """Side by side, at the instants the actual position saw least: the viewer's view and the
-    counterfactual's, with the target's outline drawn in."""
+def _worst_renders(out, rows, path, box, source, models, raster, size_px, worst, scene):
+    """At the instants the actual position saw least: the views from each position, aimed at
+    the target, beside the plan (sightline_pictures.py)."""
     actual = sorted((r for r in rows if r.position == "actual"), key=lambda r: r.visible_fraction)
     for r in actual[:worst]:
-        e = models.entry_at(r.t_s)
-        g = source.get(e)
-        panels = []
-        for label, cam in _positions(path, r.t_s, size_px, offset):
-            rgb, _, _ = render_view(g, cam, raster)
-            outline_box(rgb, cam, box)
-            frac = next(x.visible_fraction for x in rows if x.t_s == r.t_s and x.position == label)
-            panels.append(burn_text(rgb, [f"{timecode(r.t_s)} {path.name} {label}",
-                                          f"{box.name} visible {frac:.2f}"]))  # fmt: skip
-        name = out / f"worst_{r.t_s:09.3f}.png"
-        cv2.imwrite(str(name), np.concatenate(panels, axis=1)[:, :, ::-1])
-
-
-def outline_box(rgb: np.ndarray, cam, box: SiteBox) -> None:
-    c = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) / 2
-    pts = (c * np.asarray(box.size_m)) @ box.rotation.T + np.asarray(box.centre_m)
-    px, z = cam.project(pts)
-    if np.any(z <= 0.05):
-        return
-    for a in range(8):
-        for b in range(a + 1, 8):
-            if bin(a ^ b).count("1") == 1:  # corners differing in one axis share an edge
-                p, q = tuple(int(v) for v in px[a]), tuple(int(v) for v in px[b])
-                cv2.line(rgb, p, q, (255, 210, 0), 2, cv2.LINE_AA)
+        g = source.get(models.entry_at(r.t_s))
+        at_t = [x for x in rows if x.t_s == r.t_s]
+        picture = worst_picture(at_t, path, box, g, raster, size_px, scene)
+        _write_png(out / f"worst_{r.t_s:09.3f}.png", picture)

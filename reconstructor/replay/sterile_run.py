@@ -12,7 +12,8 @@ from warm chains. A case stored without points (PLY models, or made before 2026-
 judged on its Gaussians' centres (opacity at least ``min_opacity``), as before.
 
 Writes ``events.csv``, ``instants.csv`` (each timestamp: moving points in each field and the
-blobs touching it), ``timeline.png`` and ``event_<k>.png`` per contact."""
+blobs touching it), ``timeline.png``, ``event_<k>.png`` per contact and ``made_for.toml`` (the
+case and session: ``session_check.py``)."""
 
 from __future__ import annotations
 
@@ -27,15 +28,17 @@ import numpy as np
 from protocol.camera import Camera, Intrinsics, Pose
 from protocol.formats.rig_calibration import RigCalibration
 from protocol.formats.site import SiteBox
-from reconstructor.case.storage import load_points
+from protocol.sealing import Identity
 from reconstructor.data.views import EYE_NEAR_M
 from reconstructor.errors import SightlineError, SterileError
+from reconstructor.replay.clock import CaseClock, add_time_of_day_axis, pick_zone
+from reconstructor.replay.frame import no_data_legend, show_no_data
 from reconstructor.replay.models import CaseModels, ModelSource
 from reconstructor.replay.path import CameraPath
 from reconstructor.replay.run import case_raster, render_view
-from reconstructor.replay.session_check import CaseInputs
+from reconstructor.replay.session_check import CaseInputs, write_made_for
 from reconstructor.replay.sightline import visible_fraction
-from reconstructor.replay.sightline_run import outline_box
+from reconstructor.replay.sightline_pictures import outline_box
 from reconstructor.replay.sterile import (
     Event,
     Instant,
@@ -45,7 +48,8 @@ from reconstructor.replay.sterile import (
     group_events,
     moving_blobs,
 )
-from reconstructor.replay.video import burn_text, timecode, timecode_span
+from reconstructor.replay.sterile_pictures import event_plan, event_span
+from reconstructor.replay.video import burn_text, timecode
 
 log = logging.getLogger(__name__)
 MIN_TIMESTAMPS = 3  # fewer cannot tell the static scene from what moves
@@ -72,9 +76,10 @@ def sterile(
     folder: Path, boxes: list[SiteBox], paths: list[CameraPath], out: Path,
     config: SterileConfig | None = None, *, t_from_s: float | None = None,
     t_to_s: float | None = None, allow_gaps: bool = False, progress=None, device: str = "cpu",
+    identity: Identity | None = None, timezone: str | None = None,
 ) -> SterileResult:  # fmt: skip
     config = config or SterileConfig()
-    models = CaseModels(folder)
+    models = CaseModels(folder, identity)  # a sealed session's case opens with it
     c0, c1 = models.span_s
     t0 = c0 if t_from_s is None else t_from_s
     t1 = c1 if t_to_s is None else t_to_s
@@ -87,7 +92,7 @@ def sterile(
     models.require_span(entries[0].t_s, entries[-1].t_s, allow_gaps)
     regions = [Region(b, config) for b in boxes]
     frames: list[list[np.ndarray]] = [[] for _ in boxes]
-    stored = [load_points(folder, e) for e in entries]
+    stored = [models.load_points(e) for e in entries]
     points = [p for p in stored if p is not None]  # entries[k]'s when every entry has them
     evidence = "points" if len(points) == len(stored) else "gaussians"
     if evidence == "gaussians" and points:
@@ -117,12 +122,18 @@ def sterile(
         events += group_events(reg.box, rows, config)
     events.sort(key=lambda ev: (ev.start_s, ev.field, ev.role))
     out.mkdir(parents=True, exist_ok=True)
-    renders = _event_renders(out, folder, models, events, boxes, device)
+    clock = CaseClock.for_case(folder, pick_zone(timezone))
+    renders = _event_renders(out, folder, models, events, boxes, device, paths, clock)
     result = SterileResult(instants, events, renders, evidence)
     _write_events(out / "events.csv", result)
     _write_instants(out / "instants.csv", instants)
-    _plot(out / "timeline.png", result, config)
+    _plot(out / "timeline.png", result, config, clock)
+    # egosurg report checks the folder's session
+    write_made_for(out, folder, "sterile", "fields " + ", ".join(b.name for b in boxes))
     return result
+
+
+STANDING_EYE = "a standing eye 1.6 m from the touch"  # the ring's viewpoints, in words
 
 
 def _candidates(folder: Path, contact_m: np.ndarray) -> list[tuple[str, np.ndarray]]:
@@ -137,7 +148,7 @@ def _candidates(folder: Path, contact_m: np.ndarray) -> list[tuple[str, np.ndarr
         a = 2 * np.pi * k / 8
         eye = contact_m + np.array([1.6 * np.cos(a), 1.6 * np.sin(a), 0.0])
         eye[2] = 1.9  # a standing person's eye, looking down on the field
-        out.append((f"ring {45 * k} deg", eye))
+        out.append((STANDING_EYE, eye))  # where: on the event picture's plan
     return out
 
 
@@ -163,7 +174,7 @@ def best_viewpoint(g, folder: Path, raster, points_m: np.ndarray) -> tuple[str, 
 
 
 def _event_renders(
-    out, folder, models, events, boxes, device: str
+    out, folder, models, events, boxes, device: str, paths=(), clock: CaseClock | None = None
 ) -> dict[int, tuple[Path, str, float]]:
     raster = case_raster(folder, EYE_NEAR_M, device)
     by_name = {b.name: b for b in boxes}
@@ -178,19 +189,26 @@ def _event_renders(
         name, eye, frac = best_viewpoint(g, folder, raster, pts)
         pose = Pose.look_at(eye, pts.mean(axis=0))
         cam = Camera(name=name, intrinsics=Intrinsics.from_fov(480, 300, 55.0), pose=pose)
-        rgb, _, _ = render_view(g, cam, raster)
+        rgb, _, alpha = render_view(g, cam, raster)
+        rgb = show_no_data(rgb, alpha)
         outline_box(rgb, cam, by_name[ev.field])
         px, z = cam.project(pts)
         for (u, v), zz in zip(px, z, strict=True):
             if zz > 0:
                 cv2.circle(rgb, (int(u), int(v)), 2, (255, 40, 40), -1, cv2.LINE_AA)
         who = ev.role or "unknown role"
+        clock = clock or CaseClock.for_case(folder)
         rgb = burn_text(rgb, [
-            f"event {k}: {who} in {ev.field}, {timecode_span(ev.start_s, ev.end_s)}",
-            f"shown {timecode(inst.t_s)} from {name} ({frac:.0%} unoccluded)",
+            clock.stamp(inst.t_s),
+            f"event {k}: {who} in {ev.field}, {event_span(clock, ev.start_s, ev.end_s)}",
+            f"shown at {clock.time_of_day(inst.t_s) or timecode(inst.t_s)} from {name} "
+            f"({frac:.0%} unoccluded)",
         ])  # fmt: skip
+        rgb = no_data_legend(rgb)
+        plan = event_plan(folder, ev, k, boxes, pts.mean(axis=0), name, eye, paths, clock, inst.t_s)
         path = out / f"event_{k:03d}.png"
-        cv2.imwrite(str(path), np.ascontiguousarray(rgb[:, :, ::-1]))
+        picture = np.concatenate([rgb, plan], axis=1)
+        cv2.imwrite(str(path), np.ascontiguousarray(picture[:, :, ::-1]))
         renders[k] = (path, name, frac)
     return renders
 
@@ -223,7 +241,9 @@ def _write_instants(path: Path, instants: dict[str, list[Instant]]) -> None:
                 w.writerow([f"{i.t_s:.3f}", i.model, name, i.moving_in_field, len(i.blobs), roles])
 
 
-def _plot(path: Path, result: SterileResult, config: SterileConfig) -> None:
+def _plot(
+    path: Path, result: SterileResult, config: SterileConfig, clock: CaseClock | None = None
+) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -253,6 +273,8 @@ def _plot(path: Path, result: SterileResult, config: SterileConfig) -> None:
         ax.set(xlabel="case time (s)", ylabel="moving points")
         ax.set_title(f"{name}: contacts shaded by role (grey strip: sterile roles)", fontsize=10)
         ax.legend(fontsize=7, loc="upper right")
+        if clock is not None:
+            add_time_of_day_axis(ax, clock)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

@@ -54,10 +54,16 @@ class Mp4Writer:
 
 
 def burn_text(rgb: np.ndarray, lines: list[str]) -> np.ndarray:
-    """White text on a dark band at the top left, scaled to the image."""
+    """White text on a dark band at the top left, scaled to the image (smaller where the
+    longest line would not fit its width)."""
     out = np.ascontiguousarray(rgb)
     scale = max(0.35, out.shape[1] / 1600)
     thick = max(1, round(scale * 2))
+    widest = max((cv2.getTextSize(t, cv2.FONT_HERSHEY_SIMPLEX, scale, thick)[0][0] for t in lines),
+                 default=0)  # fmt: skip
+    if widest > out.shape[1] - 4:
+        scale = max(0.25, scale * (out.shape[1] - 4) / widest)
+        thick = max(1, round(scale * 2))
     y = 0
     for text in lines:
         (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, thick)

@@ -1,10 +1,14 @@
 """``egosurg view``: a case in the browser, through viser (a maintained web viewer that draws
 Gaussian splats with WebGL; nerfstudio's viewer is built on it).
 
-The page has a time slider and a play button (each step shows the case's next done timestamp),
-the role cameras at the shown time (drawn as frustums; pick one to look through it), the site's
-target and field boxes, and "Save viewpoint", which adds the browser's current camera at the
-shown time to a trajectory file that ``egosurg replay --trajectory`` reads.
+The page has a time slider in case time (seconds since the session started; it shows the
+nearest done timestamp, and the panel gives its time of day) and a play button (each step shows
+the case's next done timestamp), the role cameras at the shown time (drawn as frustums; pick one
+to look through it), the site's target and field boxes, and "Save viewpoint", which adds the
+browser's current camera at the shown time to a trajectory file that ``egosurg replay
+--trajectory`` reads, with the case's session in its ``[session]`` table. The roles, site and
+field files (and a ``--save-to`` file that exists) are checked against the case's session
+(``session_check.py``): a file made for another session is refused in one line.
 
 Security: the server binds 127.0.0.1 unless told otherwise, and serves the case only to its own
 page: the right Origin and Host and the token in the URL it prints (``view_boundary``); control
@@ -31,12 +35,15 @@ from typing import Any
 import numpy as np
 
 from protocol.errors import UserError
-from protocol.formats.site import SiteBox, read_site
-from protocol.formats.trajectory import Keyframe, Trajectory, read_trajectories
+from protocol.formats.site import SiteBox
+from protocol.formats.trajectory import Keyframe, Trajectory
+from protocol.sealing import Identity
 from reconstructor.case.index import Entry
 from reconstructor.errors import ViewerError
+from reconstructor.replay.clock import CaseClock, pick_zone
 from reconstructor.replay.models import CaseModels
 from reconstructor.replay.path import CameraPath
+from reconstructor.replay.session_check import CaseInputs
 from reconstructor.replay.view_boundary import WILDCARD_HOSTS, Boundary, BrowserGate, netloc
 from reconstructor.replay.view_scene import (
     VIEWER_UNIT_M,
@@ -53,6 +60,7 @@ from reconstructor.replay.view_scene import (
 
 log = logging.getLogger(__name__)
 
+TIME_SLIDER = "Case time (s)"  # the slider's label: seconds since the session started
 ROLE_COLOUR = (40, 110, 220)
 TARGET_COLOUR = (250, 170, 20)
 FIELD_COLOUR = (220, 30, 30)
@@ -70,6 +78,7 @@ class ViewConfig:
     start: Keyframe | None = None  # the page's first camera (default: the first role's)
     start_aspect: float = 1.6  # width / height the start camera's horizontal fov is for
     play_speed: float = 1.0  # case seconds per second when playing
+    timezone: str | None = None  # the time of day's zone (IANA name); None: the machine's
 
     def __post_init__(self) -> None:
         if not 0 <= self.port <= 65535:
@@ -127,13 +136,23 @@ def _check_port_free(host: str, port: int) -> None:
 class CaseViewer:
     """A case served to the browser; starts in the constructor, ``close()`` stops it."""
 
-    def __init__(self, folder: Path | str, config: ViewConfig | None = None) -> None:
+    def __init__(
+        self,
+        folder: Path | str,
+        config: ViewConfig | None = None,
+        identity: Identity | None = None,
+    ) -> None:
         self.config = config = config or ViewConfig()
-        self.models = CaseModels(folder)
+        self.models = CaseModels(folder, identity)  # a sealed session's case opens with it
+        self.inputs = CaseInputs(Path(folder))  # each file checked against the case's session
+        self.clock = CaseClock.for_case(Path(folder), pick_zone(config.timezone))
         self.roles = self._read_roles(config.roles)
-        self.boxes = [(b, TARGET_COLOUR) for p in config.sites for b in read_site(p).values()]
-        self.boxes += [(b, FIELD_COLOUR) for p in config.fields for b in read_site(p).values()]
+        sites, fields = config.sites, config.fields
+        self.boxes = [(b, TARGET_COLOUR) for p in sites for b in self.inputs.boxes(p).values()]
+        self.boxes += [(b, FIELD_COLOUR) for p in fields for b in self.inputs.boxes(p).values()]
         check_viewpoint_file(config.save_to)
+        if config.save_to.is_file():  # saving into another session's file would mix two cases
+            self.inputs.trajectories(config.save_to)
         viser = _import_viser()
         _check_port_free(config.host, config.port)
         logging.getLogger("websockets.server").addFilter(_CLIENT_ERRORS)  # once: a set
@@ -201,6 +220,10 @@ class CaseViewer:
         return self.models.entries[self.index]
 
     # --- time -----------------------------------------------------------------------------
+    def show_time(self, t_s: float) -> None:
+        """Show the done timestamp nearest case time ``t_s`` (what the slider does)."""
+        self.show(int(np.argmin(np.abs(np.asarray(self.models.times_s) - float(t_s)))))
+
     def show(self, index: int) -> None:
         """Show the case's ``index``-th done timestamp (and the roles at its time)."""
         entries = self.models.entries
@@ -219,14 +242,21 @@ class CaseViewer:
                 "/case/splats", **arrays, scale=VIEWER_UNIT_M
             )
             self.index = index
-            self.time_text.content = (
-                f"**{entry.t_s:.3f} s** of the case (model {entry.name}, {index + 1} of "
-                f"{len(entries)}, {arrays['centers'].shape[0]:,} Gaussians)"
-            )
-            if self.slider.value != index:
-                self.slider.value = index
+            self.time_text.content = self.time_markdown(entry, index, arrays["centers"].shape[0])
+            if self.slider.value != entry.t_s:
+                self.slider.value = entry.t_s
             self._draw_roles(entry.t_s)
             self._preload(index + 1)
+
+    def time_markdown(self, entry: Entry, index: int, gaussians: int) -> str:
+        """The panel's line: case time, time of day and date, the case, and the model."""
+        when = self.clock.time_of_day(entry.t_s)
+        day = f" · **{when}** on {self.clock.date(entry.t_s)}" if when else ""
+        return (
+            f"**{entry.t_s:.3f} s** of the case{day} · case {self.clock.case_id} "
+            f"(model {entry.name}, {index + 1} of {len(self.models.entries)}, "
+            f"{gaussians:,} Gaussians)"
+        )
 
     def _arrays(self, entry: Entry) -> dict[str, np.ndarray]:
         if entry.name in self._cache:
@@ -272,10 +302,12 @@ class CaseViewer:
     def _build_gui(self) -> None:
         gui, n = self.server.gui, len(self.models.entries)
         self.time_text = gui.add_markdown("")
+        t0, t1 = (float(t) for t in self.models.span_s)
         self.slider = gui.add_slider(
-            "Timestamp", min=0, max=max(n - 1, 1), step=1, initial_value=0, disabled=n < 2
-        )
-        self.slider.on_update(lambda _: self.show(int(self.slider.value)))
+            TIME_SLIDER, min=t0, max=t1 if n > 1 else t0 + 1.0, step=0.001, initial_value=t0,
+            marks=self._slider_marks(), disabled=n < 2,
+        )  # fmt: skip
+        self.slider.on_update(lambda _: self.show_time(float(self.slider.value)))
         self.play_button = gui.add_button("Play", disabled=n < 2)
         self.play_button.on_click(lambda _: self._set_playing(not self._play.is_set()))
         if self.roles:
@@ -284,6 +316,12 @@ class CaseViewer:
             go.on_click(lambda event: self.look_through(self.role_menu.value, event.client))
         save = gui.add_button("Save viewpoint", hint=f"adds it to {self.config.save_to}")
         save.on_click(lambda event: event.client and self.save_from_client(event.client))
+
+    def _slider_marks(self) -> tuple[tuple[float, str], ...]:
+        """The case's first and last timestamps, labelled with their time of day."""
+        t0, t1 = (float(t) for t in self.models.span_s)
+        ends = (t0, t1) if t1 > t0 else (t0,)
+        return tuple((t, self.clock.time_of_day(t)[:8] or f"{t:.1f} s") for t in ends)
 
     def _draw_boxes(self) -> None:
         for box, colour in self.boxes:
@@ -301,7 +339,7 @@ class CaseViewer:
     def _read_roles(self, path: Path | None) -> dict[str, CameraPath]:
         if path is None:
             return {}
-        return {t.name: CameraPath(t) for t in read_trajectories(path)}
+        return {t.name: CameraPath(t) for t in self.inputs.trajectories(path)}
 
     def _role_camera(self, name: str, t_s: float) -> tuple[ViserCamera, float]:
         path = self.roles[name]
@@ -355,7 +393,9 @@ class CaseViewer:
 
     def save(self, keyframe: Keyframe) -> Trajectory:
         with self._lock:
-            return save_viewpoint(self.config.save_to, self.config.viewpoint_name, keyframe)
+            return save_viewpoint(
+                self.config.save_to, self.config.viewpoint_name, keyframe, self.inputs.session
+            )
 
     def save_from_client(self, client: Any) -> Keyframe | None:
         """What "Save viewpoint" does: that browser's camera, at the shown time, into the file.

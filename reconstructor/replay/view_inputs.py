@@ -81,14 +81,20 @@ def _clean_number(props: Any, current: int | float, value: Any) -> int | float:
         raise ValueError("not a finite number")
     lo, hi = getattr(props, "min", None), getattr(props, "max", None)
     step = getattr(props, "step", None)
+    # into the limits first: 1e308 over a step of 0.001 has no whole number of steps
+    v = _clamp(v, lo, hi)
     if step:  # onto the control's grid, counted from its minimum
         origin = float(lo) if lo is not None else 0.0
-        v = origin + round((v - origin) / float(step)) * float(step)
+        v = _clamp(origin + round((v - origin) / float(step)) * float(step), lo, hi)
+    return round(v) if isinstance(current, int) else v
+
+
+def _clamp(v: float, lo: float | None, hi: float | None) -> float:
     if lo is not None:
         v = max(v, float(lo))
     if hi is not None:
         v = min(v, float(hi))
-    return round(v) if isinstance(current, int) else v
+    return v
 
 
 def clean_updates(label: str, props: Any, current: Any, updates: dict[str, Any]) -> dict:

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from protocol.camera import Pose
+from protocol.formats.session_id import SessionId
 from protocol.formats.site import SiteBox
 from protocol.formats.trajectory import (
     Keyframe,
@@ -175,9 +176,12 @@ def check_viewpoint_file(path: Path) -> None:
         raise TrajectoryFileError(f"--save-to {path}: the folder {path.parent} does not exist")
 
 
-def save_viewpoint(path: Path, name: str, keyframe: Keyframe) -> Trajectory:
+def save_viewpoint(
+    path: Path, name: str, keyframe: Keyframe, session: SessionId | None = None
+) -> Trajectory:
     """Add ``keyframe`` to trajectory ``name`` in ``path`` (made if missing), replacing one at
-    the same time; the file's other trajectories are kept. Returns the trajectory written."""
+    the same time; the file's other trajectories are kept, and ``session`` (the case's) goes in
+    its ``[session]`` table. Returns the trajectory written."""
     others: list[Trajectory] = []
     keys: list[Keyframe] = []
     if path.exists():
@@ -189,5 +193,5 @@ def save_viewpoint(path: Path, name: str, keyframe: Keyframe) -> Trajectory:
     keys = [k for k in keys if abs(k.time_s - keyframe.time_s) > 1e-6] + [keyframe]
     keys.sort(key=lambda k: k.time_s)
     trajectory = Trajectory(name=name, keyframes=tuple(keys))
-    write_trajectories(path, [*others, trajectory])
+    write_trajectories(path, [*others, trajectory], session=session)
     return trajectory

@@ -14,6 +14,8 @@ import pydoc
 import time
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 import zmq.auth
 from hypothesis import given, settings
@@ -423,6 +425,27 @@ def test_the_console_shows_live_images(rig, agent, tmp_path):
     assert (tmp_path / "f.png").stat().st_size > 0
     unknown = console.last_frame(99)
     assert not unknown and "camera 99 is not streaming" in repr(unknown)
+
+
+def test_the_live_view_of_a_sealed_rig_writes_no_frame_to_disk(rig, agent, tmp_path, monkeypatch):
+    """During a sealed take, rig.last_frame shows each camera's image as sent (over its CURVE
+    link), and no file of the rig or of the console's folder holds a frame in the clear: the
+    live view keeps frames in memory and the take stores them sealed (docs/capture.md)."""
+    _, client, rig_toml = rig
+    monkeypatch.chdir(tmp_path)  # where a console would write, if it wrote anything
+    console = Rig(client)
+    client.start("live-view-case")
+    try:
+        time.sleep(0.5)
+        for serial in SERIALS:
+            sent = cv2.imdecode(np.frombuffer(agent._images[serial][0], np.uint8), cv2.IMREAD_COLOR)
+            assert np.array_equal(console.last_frame(serial), sent)
+    finally:
+        summary = client.stop()
+    files = [p for root in (rig_toml.parent, tmp_path) for p in root.rglob("*") if p.is_file()]
+    assert Path(summary["file"]) in files and summary["cameras"][str(SERIALS[0])]["frames"] > 0
+    images = [agent._images[serial][k] for serial in SERIALS for k in (0, 1)]
+    assert [str(p) for p in files if any(image in p.read_bytes() for image in images)] == []
 
 
 def test_every_console_command_explains_itself_in_help():

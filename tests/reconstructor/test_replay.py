@@ -337,10 +337,14 @@ def test_replay_spans_what_both_the_case_and_the_roles_cover_and_marks_stale_mod
     assert "16 of 21 frames show a model older than the case's spacing (0.067 s)" in ran.stderr
     with av.open(str(out)) as container:
         frames = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
-    third_line = slice(30, 44), slice(4, 120)  # the burned-in text's third line: STALE ...
-    fresh, stale = frames[4][third_line], frames[5][third_line]
-    assert stale.max() > 200 and (stale < 40).mean() > 0.4  # white text on its dark band
-    assert not (fresh.max() > 200 and (fresh < 40).mean() > 0.4)
+    # the burned-in text's third line (STALE ...), below the time of day's and the model's:
+    # white text on a dark band in the stale frame, where the fresh frame shows the picture
+    top = slice(0, 60), slice(4, 100)
+    fresh, stale = frames[4][top].max(axis=2), frames[5][top].max(axis=2)
+    band = ((stale < 40).mean(axis=1) > 0.4) & ~((fresh < 40).mean(axis=1) > 0.4)
+    rows = np.flatnonzero(band)
+    assert len(rows) >= 6 and rows.min() > 15, rows  # a line's height, under the first two
+    assert stale[rows].max() > 200  # with white text on it
 
 
 def test_one_time_reads_as_one_time_and_a_span_as_a_span():
@@ -350,3 +354,179 @@ def test_one_time_reads_as_one_time_and_a_span_as_a_span():
     assert seconds_span(6.32, 7.28) == "6.320-7.280 s"
     assert timecode_span(7.0, 7.0) == "at 00:00:07.000"
     assert timecode_span(6.32, 7.28) == "00:00:06.320 - 00:00:07.280"
+
+
+# ---- frames a team can read: time of day, case id, "no data", the real cameras large -------
+
+
+def _frames(path: Path) -> list[np.ndarray]:
+    with av.open(str(path)) as container:
+        return [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+
+
+def _hatched(rgb: np.ndarray) -> np.ndarray:
+    """Pixels tinted with the no-data hatch's magenta (through H.264's 4:2:0 chroma, and under
+    a 3-step model's faint veil): nothing in the sim's room is that colour."""
+    r, g, b = (rgb[..., k].astype(int) for k in range(3))
+    return (r - g > 40) & (b - g > 30)
+
+
+def test_frames_say_the_time_of_day_and_the_case_and_name_the_zone(case):
+    """The case's session started 2026-01-01 00:00:00 UTC (the sim's epoch): case time 2.05 s
+    is 00:00:02.050 there, 01:00:02.050 in Berlin; the case is the session's name."""
+    from reconstructor.replay.clock import CaseClock, pick_zone
+    from reconstructor.replay.run import frame_label
+
+    models = CaseModels(case["case"])
+    entry = models.entry_at(2.05)
+    utc = CaseClock.for_case(case["case"], pick_zone("UTC"))
+    lines = frame_label(2.05, "surgeon", entry, models.spacing_s, utc)
+    assert lines[0] == "2026-01-01 00:00:02.050 UTC  case sim-intraoperative-seed3"
+    assert lines[1].startswith("case time 00:00:02.050  surgeon")
+    berlin = CaseClock.for_case(case["case"], pick_zone("Europe/Berlin"))
+    assert berlin.time_of_day(2.05) == "01:00:02.050 CET"
+
+
+def test_no_data_has_a_colour_of_its_own_with_a_legend_and_the_zone_is_checked(
+    case, capsys, tmp_path
+):
+    """Looking up at the ceiling no camera saw: the picture is the no-data hatch, not black,
+    and the legend at the bottom left says what it is. A wrong zone is one line."""
+    up = tmp_path / "up.toml"
+    eye = (0.0, 0.0, 1.7)
+    write_trajectories(up, [Trajectory(name="up", keyframes=(
+        Keyframe(time_s=2.0, eye_m=eye, look_at_m=(0.3, 0.0, 6.0), fov_deg=60.0),
+        Keyframe(time_s=2.1, eye_m=eye, look_at_m=(0.3, 0.0, 6.0), fov_deg=60.0),
+    ))])  # fmt: skip
+    out = tmp_path / "up.mp4"
+    done = egosurg(capsys, "replay", str(case["case"]), "--trajectory", str(up), "--out",
+                   str(out), "--size", "320x200", "--timezone", "UTC")  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    frame = _frames(out)[0]
+    assert _hatched(frame[40:180]).mean() > 0.3  # black before: nothing here was seen
+    legend = frame[-16:, :150]
+    assert _hatched(legend[:, :16]).mean() > 0.2 and legend[:, 20:].max() > 200  # swatch, text
+    bad = egosurg(capsys, "replay", str(case["case"]), "--trajectory", str(up), "--out",
+                  str(tmp_path / "x.mp4"), "--timezone", "Mars/Olympus")  # fmt: skip
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr
+    assert "--timezone 'Mars/Olympus' is not a time zone" in bad.stderr.strip().splitlines()[-1]
+
+
+def test_grid_layout_puts_four_real_cameras_beside_the_render(case, capsys, tmp_path):
+    """``--layout grid``: the video is twice as wide; its right half is four different real
+    cameras' left images at the frame's set, each a quarter of the render."""
+    import cv2
+
+    from protocol.images import decode_image
+    from protocol.session import SessionReader
+
+    out = tmp_path / "grid.mp4"
+    done = egosurg(capsys, "replay", str(case["case"]), "--role", "surgeon", "--roles",
+                   str(case["roles"]), "--out", str(out), "--size", "320x200",
+                   "--layout", "grid")  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    frame = _frames(out)[0]  # 2.0 s: the session's first set
+    assert frame.shape == (200, 640, 3)
+    with SessionReader(case["session"]) as reader:
+        members = reader.sets().members[0]
+        real = []
+        for col, serial in enumerate(reader.info.camera_serials):
+            info = reader.info.camera(serial)
+            left = reader.image_bytes(serial, int(members[col]), "left")
+            bgr = decode_image(left, info.encoding, info.width, info.height)
+            real.append(cv2.resize(bgr[:, :, ::-1], (160, 100), interpolation=cv2.INTER_AREA))
+    matched = []
+    for r in range(2):
+        for c in range(2):
+            cell = frame[r * 100 : (r + 1) * 100, 320 + c * 160 : 320 + (c + 1) * 160]
+            lower = (slice(40, 96), slice(4, 156))  # below the label
+            scores = [np.corrcoef(cell[lower].ravel(), img[lower].ravel())[0, 1] for img in real]
+            assert max(scores) > 0.9, scores
+            matched.append(int(np.argmax(scores)))
+    assert len(set(matched)) == 4  # four different cameras
+    both = egosurg(capsys, "replay", str(case["case"]), "--role", "surgeon", "--roles",
+                   str(case["roles"]), "--out", str(tmp_path / "y.mp4"), "--pip",
+                   "--layout", "grid")  # fmt: skip
+    assert both.returncode == 2 and "--pip and --layout grid" in both.stderr
+
+
+# ---- line of sight you can show: who blocks it, a plan, views aimed at the target ----------
+
+
+def test_who_blocks_names_the_person_on_the_line_and_no_one_else():
+    """A viewer at the origin, a screen 4 m ahead: the circulator standing halfway on the line
+    blocks the points behind them; the nurse a metre to the side does not; a blocked point
+    nobody stands in front of is "something else"; nothing blocked is "no obstruction"."""
+    from reconstructor.replay.plan import OTHER, TURNED_AWAY, describe_blockers, who_blocks
+
+    eye = np.array([0.0, 0.0, 1.7])
+    points = np.array([[4.0, y, 1.5] for y in (-0.1, 0.0, 0.1, 0.2)] + [[4.0, -2.0, 1.5]])
+    people = {"circulator": np.array([2.0, 0.0, 1.65]), "nurse": np.array([2.0, 1.2, 1.6])}
+    blocked = np.array([True, True, True, False, True])  # the last: away from both, blocked
+    shares = who_blocks(eye, points, blocked, people)
+    assert shares == {"circulator": pytest.approx(0.6), OTHER: pytest.approx(0.2)}
+    assert describe_blockers(shares, "monitor-a") == (
+        "blocked by circulator (60% of monitor-a), something else (20%)"
+    )
+    assert who_blocks(eye, points, np.zeros(5, bool), people) == {}
+    assert describe_blockers({}, "monitor-a") == "no obstruction"
+    assert describe_blockers({TURNED_AWAY: 1.0}, "monitor-a") == (
+        "monitor-a's face is turned away from the viewer"
+    )
+    short = {"child": np.array([2.0, 0.0, 0.9])}  # below the line (it passes 1.6 m up)
+    assert who_blocks(eye, points, blocked, short) == {OTHER: pytest.approx(0.8)}
+
+
+def test_sightline_aims_its_pictures_at_the_target_and_plans_each_answer(case, capsys, tmp_path):
+    """The viewer faces straight away from the screen: today's worst pictures showed the wall
+    behind them, without the target. Now each view is aimed at the target (its outline is in
+    the picture), each timestamp has a plan, and the CSV and the summary say who blocks."""
+    screen = read_site(case["site"])["monitor-b"]  # its face: the box's +x side
+    eye = np.array(screen.centre_m) + screen.rotation @ np.array([2.0, 0.3, 0.2])
+    away = tuple(float(v) for v in 2 * eye - np.array(screen.centre_m))
+    walk = tmp_path / "away.toml"
+    write_trajectories(walk, [Trajectory(name="visitor", keyframes=(
+        Keyframe(time_s=2.0, eye_m=tuple(eye), look_at_m=away, fov_deg=70.0),
+        Keyframe(time_s=2.2, eye_m=tuple(eye), look_at_m=away, fov_deg=70.0),
+    ))])  # fmt: skip
+    out = tmp_path / "los"
+    done = egosurg(capsys, "sightline", str(case["case"]), "--viewer", "visitor", "--trajectory",
+                   str(walk), "--target", "monitor-b", "--site", str(case["site"]), "--out",
+                   str(out), "--timezone", "UTC")  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    rows = list(csv.DictReader((out / "sightline.csv").open()))
+    assert all(r["blocked_by"] == "no obstruction" or r["blocked_by"].startswith("blocked by ")
+               for r in rows), rows  # fmt: skip
+    assert sorted(p.name for p in out.glob("plan_*.png")) == [
+        "plan_00002.000.png", "plan_00002.067.png", "plan_00002.133.png"]  # fmt: skip
+    import cv2
+
+    assert len(list(out.glob("worst_*.png"))) == 2
+    for worst in out.glob("worst_*.png"):
+        picture = cv2.imread(str(worst))[:, :, ::-1]
+        view = picture[:300, :480]  # the view (480 x 300), left of the plan
+        outline = (
+            (view[..., 0] > 230) & (abs(view[..., 1].astype(int) - 210) < 30) & (view[..., 2] < 60)
+        )
+        assert outline.sum() > 50, worst  # the target's yellow outline is in the picture
+        assert picture.shape[1] > 480  # and the plan beside it
+
+
+def test_sightline_says_who_blocks_in_words_and_no_obstruction_when_none(case, capsys, tmp_path):
+    from protocol.cli import main
+
+    out = tmp_path / "los"
+    capsys.readouterr()
+    code = main(["sightline", str(case["case"]), "--viewer", "anaesthetist", "--roles",
+                 str(case["roles"]), "--target", "monitor-b", "--site", str(case["site"]),
+                 "--out", str(out)])  # fmt: skip
+    printed = capsys.readouterr().out
+    assert code == 0
+    rows = list(csv.DictReader((out / "sightline.csv").open()))
+    for r in rows:  # a fully visible screen has no obstruction, a blocked one names who
+        if float(r["visible_fraction"]) == 1.0:
+            assert r["blocked_by"] == "no obstruction"
+        else:
+            assert r["blocked_by"].startswith("blocked by ")
+    clear = sum(r["blocked_by"] == "no obstruction" for r in rows)
+    assert f"anaesthetist actual: no obstruction at {clear} of 3 timestamps" in printed

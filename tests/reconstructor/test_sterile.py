@@ -136,6 +136,16 @@ def test_the_scripted_contact_is_found_on_time_and_given_to_the_radiographer(tru
     check_against_truth(events, truth, set(STERILE.split(",")), TIMES_S[0], TIMES_S[-1])
     contact = next(e for e in events if e["kind"] == "contact")
     assert (out / contact["render"]).stat().st_size > 5000
+    # the picture a team reads: the render with its "no data" legend, and a plan beside it;
+    # the viewpoint in words (a rig camera, or a standing eye near the touch), no "ring 0 deg"
+    import cv2
+
+    picture = cv2.imread(str(out / contact["render"]))[:, :, ::-1].astype(int)
+    assert picture.shape == (300, 480 + 340, 3)
+    swatch = picture[-12:-3, 2:10]
+    assert ((swatch[..., 0] - swatch[..., 1] > 90) & (swatch[..., 2] - swatch[..., 1] > 90)).any()
+    assert "deg" not in contact["viewpoint"]
+    assert contact["viewpoint"].startswith(("SN", "a standing eye 1.6 m from the touch"))
     assert (out / "timeline.png").stat().st_size > 5000
     # the contact point is the drape's edge the script's hand reaches, within a hand's size
     p = np.array([float(contact[k]) for k in ("contact_x_m", "contact_y_m", "contact_z_m")])

@@ -195,8 +195,8 @@ def test_serves_the_page_on_loopback_only(viewer):
 
 
 def test_splats_handed_to_the_browser_are_the_models(viewer, case):
-    for k, t in enumerate(TIMES_S):
-        viewer.slider.value = k  # what the page's slider does
+    for t in TIMES_S:
+        viewer.slider.value = t  # what the page's slider does: case time
         assert viewer.entry.t_s == t
         centres, cov, rgb, opacity = expected_splats(case / "models" / f"t{t:09.3f}.ply")
         got_centres, got_cov, got_rgb, got_opacity = decode_viser_buffer(viewer.splats)
@@ -212,10 +212,10 @@ def test_splats_handed_to_the_browser_are_the_models(viewer, case):
 
 
 def test_saved_viewpoint_reads_back_as_a_trajectory(viewer, tmp_path):
-    viewer.slider.value = 1
+    viewer.slider.value = TIMES_S[1]
     pose = start_keyframe().pose()
     viewer.save(Keyframe.from_pose(viewer.entry.t_s, pose, HFOV_DEG))
-    viewer.slider.value = 0
+    viewer.slider.value = TIMES_S[0]
     viewer.save(Keyframe.from_pose(viewer.entry.t_s, pose, 45.0))
     (saved,) = read_trajectories(tmp_path / "viewpoints.toml")
     assert saved.name == "viewer"
@@ -333,7 +333,7 @@ def test_a_hostile_browser_is_dropped_and_the_viewer_goes_on(viewer, tmp_path, c
     forged = RawBrowser(viewer)
     forged.received_bytes(1.0)
     forged.send(camera((1.0, 0.0, 0.0, 0.0), (0.0, -3.0, 1.0)))  # viser counts it in now
-    slider = gui_uuid(viewer, "Timestamp")
+    slider = gui_uuid(viewer, "Case time (s)")
     forged.send({"type": "GuiUpdateMessage", "uuid": slider, "updates": {"value": 10**9}})
     forged.send(camera((0.0, 0.0, 0.0, 0.0), (float("nan"), 0.0, 1.0)))
     forged.send({"type": "GuiUpdateMessage", "uuid": gui_uuid(viewer, "Save viewpoint"),
@@ -400,7 +400,7 @@ def test_role_cameras_and_site_boxes_are_drawn(case, tmp_path):
     config = ViewConfig(port=0, roles=roles, sites=(site,), save_to=tmp_path / "v.toml")
     with CaseViewer(case, config) as v:
         for k, eye in enumerate([(0.5, -1.5, 1.7), (-0.5, -1.5, 1.6)]):
-            v.slider.value = k  # the surgeon's frustum follows the shown time
+            v.slider.value = TIMES_S[k]  # the surgeon's frustum follows the shown time
             frustum = v.frustums["surgeon"]
             np.testing.assert_allclose(frustum.position, eye, atol=1e-6)
             forward = matrix_from_quat_wxyz(frustum.wxyz)[:, 2]  # OpenCV: +z looks
@@ -536,3 +536,69 @@ def test_browser_shows_what_our_renderer_shows(viewer, case, tmp_path):
     np.testing.assert_allclose(key.pose().R, start_keyframe().pose().R, atol=1e-3)
     np.testing.assert_allclose(key.eye_m, EYE_M, atol=1e-3)
     assert key.fov_deg == pytest.approx(HFOV_DEG, abs=0.1)
+
+
+# ---- which session: the viewer checks its files, and saves the case's ----------------------
+
+CASE_START_NS = 1_767_225_600_000_000_000  # 2026-01-01 00:00:00 UTC
+OTHER_START_NS = 1_795_856_400_000_000_000  # 2026-11-28 09:00:00 UTC: another recording
+
+
+def session_case(folder: Path) -> Path:
+    """The hand-made case, as one reconstructed from a session that started at
+    ``CASE_START_NS`` (its session file gone: the start is the whole check)."""
+    make_case(folder)
+    index = CaseIndex.read(folder)
+    dataclasses.replace(index, session=str(folder / "gone.h5"),
+                        session_started_unix_ns=CASE_START_NS).write(folder)  # fmt: skip
+    return folder
+
+
+def test_files_of_another_session_are_refused_in_one_line_and_saved_viewpoints_name_it(tmp_path):
+    """Today the viewer drew another session's roles and boxes without a word (a role's eye
+    where nobody stood in this case) and saved viewpoints that named no session."""
+    from protocol.formats.session_id import SessionId, SessionMismatchError
+    from protocol.formats.site import SiteBox, site_toml
+    from protocol.formats.trajectory import read_trajectory_file
+
+    case = session_case(tmp_path / "case")
+    other = SessionId(name="demo-or1", started_unix_ns=OTHER_START_NS)
+    roles = tmp_path / "demo_roles.toml"
+    write_trajectories(roles, [Trajectory(name="surgeon", keyframes=(start_keyframe(),))],
+                       session=other)  # fmt: skip
+    box = SiteBox(name="drape", centre_m=(0.0, 0.0, 0.8), size_m=(1.0, 0.6, 0.3))
+    site = tmp_path / "demo_site.toml"
+    site.write_text(site_toml([box], session=other))
+    line = one_line_error(run_egosurg("view", str(case), "--roles", str(roles), "--port", "0",
+                                      "--save-to", str(tmp_path / "v.toml")))  # fmt: skip
+    assert "demo_roles.toml was made for session 'demo-or1' started 2026-11-28 09:00:00" in line
+    assert "but the case" in line and "started 2026-01-01 00:00:00.000 UTC" in line
+    for config in (ViewConfig(port=0, sites=(site,), save_to=tmp_path / "v.toml"),
+                   ViewConfig(port=0, fields=(site,), save_to=tmp_path / "v.toml"),
+                   ViewConfig(port=0, save_to=roles)):  # fmt: skip
+        with pytest.raises(SessionMismatchError, match="was made for session 'demo-or1'"):
+            CaseViewer(case, config)
+    ours = tmp_path / "roles.toml"
+    mine = SessionId(name="", started_unix_ns=CASE_START_NS)
+    write_trajectories(ours, [Trajectory(name="surgeon", keyframes=(start_keyframe(),))],
+                       session=mine)  # fmt: skip
+    config = ViewConfig(port=0, roles=ours, save_to=tmp_path / "v.toml", timezone="UTC")
+    with CaseViewer(case, config) as v:
+        v.slider.value = TIMES_S[1]
+        v.save(Keyframe.from_pose(v.entry.t_s, start_keyframe().pose(), HFOV_DEG))
+        # the panel reads the shown time as case time and as the time of day
+        assert "**2.500 s** of the case · **00:00:02.500 UTC** on 2026-01-01" in v.time_text.content
+    saved = read_trajectory_file(tmp_path / "v.toml")
+    assert saved.session is not None and saved.session.started_unix_ns == CASE_START_NS
+
+
+def test_the_time_slider_is_in_case_time(viewer):
+    """Seconds of case time, from the first done timestamp to the last, marked at both ends;
+    a time between two timestamps shows the nearer."""
+    props = viewer.slider._impl.props
+    assert (props.min, props.max, props.label) == (TIMES_S[0], TIMES_S[1], "Case time (s)")
+    assert [m.value for m in props._marks] == list(TIMES_S)
+    viewer.slider.value = 2.4
+    assert viewer.entry.t_s == TIMES_S[1] and viewer.slider.value == TIMES_S[1]
+    viewer.slider.value = 2.2
+    assert viewer.entry.t_s == TIMES_S[0]

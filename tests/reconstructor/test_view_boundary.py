@@ -160,8 +160,8 @@ def test_forged_control_values_are_clamped_and_the_next_browser_gets_the_scene(v
     scene_bytes = first.received_bytes(3.0)
     assert scene_bytes > SCENE_BYTES
     first.send(camera_message())
-    slider, role = gui_uuid(viewer, "Timestamp"), gui_uuid(viewer, "Role")
-    first.send({"type": "GuiUpdateMessage", "uuid": slider, "updates": {"value": 1}})
+    slider, role = gui_uuid(viewer, "Case time (s)"), gui_uuid(viewer, "Role")
+    first.send({"type": "GuiUpdateMessage", "uuid": slider, "updates": {"value": TIMES_S[-1]}})
     assert shows(viewer, TIMES_S[-1])
     first.send({"type": "GuiUpdateMessage", "uuid": slider, "updates": {"value": 1e308}})
     first.received_bytes(1.0)
@@ -184,17 +184,17 @@ def test_forged_control_values_are_clamped_and_the_next_browser_gets_the_scene(v
         after.send({"type": "GuiUpdateMessage", "uuid": uuid, "updates": updates})
     after.received_bytes(1.0)
     assert viewer.entry.t_s == TIMES_S[-1]
-    assert viewer.slider.value == len(TIMES_S) - 1
+    assert viewer.slider.value == TIMES_S[-1]
     props = viewer.slider._impl.props
-    assert (props.min, props.max, props.label) == (0, len(TIMES_S) - 1, "Timestamp")
+    assert (props.min, props.max, props.label) == (TIMES_S[0], TIMES_S[-1], "Case time (s)")
     assert viewer.role_menu.value == "surgeon"
     assert tuple(viewer.role_menu.options) == ("surgeon",)
     assert "Traceback" not in caplog.text
     assert "viewer: refused a control value" in caplog.text
-    assert "viewer: clamped control 'Timestamp'" in caplog.text
+    assert "viewer: clamped control 'Case time (s)'" in caplog.text
     after.send({"type": "GuiUpdateMessage", "uuid": slider, "updates": {"value": -1e308}})
     assert shows(viewer, TIMES_S[0])  # clamped to the first
-    after.send({"type": "GuiUpdateMessage", "uuid": slider, "updates": {"value": 1.0}})
+    after.send({"type": "GuiUpdateMessage", "uuid": slider, "updates": {"value": TIMES_S[1]}})
     assert shows(viewer, TIMES_S[1])  # the page's own values still work
     after.close()
 

@@ -1,0 +1,212 @@
+"""``egosurg people`` against the simulator's truth: for each phase, people found in the
+recording, tracked and given head poses, compared with ``World.head_poses``.
+
+Per phase and per person: eye position error (median, p95), yaw and pitch error (median),
+the share of person-seconds tracked among those in which the person is seen by at least two
+cameras (a ray from the camera to the head's centre reaches the head), identity switches per 10
+minutes, and seconds per timestamp (reading the points: stereo for a session; finding people).
+A truth person is matched at each timestamp to at most one track by least total distance within
+0.5 m (``scipy.optimize.linear_sum_assignment``); a switch is a change of the matched track.
+
+Examples::
+
+    .venv/bin/python bench/bench_people.py --phases intraoperative --seconds 20 --hz 2
+    .venv/bin/python bench/bench_people.py --sessions /tmp/es   # sessions made before
+
+Sessions are written (``egosurg sim eval-set`` at ``--hz`` fps) under ``--work`` and kept.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+MATCH_M = 0.5
+
+
+@dataclass
+class Scores:
+    """Per-person lists over matched timestamps, and the counts for shares and switches."""
+
+    pos_err_m: list[float]
+    yaw_err_deg: list[float]
+    pitch_err_deg: list[float]
+    visible: int = 0  # timestamps seen by >= 2 cameras
+    tracked_visible: int = 0
+    switches: int = 0
+    seconds: float = 0.0
+
+
+def truth_angles(pose) -> tuple[float, float]:  # type: ignore[no-untyped-def]
+    """(yaw, pitch) radians of a world-to-camera pose's optical axis (pitch positive down)."""
+    f = pose.R[2]
+    return math.atan2(f[1], f[0]), -math.asin(float(np.clip(f[2], -1, 1)))
+
+
+def angle_deg(a: float, b: float) -> float:
+    return abs(math.degrees((a - b + math.pi) % (2 * math.pi) - math.pi))
+
+
+def cameras_seeing(world, t_s: float, head_m: np.ndarray, centres: np.ndarray) -> int:  # type: ignore[no-untyped-def]
+    """How many of the cameras (their centres, (C, 3)) see the head: a ray from the camera to the
+    head's centre hits nothing closer than 12 cm before it."""
+    d = head_m[None, :] - centres
+    dist = np.linalg.norm(d, axis=1)
+    rays = np.concatenate([centres, d / dist[:, None]], axis=1).astype(np.float32)
+    t_hit, _, _ = world.scene_at(t_s).cast_rays(rays)
+    return int(np.sum(t_hit >= dist - 0.12))
+
+
+def score(
+    world, people, config, camera_centres: np.ndarray, duration_s: float
+) -> dict[str, Scores]:  # type: ignore[no-untyped-def]
+    """Compare the estimated ``people`` (reconstructor.people.run.People) with the world's truth
+    at each of its timestamps (case time = sim time: eval-set sessions start at the sim epoch)."""
+    poses_at: dict[float, list[tuple[int, object]]] = {}
+    for tid, poses in people.poses.items():
+        for p in poses:
+            poses_at.setdefault(round(p.time_s, 6), []).append((tid, p))
+    out: dict[str, Scores] = {}
+    last_track: dict[str, int] = {}
+    for t in people.times_s:
+        truth = world.head_poses(t)
+        states = {s.name: s for s in world.people(t)}
+        names = list(truth)
+        est = poses_at.get(round(t, 6), [])
+        cost = np.full((len(names), len(est)), 1e6)
+        for i, n in enumerate(names):
+            for j, (_, p) in enumerate(est):
+                d = float(np.linalg.norm(p.eye_m - truth[n].centre_m))
+                if d <= MATCH_M:
+                    cost[i, j] = d
+        match = {}
+        if cost.size:
+            for i, j in zip(*linear_sum_assignment(cost), strict=True):
+                if cost[i, j] < 1e6:
+                    match[names[i]] = est[j]
+        for n in names:
+            s = out.setdefault(n, Scores([], [], []))
+            seen = cameras_seeing(world, t, states[n].head_centre_m, camera_centres) >= 2
+            s.visible += seen
+            if n not in match:
+                continue
+            tid, p = match[n]
+            s.tracked_visible += seen
+            if n in last_track and last_track[n] != tid:
+                s.switches += 1
+            last_track[n] = tid
+            yaw, pitch = truth_angles(truth[n])
+            s.pos_err_m.append(float(np.linalg.norm(p.eye_m - truth[n].centre_m)))
+            s.yaw_err_deg.append(angle_deg(p.yaw_rad, yaw))
+            s.pitch_err_deg.append(abs(math.degrees(p.pitch_rad - pitch)))
+    for s in out.values():
+        s.seconds = duration_s
+    return out
+
+
+def row(name: str, s: Scores) -> str:
+    def q(v: list[float], k: float, scale: float = 1.0) -> str:
+        return f"{np.percentile(v, k) * scale:6.1f}" if v else "     -"
+
+    share = s.tracked_visible / s.visible if s.visible else float("nan")
+    per10 = s.switches / (s.seconds / 600) if s.seconds else float("nan")
+    return (
+        f"| {name:16s} | {q(s.pos_err_m, 50, 100)} | {q(s.pos_err_m, 95, 100)} | "
+        f"{q(s.yaw_err_deg, 50)} | {q(s.pitch_err_deg, 50)} | {100 * share:5.1f} | "
+        f"{s.switches:3d} ({per10:5.1f}) |"
+    )
+
+
+HEADER = (
+    "| person           | pos med cm | pos p95 cm | yaw med deg | pitch med deg | tracked % | "
+    "switches (per 10 min) |\n|---|---|---|---|---|---|---|"
+)
+
+
+def run_phase(session: Path, seed: int, phase: str, every_s: float) -> tuple[str, dict]:
+    from reconstructor.people.config import PeopleConfig
+    from reconstructor.people.run import find_people
+    from reconstructor.people.sources import open_source
+    from sim.world import World
+
+    config = PeopleConfig()
+    source = open_source(session, every_s=every_s)
+    cache = session.parent / f"people_points_every{every_s:g}.npz"
+    if cache.is_file():  # the stereo points of an earlier run (--fresh makes them again)
+        z = np.load(cache)
+        clouds = [z[f"k{k}"] for k in range(len(source.times_s))]
+        read_s = float(z["read_s"])
+    else:
+        t0 = time.perf_counter()
+        clouds = [source.points(k) for k in range(len(source.times_s))]
+        read_s = time.perf_counter() - t0
+        np.savez(cache, read_s=read_s, **{f"k{k}": c for k, c in enumerate(clouds)})
+    source = dataclasses.replace(source, _load=lambda k: clouds[k])
+    t0 = time.perf_counter()
+    people = find_people(source, config)
+    wall = time.perf_counter() - t0 + read_s
+    people.seconds["read"] = read_s
+    world = World.from_seed(seed, phase=phase)
+    from protocol.formats.rig_calibration import RigCalibration
+
+    rig = RigCalibration.read(session.parent / "calibration.toml")
+    centres = np.array([s.camera.pose.centre_m for s in rig.sensors if s.side == "left"])
+    duration = source.times_s[-1] - source.times_s[0] + every_s
+    scores = score(world, people, config, centres, duration)
+    n = len(source.times_s)
+    sec = people.seconds
+    lines = [f"\n{phase}, seed {seed}: {n} timestamps over {duration:.0f} s, "
+             f"{len(people.tracks)} tracks for {len(scores)} people; "
+             f"{wall / n:.2f} s per timestamp (reading points {sec['read'] / n:.2f}, "
+             f"finding people {(sec['detect'] + sec['background'] + sec['track']) / n:.2f})",
+             HEADER]  # fmt: skip
+    allsc = Scores([], [], [], seconds=0.0)
+    for name, s in scores.items():
+        lines.append(row(name, s))
+        allsc.pos_err_m += s.pos_err_m
+        allsc.yaw_err_deg += s.yaw_err_deg
+        allsc.pitch_err_deg += s.pitch_err_deg
+        allsc.visible += s.visible
+        allsc.tracked_visible += s.tracked_visible
+        allsc.switches += s.switches
+        allsc.seconds += s.seconds
+    lines.append(row("all", allsc))
+    return "\n".join(lines), {"scores": scores, "people": people, "all": allsc}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--seeds", default="3", help="comma-separated world seeds (3)")
+    ap.add_argument("--phases", default="setup,intraoperative,turnover")
+    ap.add_argument("--seconds", type=float, default=20.0, help="length of each phase's session")
+    ap.add_argument("--hz", type=float, default=2.0, help="timestamps per second")
+    ap.add_argument("--work", default="/tmp/bench_people", help="where sessions are written")
+    args = ap.parse_args()
+    from sim.eval_set import EvalSetSpec, write_eval_set
+
+    for seed in (int(s) for s in args.seeds.split(",")):
+        for phase in args.phases.split(","):
+            folder = Path(args.work) / f"seed{seed}-{args.seconds:g}s-{args.hz:g}hz"
+            session = folder / phase / "session.h5"
+            if not session.is_file():
+                sets = round(args.seconds * args.hz)
+                spec = EvalSetSpec(seed=seed, phases=(phase,), fps=args.hz, sets=sets,
+                                   instants=1, view_size_px=(64, 40))  # fmt: skip
+                write_eval_set(folder, spec)
+            text, _ = run_phase(session, seed, phase, 1 / args.hz)
+            print(text, flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,91 @@
+"""The settings of ``egosurg people``: a frozen dataclass with units in every name and the reason
+for each default beside it."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+from reconstructor.errors import ReconstructConfigError
+
+
+@dataclass(frozen=True, kw_only=True)
+class PeopleConfig:
+    # the height map's cell: a head is about 0.2 m across, so 4 cm gives it ~20 cells
+    cell_m: float = 0.04
+    # a point counts only with this many points in the 3 x 3 x 3 cubes of cell_m around it
+    # (stereo outliers scatter; a surface is dense)
+    min_points_per_cell: int = 8
+    # nothing taller or shorter stands in an OR: head tops of adults, ceiling equipment excluded
+    head_top_min_m: float = 1.35
+    head_top_max_m: float = 2.05
+    # a head: the column's top stands this much above the cells 0.2-0.35 m around it ...
+    head_drop_m: float = 0.15
+    # ... in at least this share of them (a neighbour's shoulder or a boom can fill the rest)
+    head_isolation_min: float = 0.6
+    # shoulders: the points 0.25-0.45 m below the top within 0.35 m of the head's axis span at
+    # least this wide (a person is ~0.45 m across the shoulders) and this deep (a thin drape or
+    # a screen is not a torso)
+    shoulder_width_min_m: float = 0.28
+    shoulder_depth_min_m: float = 0.10
+    # background: a cube of space holding points in this share of the timestamps is the room's
+    # (learned from the case itself when it has at least background_min_frames timestamps)
+    background_share: float = 0.9
+    background_min_frames: int = 10
+    # a body under the head: points in this share of the 10 cm slices from the knees to the neck
+    min_column_share: float = 0.7
+    # two heads closer than this are one
+    min_head_separation_m: float = 0.3
+    # tracking: a detection joins a track within this distance of where the track's velocity
+    # puts it, plus gate_growth_m_s per second unseen (staff stand 0.5-1 m apart: a wide gate
+    # hands one person's track to a neighbour)
+    gate_m: float = 0.3
+    gate_growth_m_s: float = 0.4
+    max_speed_m_s: float = 1.5
+    # a track with no detection for longer than this ends (the person left or is lost) ...
+    max_gap_s: float = 3.0
+    # ... and a track starting within this long after, where the gate reaches, continues it
+    stitch_gap_s: float = 6.0
+    # a track must be seen this many times, this surely on average, to be reported (stereo
+    # noise makes short-lived or doubtful heads)
+    min_detections: int = 5
+    min_track_confidence: float = 0.55
+    # head model (adult anthropometry): the head's centre below the top of the head, and the eye
+    # in front of and above that centre, in the head's own frame
+    crown_to_centre_m: float = 0.11
+    eye_forward_m: float = 0.13
+    eye_up_m: float = 0.03
+    # the gaze: staff who face a raised surface (the table, the back table) look at its middle
+    # along their facing; with nothing there they look slightly down, like walkers do
+    work_surface_min_m: float = 0.6
+    work_surface_max_m: float = 1.45
+    gaze_reach_m: float = 2.2
+    default_pitch_deg: float = 9.0
+    # facing is smoothed over this many seconds (heads turn, but not between two stereo sets)
+    facing_smooth_s: float = 1.0
+    # a track moving faster than this faces where it goes
+    walking_speed_m_s: float = 0.3
+    fov_deg: float = 90.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ReconstructConfigError(f"PeopleConfig.{f.name}={value!r}: give a number")
+            if not math.isfinite(value) or value < 0:
+                raise ReconstructConfigError(
+                    f"PeopleConfig.{f.name}={value!r}: must be a finite number >= 0"
+                )
+        if not 0 < self.cell_m <= 0.2:
+            raise ReconstructConfigError(f"PeopleConfig.cell_m={self.cell_m!r}: give 0-0.2 m")
+        if self.head_top_min_m >= self.head_top_max_m:
+            raise ReconstructConfigError(
+                f"PeopleConfig.head_top_min_m={self.head_top_min_m!r} must be below "
+                f"head_top_max_m={self.head_top_max_m!r}"
+            )
+        if not 0 < self.head_isolation_min <= 1:
+            raise ReconstructConfigError(
+                f"PeopleConfig.head_isolation_min={self.head_isolation_min!r}: give 0-1"
+            )
+        if not 1 < self.fov_deg < 179:
+            raise ReconstructConfigError(f"PeopleConfig.fov_deg={self.fov_deg!r}: give 1-179")
