@@ -19,8 +19,8 @@ Speed. Sealing is AES-GCM at about 2.5-3 GB/s a core here, so an image's AEAD (1
 325 kB JPEG) is most of what sealing adds; around it, each image is sealed straight into the
 chunk buffer it is stored from where it fits (no allocation, no copy), and a frame's two images
 are sealed at once, the left one on a sealing thread (the AEAD releases the GIL), so the thread
-that appends (the recorder's session-queue thread) spends about what it spends on a plaintext
-session (BENCHMARKS.md, "Sealing").
+that appends (the recorder's session-queue thread) carries about half the cipher's cost
+(BENCHMARKS.md, "Sealing"; docs/session.md, "Performance").
 
 Images are bound to ``sealed_row``, a frame table column, rather than to the row itself: the two
 are equal in a recorded file, and ``recover`` (which holds no key) keeps each frame's original
