@@ -52,7 +52,7 @@ EDGE_TESTS := tests/test_edge_install.py tests/protocol/test_messages.py \
 	tests/protocol/test_session_damage.py tests/capture_agent/test_config.py \
 	tests/capture_agent/test_ptp.py tests/capture_agent/test_units.py \
 	tests/protocol/test_sealing.py tests/protocol/test_sealing_keys.py \
-	tests/protocol/test_session_sealed.py
+	tests/protocol/test_session_sealed.py tests/protocol/test_session_sealed_chunks.py
 # the one test of the session files that records through a simulated node
 EDGE_SKIP  := tests/protocol/test_session_damage.py::test_a_recorder_killed_mid_take_resumes_into_a_linked_file
 
