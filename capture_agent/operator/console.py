@@ -23,6 +23,8 @@ Mistakes in the Python itself (a misspelt method, a wrong argument) still show P
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -33,6 +35,7 @@ from capture_agent.operator.control import format_started, format_status, format
 from capture_agent.operator.rig_client import RigClient
 from protocol.command import command_parser
 from protocol.errors import UserError
+from protocol.private_files import make_owner_only, plaintext_notice
 
 BANNER = """EgoSurg operator console. The object 'rig' is connected to {url}:
   rig.status()                      health of every camera, PTP and disk
@@ -130,6 +133,8 @@ class Rig:
             image = self.client.last_frame(camera, side)
             if not cv2.imwrite(path, image):
                 raise ConsoleError(f"could not write {path}; check the folder and the extension")
+            make_owner_only(Path(path))  # a live picture of the room: whatever the shell's umask
+            print(plaintext_notice("a live frame", path), file=sys.stderr)
             return path
 
         return self._ask("save_frame", save)

@@ -10,6 +10,7 @@ with the field's name, and an agent's own refusal is reported as its error, not 
 from __future__ import annotations
 
 import inspect
+import os
 import pydoc
 import time
 from pathlib import Path
@@ -415,14 +416,22 @@ def test_the_console_without_a_recorder_says_so(rig):
     assert not answer and repr(answer).startswith("rig.status: refused: no recorder answered at")
 
 
-def test_the_console_shows_live_images(rig, agent, tmp_path):
-    """rig.last_frame gives the camera's image; an unknown camera is refused by name."""
+def test_the_console_shows_live_images(rig, agent, tmp_path, capsys):
+    """rig.last_frame gives the camera's image; an unknown camera is refused by name. A saved
+    frame is a plaintext picture of the room: owner-only whatever the umask, and said so."""
     _, client, _ = rig
     console = Rig(client)
     image = console.last_frame(SERIALS[0], side="right")
     assert image.shape == (48, 64, 3)
-    assert console.save_frame(SERIALS[1], str(tmp_path / "f.png")) == str(tmp_path / "f.png")
+    old_umask = os.umask(0o022)
+    try:
+        saved = console.save_frame(SERIALS[1], str(tmp_path / "f.png"))
+    finally:
+        os.umask(old_umask)
+    assert saved == str(tmp_path / "f.png")
     assert (tmp_path / "f.png").stat().st_size > 0
+    assert (tmp_path / "f.png").stat().st_mode & 0o077 == 0
+    assert "wrote plaintext a live frame" in capsys.readouterr().err
     unknown = console.last_frame(99)
     assert not unknown and "camera 99 is not streaming" in repr(unknown)
 
