@@ -42,6 +42,18 @@ class PeopleConfig:
     gate_m: float = 0.3
     gate_growth_m_s: float = 0.4
     max_speed_m_s: float = 1.5
+    # a new track is tentative (not reported, and matched only after the confirmed ones) until
+    # it is seen at confirm_seen of its first confirm_timestamps timestamps: a neighbour's
+    # shoulder or stereo noise makes heads that last one or two
+    confirm_seen: int = 3
+    confirm_timestamps: int = 5
+    # a detection less sure of itself than this is not given to any track: a doubtful head
+    # next to a person is more often their neighbour's shoulder or stereo noise than the
+    # person, and taking it bends the track's velocity towards the neighbour
+    match_confidence: float = 0.5
+    # a head left over this close to a confirmed track's is that person again, not a new one
+    # (heads are found at least min_head_separation_m apart; two people's, 0.5 m or more)
+    duplicate_m: float = 0.35
     # a track with no detection for longer than this ends (the person left or is lost) ...
     max_gap_s: float = 3.0
     # ... and a track starting within this long after, where the gate reaches, continues it
@@ -86,6 +98,11 @@ class PeopleConfig:
         if not 0 < self.head_isolation_min <= 1:
             raise ReconstructConfigError(
                 f"PeopleConfig.head_isolation_min={self.head_isolation_min!r}: give 0-1"
+            )
+        if not 1 <= self.confirm_seen <= self.confirm_timestamps:
+            raise ReconstructConfigError(
+                f"PeopleConfig.confirm_seen={self.confirm_seen!r} must be 1.."
+                f"confirm_timestamps={self.confirm_timestamps!r}"
             )
         if not 1 < self.fov_deg < 179:
             raise ReconstructConfigError(f"PeopleConfig.fov_deg={self.fov_deg!r}: give 1-179")

@@ -2,7 +2,8 @@
 
 A case (``docs/case.md``) keeps each done timestamp's fused stereo points beside its model; they
 are read through the case's own loader (``storage.load_points``), which checks each file against
-its checksum. A session (``.h5``, sealed ones opened with ``identity``) is read set by set every
+its checksum (a sealed session's case with the identity given, refused in one line without
+one). A session (``.h5``, sealed ones opened with ``identity``) is read set by set every
 ``every_s`` seconds and its stereo depth computed with the reconstructor's matcher at quarter
 scale, keeping the points a second camera confirms (``seen_twice``; no fusion, no training).
 The room's floor area is the box of the rig's camera centres (the cameras hang on the walls)
@@ -131,6 +132,7 @@ def _case_source(
 ) -> Source:
     from reconstructor.case import storage
     from reconstructor.case.index import CaseIndex
+    from reconstructor.case.sealing import reader_seal
     from reconstructor.replay.session_check import case_session
 
     index = CaseIndex.read(folder)
@@ -153,6 +155,9 @@ def _case_source(
             session, identity, 1e-3, cal_path, None, None, [e.set_index for e in entries]
         )
         return dataclasses.replace(src, path=folder, kind="case")
+    # a sealed session's case keeps its points sealed: refused here, in one line naming the
+    # recipients, without a recipient's identity
+    seal = reader_seal(folder, index, identity, "its stereo points")
     log.warning(
         "%s: its session %s is not here; finding people in the fused points the case keeps "
         "(less clean: give the session beside the case for the better answer)",
@@ -166,7 +171,7 @@ def _case_source(
         )
 
     def load(k: int) -> np.ndarray:
-        points = storage.load_points(folder, entries[k])
+        points = storage.load_points(folder, entries[k], seal)
         if points is None:
             raise PeopleInputError(
                 f"{folder}: {entries[k].name} stores no stereo points; give the session instead"

@@ -1,13 +1,21 @@
 """Detections joined over time into tracks: one per person, by where they are and how they move.
 
-At each timestamp every live track predicts where its head is now (last position plus its
-velocity, the speed capped at ``max_speed_m_s``); detections are given to tracks by the
-assignment of least total distance (``scipy.optimize.linear_sum_assignment``) within a gate
-that widens with the time since the track was last seen. A detection left over starts a track
-when it is confident; a track unseen for longer than ``max_gap_s`` ends; one seen too seldom or
-too doubtfully is dropped at the end; a track that starts soon after another ended, near where
-that one was last seen, continues it. The timestamps a live track was not seen at are its gaps:
-kept, never filled in.
+The track management of multi-object trackers. A detection left over starts a *tentative*
+track when it is confident; the track is *confirmed* once it has been seen at ``confirm_seen``
+of its first ``confirm_timestamps`` timestamps, and a tentative track that can no longer reach
+that is dropped (stereo noise and a neighbour's shoulder make heads that last a timestamp or
+two). A detection less sure of itself than ``match_confidence`` is given to no track (a
+doubtful head between a walker and someone standing bends the walker's velocity onto them). At
+each timestamp every live track predicts where its head is now (last position plus
+its velocity, the speed capped at ``max_speed_m_s``); detections are given to the confirmed
+tracks first, by the assignment of least total distance (``scipy.optimize.linear_sum_assignment``)
+within a gate that widens with the time since the track was last seen; a detection left over
+within ``duplicate_m`` of a confirmed track's head is that person again (a shoulder, a second
+peak of the same head) and is dropped; what is left goes to the tentative tracks the same way,
+and the rest may start new ones. A confirmed track missed by the detector coasts for at most
+``max_gap_s``, then ends; the timestamps it coasted through are its gaps, kept and never filled
+in. Only confirmed tracks are reported, those seen too seldom or too doubtfully dropped, and a
+track that starts soon after another ended, near where that one was last seen, continues it.
 """
 
 from __future__ import annotations
@@ -31,6 +39,8 @@ class Track:
     times_s: list[float] = field(default_factory=list)
     detections: list[Detection] = field(default_factory=list)
     missed_s: list[float] = field(default_factory=list)  # times it was live but not seen
+    confirmed: bool = False
+    age: int = 0  # timestamps since it started, the first one included
 
     @property
     def last_s(self) -> float:
@@ -61,51 +71,89 @@ class Track:
         return sorted(gaps)
 
 
+def _assign(
+    tracks: list[Track], detections: list[Detection], free: list[int], t: float, c: PeopleConfig
+) -> dict[int, int]:
+    """{track index: detection index} of least total distance, each pair within its gate."""
+    cost = np.full((len(tracks), len(free)), NO_MATCH)
+    for i, tr in enumerate(tracks):
+        pred = tr.predict(t, c.max_speed_m_s)
+        gate = min(c.gate_m + c.gate_growth_m_s * (t - tr.last_s), 1.2)
+        for k, j in enumerate(free):
+            dist = float(np.hypot(*(np.asarray(detections[j].head_xy_m) - pred)))
+            if dist <= gate:
+                cost[i, k] = dist
+    if not cost.size:
+        return {}
+    rows, cols = linear_sum_assignment(cost)
+    return {int(i): free[k] for i, k in zip(rows, cols, strict=True) if cost[i, k] < NO_MATCH}
+
+
 def track_people(frames: list[tuple[float, list[Detection]]], config: PeopleConfig) -> list[Track]:
-    """``frames``: (time, detections) in time order; the tracks seen at least
+    """``frames``: (time, detections) in time order; the confirmed tracks seen at least
     ``min_detections`` times, numbered 1.. by when they start."""
     live: list[Track] = []
     done: list[Track] = []
     next_id = 1
-    for t, detections in frames:
+    for t, found in frames:
+        detections = [d for d in found if d.confidence >= config.match_confidence]
         still: list[Track] = []
         for tr in live:
             (still if t - tr.last_s <= config.max_gap_s else done).append(tr)
         live = still
-        cost = np.full((len(live), len(detections)), NO_MATCH)
-        for i, tr in enumerate(live):
-            pred = tr.predict(t, config.max_speed_m_s)
-            gate = min(config.gate_m + config.gate_growth_m_s * (t - tr.last_s), 1.2)
-            for j, d in enumerate(detections):
-                dist = float(np.hypot(*(np.asarray(d.head_xy_m) - pred)))
-                if dist <= gate:
-                    cost[i, j] = dist
-        rows, cols = linear_sum_assignment(cost) if cost.size else ([], [])
-        taken: set[int] = set()
-        seen: set[int] = set()
-        for i, j in zip(rows, cols, strict=True):
-            if cost[i, j] < NO_MATCH:
-                live[i].times_s.append(t)
-                live[i].detections.append(detections[j])
-                taken.add(j)
-                seen.add(i)
-        for i, tr in enumerate(live):
-            if i not in seen:
+        free = list(range(len(detections)))
+        confirmed = [tr for tr in live if tr.confirmed]
+        tentative = [tr for tr in live if not tr.confirmed]
+        heads = []
+        for i, j in _assign(confirmed, detections, free, t, config).items():
+            _see(confirmed[i], t, detections[j])
+            free.remove(j)
+        for tr in confirmed:
+            heads.append(np.asarray(tr.detections[-1].head_xy_m) if tr.last_s == t
+                         else tr.predict(t, config.max_speed_m_s))  # fmt: skip
+        free = [j for j in free if not _near(detections[j], heads, config.duplicate_m)]
+        for i, j in _assign(tentative, detections, free, t, config).items():
+            _see(tentative[i], t, detections[j])
+            free.remove(j)
+        for tr in live:
+            tr.age += 1
+            if tr.last_s != t:
                 tr.missed_s.append(t)
-        for j, d in enumerate(detections):
-            if j not in taken and d.confidence >= START_CONFIDENCE:
-                live.append(Track(next_id, [t], [d]))
+            if not tr.confirmed and len(tr.times_s) >= config.confirm_seen:
+                tr.confirmed = True
+        # a tentative track that can no longer be seen confirm_seen times in its first
+        # confirm_timestamps ends here, unreported
+        live = [tr for tr in live if tr.confirmed or _can_confirm(tr, config)]
+        for j in free:
+            if detections[j].confidence >= START_CONFIDENCE:
+                live.append(Track(next_id, [t], [detections[j]]))
                 next_id += 1
     kept = [
         tr
         for tr in done + live
-        if len(tr.times_s) >= config.min_detections
+        if tr.confirmed
+        and len(tr.times_s) >= config.min_detections
         and np.mean([d.confidence for d in tr.detections]) >= config.min_track_confidence
     ]
     kept = _stitched(sorted(kept, key=lambda tr: (tr.times_s[0], tr.id)), config)
     for k, tr in enumerate(kept, start=1):
         tr.id = k
     return kept
+
+
+def _can_confirm(track: Track, config: PeopleConfig) -> bool:
+    left = config.confirm_timestamps - track.age
+    return len(track.times_s) + left >= config.confirm_seen
+
+
+def _see(track: Track, t: float, detection: Detection) -> None:
+    track.times_s.append(t)
+    track.detections.append(detection)
+
+
+def _near(detection: Detection, heads: list[np.ndarray], radius_m: float) -> bool:
+    xy = np.asarray(detection.head_xy_m)
+    return any(float(np.hypot(*(xy - h))) < radius_m for h in heads)
 
 
 def _stitched(tracks: list[Track], config: PeopleConfig) -> list[Track]:

@@ -242,3 +242,24 @@ def test_the_viewer_and_the_sterile_tools_points_open_with_the_identity_only(sea
     for e in models.entries:  # what the sterile-field tool reads: the stereo's points
         points = models.load_points(e)
         assert points is not None and len(points) > 1000 and np.isfinite(points).all()
+
+
+def test_people_read_a_sealed_cases_own_points_with_the_identity_and_refuse_without(sealed_case):
+    """A sealed case whose session is gone: ``egosurg people`` finds people in the points the
+    case keeps, which are sealed: opened with a recipient's identity, refused (naming the
+    recipients) without one, before any timestamp is read."""
+    from reconstructor.people.sources import open_source
+
+    case = sealed_case["case"]
+    with pytest.raises(IdentityRequiredError, match="hospital-a"):
+        open_source(case, use_session=False)
+    identity = load_identity(sealed_case["identity"])
+    source = open_source(case, identity=identity, use_session=False)
+    index = CaseIndex.read(case)
+    seal = case_seal(case, index, identity)
+    done = [e for e in index.timestamps if e.status == "done"]
+    assert len(source.times_s) == len(done) == 2
+    for k, entry in enumerate(done):
+        points = source.points(k)
+        assert points.shape[1] == 3 and len(points) > 100
+        assert np.array_equal(points, storage.load_points(case, entry, seal))
