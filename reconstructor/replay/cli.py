@@ -254,7 +254,9 @@ def main_sterile(argv: list[str]) -> int:
     p.add_argument("--box", help="one box of --field (default: every box in it)")
     p.add_argument("--roles", help="a roles TOML: each event's nearest role")
     p.add_argument("--sterile-roles", default="", help="roles whose entries are allowed, a,b")
-    p.add_argument("--out", required=True, help="folder: events.csv, timeline.png, event_*.png")
+    p.add_argument("--out", required=True,
+                   help="folder: events.csv, timeline.png, event_*.png, event_*_camera.png, "
+                   "event_*_clip.mp4")  # fmt: skip
     p.add_argument("--from", dest="t_from", type=float, help="first case time, s")
     p.add_argument("--to", dest="t_to", type=float, help="last case time, s")
     p.add_argument("--min-points", "--min-gaussians", dest="min_points", type=int, default=8,
@@ -300,7 +302,14 @@ def main_sterile(argv: list[str]) -> int:
         print(f"{k}: {kind} {ev.role or '?'} in {ev.field} {seconds_span(ev.start_s, ev.end_s)}")
     print(f"{len(result.contacts)} contact events ({len(result.events) - len(result.contacts)} "
           f"of sterile roles); wrote {out / 'events.csv'}, {out / 'timeline.png'}")  # fmt: skip
-    print(plaintext_notice("renders of the case (event_*.png)", out), file=sys.stderr)
+    if result.real_note:
+        print(result.real_note, file=sys.stderr)
+    for path in result.files(out):
+        make_owner_only(path)  # a file from an earlier run kept its mode when rewritten
+    what = "renders of the case (event_*.png)"
+    if result.cameras:
+        what += " and real camera stills and clips (event_*_camera.png, event_*_clip.mp4)"
+    print(plaintext_notice(what, out), file=sys.stderr)
     if result.evidence == "gaussians":
         print("judged on the models' Gaussian centres: this case was stored without its fused "
               "points (made before 2026-11-27, or PLY models); rerun its reconstruct command in "

@@ -13,13 +13,16 @@ judged on its Gaussians' centres (opacity at least ``min_opacity``), as before.
 
 Writes ``events.csv``, ``instants.csv`` (each timestamp: moving points in each field and the
 blobs touching it), ``timeline.png``, ``event_<k>.png`` per contact and ``made_for.toml`` (the
-case and session: ``session_check.py``)."""
+case and session: ``session_check.py``); and, from the session's real frames, each contact's
+``event_<k>_camera.png`` and ``event_<k>_clip.mp4`` from the rig camera that saw it best
+(``sterile_evidence.py``). Without those frames (a sealed session read without its identity,
+or the session gone) the rest is written and ``SterileResult.real_note`` says why."""
 
 from __future__ import annotations
 
 import csv
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -28,15 +31,15 @@ import numpy as np
 from protocol.camera import Camera, Intrinsics, Pose
 from protocol.formats.rig_calibration import RigCalibration
 from protocol.formats.site import SiteBox
-from protocol.sealing import Identity
+from protocol.sealing import Identity, IdentityRequiredError
 from reconstructor.data.views import EYE_NEAR_M
-from reconstructor.errors import SightlineError, SterileError
+from reconstructor.errors import CaseReplayError, SightlineError, SterileError
 from reconstructor.replay.clock import CaseClock, add_time_of_day_axis, pick_zone
 from reconstructor.replay.frame import no_data_legend, show_no_data
 from reconstructor.replay.models import CaseModels, ModelSource
 from reconstructor.replay.path import CameraPath
-from reconstructor.replay.run import case_raster, render_view
-from reconstructor.replay.session_check import CaseInputs, write_made_for
+from reconstructor.replay.run import RealCameras, case_raster, render_view
+from reconstructor.replay.session_check import MADE_FOR_NAME, CaseInputs, write_made_for
 from reconstructor.replay.sightline import visible_fraction
 from reconstructor.replay.sightline_pictures import outline_box
 from reconstructor.replay.sterile import (
@@ -48,6 +51,7 @@ from reconstructor.replay.sterile import (
     group_events,
     moving_blobs,
 )
+from reconstructor.replay.sterile_evidence import CameraEvidence, camera_evidence
 from reconstructor.replay.sterile_pictures import event_plan, event_span
 from reconstructor.replay.video import burn_text, timecode
 
@@ -61,10 +65,19 @@ class SterileResult:
     events: list[Event]
     renders: dict[int, tuple[Path, str, float]]  # event number -> (png, viewpoint, unoccluded)
     evidence: str = "points"  # "points": the stored fused points; "gaussians": model centres
+    cameras: dict[int, CameraEvidence] = field(default_factory=dict)  # event -> real camera's
+    real_note: str = ""  # why there is no real-camera evidence ("" when there is, or no contact)
 
     @property
     def contacts(self) -> list[Event]:
         return [e for e in self.events if not e.sterile_role]
+
+    def files(self, out: Path) -> list[Path]:
+        """Every file the run wrote in ``out``."""
+        named = [out / n for n in ("events.csv", "instants.csv", "timeline.png", MADE_FOR_NAME)]
+        named += [png for png, _, _ in self.renders.values()]
+        named += [p for c in self.cameras.values() for p in (c.still, c.clip) if p is not None]
+        return [p for p in named if p.is_file()]
 
 
 def _eyes(paths: list[CameraPath], t_s: float) -> dict[str, np.ndarray]:
@@ -123,8 +136,9 @@ def sterile(
     events.sort(key=lambda ev: (ev.start_s, ev.field, ev.role))
     out.mkdir(parents=True, exist_ok=True)
     clock = CaseClock.for_case(folder, pick_zone(timezone))
-    renders = _event_renders(out, folder, models, events, boxes, device, paths, clock)
-    result = SterileResult(instants, events, renders, evidence)
+    renders, seen = _event_renders(out, folder, models, events, boxes, device, paths, clock)
+    cameras, note = _real_evidence(out, models, events, boxes, paths, clock, identity, seen)
+    result = SterileResult(instants, events, renders, evidence, cameras, note)
     _write_events(out / "events.csv", result)
     _write_instants(out / "instants.csv", instants)
     _plot(out / "timeline.png", result, config, clock)
@@ -152,9 +166,11 @@ def _candidates(folder: Path, contact_m: np.ndarray) -> list[tuple[str, np.ndarr
     return out
 
 
-def best_viewpoint(g, folder: Path, raster, points_m: np.ndarray) -> tuple[str, np.ndarray, float]:
+def best_viewpoint(
+    g, folder: Path, raster, points_m: np.ndarray, seen: dict[str, float] | None = None
+) -> tuple[str, np.ndarray, float]:
     """(name, eye, unoccluded fraction) of the candidate that sees the contact's box best;
-    nearer wins a tie."""
+    nearer wins a tie. ``seen`` (when given) gets each rig camera's fraction."""
     lo, hi = points_m.min(axis=0) - 0.02, points_m.max(axis=0) + 0.02
     centre = (lo + hi) / 2
     c, size = (float(v) for v in centre), (float(v) for v in hi - lo)
@@ -165,6 +181,8 @@ def best_viewpoint(g, folder: Path, raster, points_m: np.ndarray) -> tuple[str, 
             frac, _ = visible_fraction(g, eye, box, raster, per_face=6)
         except SightlineError:  # the eye is inside or around the contact
             continue
+        if seen is not None and name != STANDING_EYE:
+            seen[name] = frac
         key = (round(frac, 2), -float(np.linalg.norm(eye - centre)))
         if best is None or key > best[:2]:
             best = (*key, name, eye)
@@ -175,10 +193,12 @@ def best_viewpoint(g, folder: Path, raster, points_m: np.ndarray) -> tuple[str, 
 
 def _event_renders(
     out, folder, models, events, boxes, device: str, paths=(), clock: CaseClock | None = None
-) -> dict[int, tuple[Path, str, float]]:
+) -> tuple[dict[int, tuple[Path, str, float]], dict[int, dict[str, float]]]:
+    """(event -> (render, viewpoint, unoccluded), event -> each rig camera's unoccluded)."""
     raster = case_raster(folder, EYE_NEAR_M, device)
     by_name = {b.name: b for b in boxes}
-    renders = {}
+    renders: dict[int, tuple[Path, str, float]] = {}
+    seen: dict[int, dict[str, float]] = {}
     for k, ev in enumerate(events, 1):
         if ev.sterile_role:
             continue
@@ -186,7 +206,8 @@ def _event_renders(
         blob, inst = ev.blobs[peak], ev.instants[peak]
         g = models.load(models.entry_at(inst.t_s))
         pts = blob.points_m[blob.in_field]
-        name, eye, frac = best_viewpoint(g, folder, raster, pts)
+        seen[k] = {}
+        name, eye, frac = best_viewpoint(g, folder, raster, pts, seen[k])
         pose = Pose.look_at(eye, pts.mean(axis=0))
         cam = Camera(name=name, intrinsics=Intrinsics.from_fov(480, 300, 55.0), pose=pose)
         rgb, _, alpha = render_view(g, cam, raster)
@@ -210,7 +231,40 @@ def _event_renders(
         picture = np.concatenate([rgb, plan], axis=1)
         cv2.imwrite(str(path), np.ascontiguousarray(picture[:, :, ::-1]))
         renders[k] = (path, name, frac)
-    return renders
+    return renders, seen
+
+
+def _real_evidence(
+    out: Path, models: CaseModels, events: list[Event], boxes: list[SiteBox],
+    paths: list[CameraPath], clock: CaseClock, identity: Identity | None,
+    seen: dict[int, dict[str, float]],
+) -> tuple[dict[int, CameraEvidence], str]:  # fmt: skip
+    """Each contact's real camera still and clip, and "" or why there are none."""
+    if all(e.sterile_role for e in events):
+        return {}, ""
+    lacking = "no real-camera stills or clips (event_*_camera.png, event_*_clip.mp4): "
+    try:
+        real = RealCameras(models, identity, clock)
+    except IdentityRequiredError:
+        return {}, lacking + "the case's session is sealed; give --identity FILE to add them"
+    except CaseReplayError:
+        return {}, lacking + (f"the case's session {models.index.session} or its "
+                              "calibration.toml is gone; put them back to add them")  # fmt: skip
+    by_name = {b.name: b for b in boxes}
+    roles = {p.name: p for p in paths}
+    found = {}
+    try:
+        for k, ev in enumerate(events, 1):
+            role = roles.get(ev.role)
+            if ev.sterile_role:
+                continue
+            eye = (lambda t, p=role: _eyes([p], t)[p.name]) if role is not None else None
+            made = camera_evidence(out, k, ev, by_name[ev.field], real, clock, seen.get(k, {}), eye)
+            if made is not None:
+                found[k] = made
+    finally:
+        real.close()
+    return found, ""
 
 
 def _write_events(path: Path, result: SterileResult) -> None:
@@ -218,16 +272,24 @@ def _write_events(path: Path, result: SterileResult) -> None:
         w = csv.writer(fh)
         w.writerow(["event", "field", "kind", "role", "role_distance_m", "start_s", "end_s",
                     "timestamps", "peak_t_s", "peak_points", "contact_x_m", "contact_y_m",
-                    "contact_z_m", "viewpoint", "unoccluded_fraction", "render"])  # fmt: skip
+                    "contact_z_m", "viewpoint", "unoccluded_fraction", "render",
+                    "camera", "camera_still", "clip", "clip_from_s", "clip_to_s"])  # fmt: skip
         for k, ev in enumerate(result.events, 1):
             blob, inst = ev.blobs[ev.peak], ev.instants[ev.peak]
             png, view, frac = result.renders.get(k, (None, "", float("nan")))
+            real = result.cameras.get(k)
+            seen = ["", "", "", "", ""]
+            if real is not None and real.clip is not None:
+                seen = [real.camera, real.still.name, real.clip.name, f"{real.clip_from_s:.3f}",
+                        f"{real.clip_to_s:.3f}"]  # fmt: skip
+            elif real is not None:
+                seen = [real.camera, real.still.name, "", "", ""]
             w.writerow([
                 k, ev.field, "sterile-role" if ev.sterile_role else "contact", ev.role,
                 f"{blob.role_distance_m:.2f}", f"{ev.start_s:.3f}", f"{ev.end_s:.3f}",
                 len(ev.instants), f"{inst.t_s:.3f}", blob.count,
                 *(f"{v:.3f}" for v in blob.contact_m), view, f"{frac:.2f}",
-                png.name if png else "",
+                png.name if png else "", *seen,
             ])  # fmt: skip
 
 

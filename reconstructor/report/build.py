@@ -65,8 +65,8 @@ def build_report(
         shares, measured = role_shares(models, paths, observed)
         stills = {}
         if real is not None and sterile_review is not None:
-            for e in sterile_review.contacts:
-                still = event_still(real, e.contact_m, e.peak_t_s)
+            for e in (c for c in sterile_review.contacts if not c.camera_still):
+                still = event_still(real, e.contact_m, e.peak_t_s)  # an older sterile run's
                 if still is not None:
                     stills[e.number] = still
     finally:

@@ -35,6 +35,9 @@ class SterileEvent:
     unoccluded: float
     pictures: tuple[tuple[str, bytes], ...]  # (file name, bytes) of the event's evidence
     missing: tuple[str, ...] = ()  # evidence the CSV names but the folder lacks
+    camera: str = ""  # the real camera that saw it best ("" from an older sterile run)
+    camera_still: str = ""  # that camera's still (one of ``pictures``)
+    clip: str = ""  # that camera's clip, beside events.csv (not embedded: a page, not a video)
 
 
 @dataclass(frozen=True)
@@ -113,7 +116,7 @@ def read_sterile(path: str | Path, inputs: CaseInputs) -> SterileReview:
     events = []
     for row in _rows(folder / "events.csv"):
         pictures, missing = [], []
-        # every column naming a picture is evidence (the render now; stills as they come)
+        # every column naming a picture is evidence (the render, the real camera's still)
         for value in row.values():
             if value and Path(value).suffix.lower() in PICTURE_SUFFIXES:
                 data = _picture(folder, value)
@@ -130,7 +133,8 @@ def read_sterile(path: str | Path, inputs: CaseInputs) -> SterileReview:
             start_s=_float(row, "start_s", where), end_s=_float(row, "end_s", where),
             peak_t_s=_float(row, "peak_t_s", where), contact_m=contact,  # type: ignore[arg-type]
             viewpoint=row.get("viewpoint", ""), unoccluded=float(unoccluded),
-            pictures=tuple(pictures), missing=tuple(missing),
+            pictures=tuple(pictures), missing=tuple(missing), camera=row.get("camera", ""),
+            camera_still=row.get("camera_still", ""), clip=row.get("clip", ""),
         ))  # fmt: skip
     return SterileReview(
         folder=folder, about=made.about if made else "", events=tuple(events),

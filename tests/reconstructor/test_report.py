@@ -183,6 +183,23 @@ def test_each_contact_shows_its_evidence_and_the_real_camera_nearest_it(case, ca
     assert part.count('alt="event 1 event_001.png"') == 1 and part.count('alt="event 1 real') == 1
     assert base64.b64encode(render.read_bytes()).decode() in part  # the render, byte for byte
     assert sources and "nearest the contact: SN" in part
+    # the sterile run's own still from the camera that saw the contact best, named in its row,
+    # is shown with its clip named; the nearest camera's frame is then not repeated
+    still = sorted(case["los"].glob("worst_*.png"))[-1]
+    shutil.copy(still, folder / "event_001_camera.png")
+    row |= {"camera": "SN7-left", "camera_still": "event_001_camera.png",
+            "clip": "event_001_clip.mp4"}  # fmt: skip
+    with (folder / "events.csv").open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, header)
+        writer.writeheader()
+        writer.writerow(row)
+    code, _, err = egosurg(capsys, "report", str(case["case"]), "--sterile", str(folder),
+                           "--timezone", "UTC", "--out", str(out))  # fmt: skip
+    assert code == 0, err[-2000:]
+    part = out.read_text().split('<h2 id="sterile">')[1].split("<h2")[0]
+    assert base64.b64encode(still.read_bytes()).decode() in part
+    assert "(SN7-left) recorded at the event" in part and "event_001_clip.mp4" in part
+    assert 'alt="event 1 real' not in part
 
 
 def test_a_sealed_session_without_its_identity_gives_a_report_without_real_frames(

@@ -372,3 +372,163 @@ def test_a_hand_reaching_past_another_persons_eye_stays_its_owners():
     # not one Gaussian of the hand is left to the other, even where a single one would count
     loose = SterileConfig(min_points=1, min_outside=1)
     assert {e.role for e in _contacts(frames, eyes, loose)} == {"owner"}
+
+
+# ---- each contact with what the real cameras saw: a still and a clip from the best camera ----
+OLD_EVENT_COLUMNS = ["event", "field", "kind", "role", "role_distance_m", "start_s", "end_s",
+                     "timestamps", "peak_t_s", "peak_points", "contact_x_m", "contact_y_m",
+                     "contact_z_m", "viewpoint", "unoccluded_fraction", "render"]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def recorded_case(truth_case, tmp_path_factory) -> dict:
+    """The truth case pointed at a real recording of the same scene: the sim's session of the
+    contact scene at 2 Hz over the case's seven timestamps, and its calibration in the case."""
+    import shutil
+
+    from sim.eval_set import EvalSetSpec, write_eval_set
+    from sim.timing import SIM_EPOCH_UNIX_NS
+
+    root = tmp_path_factory.mktemp("recorded")
+    spec = EvalSetSpec(phases=("intraoperative",), sets=len(TIMES_S), fps=2.0,
+                       t_start_s=TIMES_S[0], instants=1, view_size_px=(64, 40),
+                       contact=True)  # fmt: skip
+    write_eval_set(root / "es", spec)
+    session = root / "es" / "intraoperative" / "session.h5"
+    case = root / "case"
+    shutil.copytree(truth_case["root"] / "case", case)
+    shutil.copy(session.parent / "calibration.toml", case / "calibration.toml")
+    _point_case_at(case, session, SIM_EPOCH_UNIX_NS)
+    return {"case": case, "session": session, "root": truth_case["root"]}
+
+
+def _point_case_at(case: Path, session: Path, started_unix_ns: int) -> None:
+    index = json.loads((case / "case.json").read_text())
+    index["session"], index["session_started_unix_ns"] = str(session), started_unix_ns
+    (case / "case.json").write_text(json.dumps(index))
+
+
+def _sterile_args(case: Path, root: Path, out: Path) -> list[str]:
+    return ["sterile", str(case), "--field", str(root / "field.toml"), "--roles",
+            str(root / "roles.toml"), "--sterile-roles", STERILE, *SPARSE, "--out", str(out),
+            "--timezone", "UTC"]  # fmt: skip
+
+
+def _near(picture: np.ndarray, points: np.ndarray, mask, radius: int = 3) -> np.ndarray:
+    """(N,) whether a pixel within ``radius`` of each point satisfies ``mask`` (on RGB ints)."""
+    hits = []
+    for u, v in np.round(points).astype(int):
+        patch = picture[max(0, v - radius) : v + radius + 1, max(0, u - radius) : u + radius + 1]
+        hits.append(bool(mask(patch).any()))
+    return np.array(hits)
+
+
+def test_each_contact_has_the_real_camera_still_and_clip_with_the_field_box(recorded_case, capsys):
+    """What a reviewer relies on: the still is the recording of the camera named, at the peak,
+    with the field box where the calibration puts it; the clip runs from a second before the
+    touch to a second after it at the session's rate; the files are owner-only and named."""
+    import av
+    import cv2
+
+    from protocol.formats.rig_calibration import RigCalibration
+    from protocol.session import SessionReader
+
+    out = recorded_case["case"].parent / "out"
+    code, err = egosurg(capsys, *_sterile_args(recorded_case["case"], recorded_case["root"], out))
+    assert code == 0, err[-2000:]
+    with (out / "events.csv").open() as fh:
+        header = next(csv.reader(fh))
+    assert header[: len(OLD_EVENT_COLUMNS)] == OLD_EVENT_COLUMNS  # older readers keep working
+    contact = next(e for e in _events(out / "events.csv") if e["kind"] == "contact")
+    assert contact["role"] == "radiographer"
+    sensor = next(s for s in RigCalibration.read(recorded_case["case"] / "calibration.toml").sensors
+                  if s.name == contact["camera"])  # fmt: skip
+    picture = cv2.imread(str(out / contact["camera_still"]))[:, :, ::-1].astype(int)
+    k = sensor.intrinsics
+    # the recorded frame, and beside it the same frame enlarged around the touch
+    assert picture.shape[0] == k.height_px and picture.shape[1] == k.width_px * 3 // 2
+    # the field box's edges through the calibration (its distortion too), away from the text
+    c = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) / 2
+    corners = c * np.asarray(DRAPE_FIELD.size_m) @ DRAPE_FIELD.rotation.T + DRAPE_FIELD.centre_m
+    edges = [corners[a] + s * (corners[b] - corners[a]) for a in range(8) for b in range(a, 8)
+             if bin(a ^ b).count("1") == 1 for s in np.linspace(0.05, 0.95, 10)]  # fmt: skip
+    rvec, _ = cv2.Rodrigues(sensor.pose.R)
+    px, _ = cv2.projectPoints(np.array(edges), rvec, sensor.pose.t_m, k.K, k.dist_array)
+    px = px.reshape(-1, 2)
+    shown = (px[:, 0] > 8) & (px[:, 0] < k.width_px - 8) & (px[:, 1] > 140)
+    shown &= px[:, 1] < k.height_px - 8
+    assert shown.sum() >= 20, shown.sum()
+
+    def yellow(p):
+        return (p[..., 0] > 200) & (p[..., 1] > 150) & (p[..., 2] < 90)
+
+    assert _near(picture, px[shown], yellow).mean() > 0.8
+    assert _near(picture, px[shown] + (0, 25), yellow).mean() < 0.5  # not yellow everywhere
+    # the touch is marked in red where the calibration puts the contact point
+    p = np.array([[float(contact[f"contact_{a}_m"]) for a in "xyz"]])
+    cp, _ = cv2.projectPoints(p, rvec, sensor.pose.t_m, k.K, k.dist_array)
+    red = _near(picture, cp.reshape(-1, 2), lambda q: (q[..., 0] > 200) & (q[..., 1] < 90), 16)
+    assert red.all()
+    # the clip: every set from 1 s before the start to 1 s after the end, at the set rate
+    with SessionReader(recorded_case["session"]) as reader:
+        set_t = (reader.sets().set_unix_ns - reader.info.started_unix_ns) / 1e9
+    start, end = float(contact["start_s"]), float(contact["end_s"])
+    wanted = set_t[(set_t >= start - 1 - 1e-6) & (set_t <= end + 1 + 1e-6)]
+    assert len(wanted) >= 4  # the span is more than the touch: the reviewer sees it begin
+    with av.open(str(out / contact["clip"])) as video:
+        frames = [f.to_ndarray(format="rgb24") for f in video.decode(video=0)]
+        rate = float(video.streams.video[0].average_rate)
+    assert len(frames) == len(wanted) and rate == pytest.approx(2.0)
+    assert float(contact["clip_from_s"]) == pytest.approx(wanted[0])
+    assert float(contact["clip_to_s"]) == pytest.approx(wanted[-1])
+    assert wanted[0] <= start - 0.5 and wanted[-1] >= min(end + 0.5, set_t[-1])
+    assert frames[0].shape == picture.shape
+    for name in (contact["camera_still"], contact["clip"], "events.csv", contact["render"]):
+        assert (out / name).stat().st_mode & 0o777 == 0o600, name
+    notice = [line for line in err.splitlines() if "wrote plaintext" in line]
+    assert len(notice) == 1 and "event_*_camera.png" in notice[0] and "_clip.mp4" in notice[0]
+
+
+def test_a_sealed_session_without_identity_says_so_in_one_line_and_writes_the_rest(
+    recorded_case, capsys, monkeypatch, tmp_path
+):
+    import shutil
+
+    from protocol.sealing import generate_identity
+    from tests.helpers import copy_sets
+
+    monkeypatch.delenv("EGOSURG_IDENTITY", raising=False)
+    sealed = tmp_path / "sealed.h5"
+    copy_sets(recorded_case["session"], sealed, np.arange(len(TIMES_S)),
+              recipients=[generate_identity("hospital-a").recipient])  # fmt: skip
+    case = tmp_path / "case"
+    shutil.copytree(recorded_case["case"], case)
+    index = json.loads((case / "case.json").read_text())
+    _point_case_at(case, sealed, index["session_started_unix_ns"])
+    out = tmp_path / "out"
+    code, err = egosurg(capsys, *_sterile_args(case, recorded_case["root"], out))
+    assert code == 0, err[-2000:]
+    said = [line for line in err.splitlines() if "event_*_camera.png" in line]
+    assert len(said) == 1 and "sealed" in said[0] and "--identity" in said[0], err
+    contact = next(e for e in _events(out / "events.csv") if e["kind"] == "contact")
+    assert (out / contact["render"]).is_file() and (out / "timeline.png").is_file()
+    assert contact["camera_still"] == contact["clip"] == ""
+    assert not list(out.glob("*_camera.png")) and not list(out.glob("*.mp4"))
+
+
+@pytest.mark.parametrize(("rate_hz", "start_s", "end_s"), [(2.0, 6.5, 7.0), (30.0, 6.0, 6.5),
+                                                          (15.0, 3.0, 9.0)])  # fmt: skip
+def test_a_clip_spans_a_second_either_side_in_real_time_or_says_it_skips(rate_hz, start_s, end_s):
+    """A short touch: every set (at most 15 a second) from 1 s before to 1 s after, played in
+    real time; a long one: still the whole span, every n-th set, at most 4 s of playback."""
+    from reconstructor.replay.sterile_evidence import clip_times
+
+    sets = np.arange(0.0, 12.0, 1 / rate_hz)
+    times, step, fps = clip_times(sets, start_s, end_s)
+    assert times[0] < start_s - 1 + step / rate_hz and times[-1] > end_s + 1 - step / rate_hz
+    assert times[0] >= start_s - 1 - 1e-6 and times[-1] <= end_s + 1 + 1e-6
+    assert fps <= 15 + 1e-6 and len(times) / fps <= 4.0 + 1e-6
+    if end_s - start_s + 2 <= 4:
+        assert np.allclose(np.diff(times), 1 / fps)  # real time
+    else:
+        assert step > 1
