@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 
 import cv2
 import numpy as np
@@ -133,7 +134,7 @@ def test_demo_runs_every_stage(tmp_path):
         "demo", "--out", str(tmp_path), "--record-s", "4", "--steps", "10", timeout=2300,
     )  # fmt: skip
     assert out.returncode == 0, out.stderr
-    assert "[3/7] calibration" in out.stdout and "[4/7] reconstruction" in out.stdout
+    assert "[3/8] calibration" in out.stdout and "[4/8] reconstruction" in out.stdout
     # stage 3 calibrated the rig from its wand session (the default length, on the report's
     # own thresholds: a newcomer sees it pass), and stage 4 used that calibration
     assert "against the simulator's true rig" in out.stdout, out.stdout + out.stderr
@@ -143,16 +144,25 @@ def test_demo_runs_every_stage(tmp_path):
     assert list((tmp_path / "recon").glob("t*/splats.ply"))
     assert list((tmp_path / "recon").glob("*_view_vs_truth.png"))
     # stage 5 printed the egocentric table of that timestamp, one row per method
-    assert "[5/7] evaluation" in out.stdout
+    assert "[5/8] evaluation" in out.stdout
     for row in ("| Depth reprojection |", "| EgoSurg w/o refinement |", "| EgoSurg (guided"):
         assert row in out.stdout, row
     assert list((tmp_path / "evaluation" / "egocentric").glob("*.md"))
     # stage 6 reconstructed a few timestamps as a case; stage 7 replayed and tested a sightline
-    assert "[6/7] batch" in out.stdout and "[7/7] review" in out.stdout
-    assert (tmp_path / "case" / "case.json").exists()
+    assert "[6/8] batch" in out.stdout and "[7/8] review" in out.stdout
+    # the case's timestamps are a second apart: the sim renders the people once a second, so
+    # closer ones would be the same picture (the demo says so on screen)
+    index = json.loads((tmp_path / "case" / "case.json").read_text())
+    times_s = sorted(float(e["t_s"]) for e in index["timestamps"])
+    assert len(times_s) == 3 and np.allclose(np.diff(times_s), 1.0, atol=0.01), times_s
+    assert "renders the people's motion 1 time(s) a second" in out.stdout
     replay = cv2.VideoCapture(str(tmp_path / "review" / "surgeon.mp4"))
     assert replay.get(cv2.CAP_PROP_FRAME_COUNT) >= 2
     assert (tmp_path / "review" / "sightline" / "sightline.csv").exists()
+    # stage 8: the case report, one self-contained file
+    assert "[8/8] report" in out.stdout
+    report = (tmp_path / "review" / "report.html").read_text()
+    assert "<html" in report.lower() and "demo-case" in report
     mosaic = cv2.imread(str(tmp_path / "sim" / "rig_views.png"))
     assert mosaic.shape[0] > 4 * 200 and mosaic.shape[1] >= 2 * 480  # eight views, 4 x 2
     assert cv2.imread(str(tmp_path / "sim" / "room_topdown.png")) is not None
