@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import sys
+import threading
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -362,4 +364,14 @@ def main_view(argv: list[str]) -> int:
         pass
     finally:
         viewer.close()
+        _exit_soon(10.0)
     return 0
+
+
+def _exit_soon(seconds: float) -> None:
+    """Ctrl-C stops the viewer: should a library thread (viser's server, a model read in flight)
+    not end within ``seconds`` of the close, the process leaves without it (exit code 0). Nothing
+    is lost: a saved viewpoint is written to its file when it is saved."""
+    timer = threading.Timer(seconds, os._exit, args=(0,))
+    timer.daemon = True
+    timer.start()
