@@ -18,12 +18,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import shutil
 import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 import urllib.parse
 import urllib.request
@@ -43,6 +41,7 @@ from protocol.formats.trajectory import (
 from reconstructor.case.index import CaseIndex, Entry, checksum_file
 from reconstructor.splats import ply
 from reconstructor.splats.gaussians import Gaussians
+from tests.browser import CHROMIUM_MISSING, SKIP_REASON, HeadlessChromium
 from tests.helpers import REPO, run_egosurg
 
 viser = pytest.importorskip("viser", reason="egosurg view needs viser: pip install -e '.[dev]'")
@@ -427,76 +426,7 @@ def correlation(a: np.ndarray, b: np.ndarray) -> float:
     return float((a * b).sum() / math.sqrt((a * a).sum() * (b * b).sum() + 1e-12))
 
 
-class HeadlessChromium:
-    """Debian's chromium, headless, driven through its DevTools protocol (a websocket): open a
-    page, take screenshots while it loads. Every wait is bounded."""
-
-    def __init__(self, profile: Path) -> None:
-        import re
-
-        self.proc = subprocess.Popen(
-            ["chromium", "--headless=new", "--no-sandbox", "--use-gl=swiftshader",
-             "--enable-unsafe-swiftshader", "--hide-scrollbars", "--no-first-run",
-             f"--window-size={SIZE_PX[0]},{SIZE_PX[1]}", "--remote-debugging-port=0",
-             "--remote-allow-origins=*", f"--user-data-dir={profile}", "about:blank"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-        )  # fmt: skip
-        found: list[str] = []
-
-        def read_stderr() -> None:  # drains chromium's chatter so that it never blocks
-            for line in self.proc.stderr or ():
-                m = re.search(r"DevTools listening on (ws://\S+)", line)
-                if m:
-                    found.append(m.group(1))
-
-        threading.Thread(target=read_stderr, daemon=True).start()
-        deadline = time.monotonic() + 30
-        while not found and time.monotonic() < deadline and self.proc.poll() is None:
-            time.sleep(0.1)
-        assert found, "chromium did not start its DevTools endpoint within 30 s"
-        http = found[0].replace("ws://", "http://").split("/devtools")[0]
-        with urllib.request.urlopen(f"{http}/json/list", timeout=10) as reply:
-            import json
-
-            page = next(t for t in json.load(reply) if t["type"] == "page")
-        from websockets.sync.client import connect
-
-        self.ws = connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=10)
-        self._id = 0
-
-    def call(self, method: str, **params):
-        import json
-
-        self._id += 1
-        self.ws.send(json.dumps({"id": self._id, "method": method, "params": params}))
-        while True:
-            reply = json.loads(self.ws.recv(timeout=30))
-            if reply.get("id") == self._id:
-                assert "error" not in reply, reply
-                return reply["result"]
-
-    def screenshot(self) -> np.ndarray:
-        import base64
-
-        import cv2
-
-        png = base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
-        return cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
-
-    def close(self) -> None:
-        self.ws.close()
-        self.proc.terminate()
-        try:
-            self.proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait(timeout=10)
-
-
-@pytest.mark.skipif(
-    shutil.which("chromium") is None,
-    reason="Debian's chromium is not installed (make system-deps installs it as root)",
-)
+@pytest.mark.skipif(CHROMIUM_MISSING, reason=SKIP_REASON)
 def test_browser_shows_what_our_renderer_shows(viewer, case, tmp_path):
     import cv2
 
@@ -509,7 +439,7 @@ def test_browser_shows_what_our_renderer_shows(viewer, case, tmp_path):
     ours = grey_band(render_view(g, camera, case_raster(case))[0])
     assert correlation(ours, ours[::-1]) < 0.5 and correlation(ours, ours[:, ::-1]) < 0.5
     keep = Path(tempfile.gettempdir()) / "egosurg_test_view_page.png"
-    browser = HeadlessChromium(tmp_path / "profile")
+    browser = HeadlessChromium(tmp_path / "profile", size_px=SIZE_PX)
     try:
         # the page's size exactly (a headless window's viewport is smaller than the window)
         browser.call("Emulation.setDeviceMetricsOverride", width=SIZE_PX[0], height=SIZE_PX[1],
