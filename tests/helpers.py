@@ -10,7 +10,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -24,6 +24,25 @@ if TYPE_CHECKING:
     from sim.deploy import SimRigSpec
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+@dataclass(frozen=True)
+class Ran:
+    """What an ``egosurg`` command run in this process answered."""
+
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def egosurg_in_process(capsys, *args: str) -> Ran:
+    """The real dispatcher (protocol/cli.py), in this process: torch loads once per test file."""
+    from protocol.cli import main
+
+    capsys.readouterr()
+    code = main(list(args))
+    out = capsys.readouterr()
+    return Ran(code, out.out, out.err)
 
 
 def run_egosurg(

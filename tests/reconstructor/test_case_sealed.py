@@ -28,7 +28,7 @@ from reconstructor.depth.cache import DepthCache
 from reconstructor.errors import CaseStorageError
 from reconstructor.replay.models import CaseModels
 from reconstructor.splats import ply
-from tests.helpers import copy_sets, run_egosurg
+from tests.helpers import copy_sets, egosurg_in_process, run_egosurg
 
 # what a plaintext model, point cloud or depth entry starts with, anywhere in a file
 PLAINTEXT_MARKS = (b"ply\n", b"PK\x03\x04", b"\x93NUMPY")
@@ -36,18 +36,7 @@ PLAINTEXT_MARKS = (b"ply\n", b"PK\x03\x04", b"\x93NUMPY")
 pytestmark = pytest.mark.slow  # one real reconstruct of two timestamps (about 20 s) and a rerun
 
 
-class Ran:
-    def __init__(self, returncode: int, stderr: str) -> None:
-        self.returncode, self.stderr = returncode, stderr
-
-
-def egosurg(capsys, *args: str) -> Ran:
-    """The real dispatcher (protocol/cli.py), in this process: torch loads once per file."""
-    from protocol.cli import main
-
-    capsys.readouterr()
-    code = main(list(args))
-    return Ran(code, capsys.readouterr().err)
+egosurg = egosurg_in_process
 
 
 @pytest.fixture(scope="module")

@@ -17,22 +17,10 @@ from protocol.formats.site import read_site
 from protocol.formats.trajectory import Keyframe, Trajectory, read_trajectories, write_trajectories
 from reconstructor.replay.models import CaseModels, ModelSource
 from reconstructor.replay.path import CameraPath
-from tests.helpers import run_egosurg
+from tests.helpers import egosurg_in_process, run_egosurg
 from tests.reconstructor.tiny import tiny_config_toml, tiny_eval_session
 
-
-class Ran:
-    def __init__(self, returncode: int, stderr: str) -> None:
-        self.returncode, self.stderr = returncode, stderr
-
-
-def egosurg(capsys, *args: str) -> Ran:
-    """The real dispatcher (protocol/cli.py), in this process: torch loads once per file."""
-    from protocol.cli import main
-
-    capsys.readouterr()
-    code = main(list(args))
-    return Ran(code, capsys.readouterr().err)
+egosurg = egosurg_in_process
 
 
 @pytest.fixture(scope="module")
