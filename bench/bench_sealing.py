@@ -84,9 +84,10 @@ def _jpeg_like(seed: int, size: int) -> bytes:
     return b"\xff\xd8" + body + b"\xff\xd9"
 
 
-def _append_rate(path: Path, recipients: list) -> tuple[float, float, float]:
-    """(images/s, CPU microseconds per image of the process, and of the appending thread: the
-    recorder's session-queue thread) of appending WRITER_ROWS pairs to a new session."""
+def append_seconds(path: Path, recipients: list, rows: int) -> tuple[float, float, float]:
+    """(wall, appending thread's CPU, process CPU) seconds to append ``rows`` pairs of 2 x 325 kB
+    images to a new session, flushing every 15 rows as the recorder does. The appending thread is
+    the recorder's session-queue thread."""
     pair = (_jpeg_like(1, 325_000), _jpeg_like(2, 325_000))
     with SessionWriter(
         path,
@@ -98,8 +99,8 @@ def _append_rate(path: Path, recipients: list) -> tuple[float, float, float]:
         started_unix_ns=1_770_000_000_000_000_000,
         recipients=recipients,
     ) as w:
-        started, cpu, mine = time.perf_counter(), time.process_time(), time.thread_time()
-        for row in range(WRITER_ROWS):
+        started, mine, cpu = time.perf_counter(), time.thread_time(), time.process_time()
+        for row in range(rows):
             w.append_frame(
                 WRITER_CAMERA.camera_serial,
                 left=pair[0],
@@ -115,12 +116,19 @@ def _append_rate(path: Path, recipients: list) -> tuple[float, float, float]:
             if row % 15 == 14:
                 w.flush()
         w.flush()
-        images = 2 * WRITER_ROWS
         return (
-            images / (time.perf_counter() - started),
-            (time.process_time() - cpu) / images * 1e6,
-            (time.thread_time() - mine) / images * 1e6,
+            time.perf_counter() - started,
+            time.thread_time() - mine,
+            time.process_time() - cpu,
         )
+
+
+def _append_rate(path: Path, recipients: list) -> tuple[float, float, float]:
+    """(images/s, CPU microseconds per image of the process, and of the appending thread) of
+    appending WRITER_ROWS pairs to a new session."""
+    wall, mine, cpu = append_seconds(path, recipients, WRITER_ROWS)
+    images = 2 * WRITER_ROWS
+    return images / wall, cpu / images * 1e6, mine / images * 1e6
 
 
 def writer_table(rounds: int) -> None:

@@ -16,16 +16,14 @@ import argparse
 import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_sealing import WRITER_CAMERA, _jpeg_like
+from bench_sealing import append_seconds
 
 from protocol.sealing import generate_identity
-from protocol.session import SessionWriter
 from protocol.session import sealed as sealed_module
 
 ROWS = 150
@@ -33,40 +31,10 @@ MODES = {"plaintext": None, "sealed, one thread": 1 << 40, "sealed, two threads"
 
 
 def _run(path: Path, recipients: list) -> tuple[float, float, float]:
-    pair = (_jpeg_like(1, 325_000), _jpeg_like(2, 325_000))
-    with SessionWriter(
-        path,
-        session_name="bench",
-        case_metadata={},
-        cameras=[WRITER_CAMERA],
-        tolerance_ns=1,
-        software_version="bench",
-        started_unix_ns=1,
-        recipients=recipients,
-    ) as w:
-        wall, mine, cpu = time.perf_counter(), time.thread_time(), time.process_time()
-        for row in range(ROWS):
-            w.append_frame(
-                WRITER_CAMERA.camera_serial,
-                left=pair[0],
-                right=pair[1],
-                capture_unix_ns=row,
-                host_receive_unix_ns=0,
-                recorder_receive_unix_ns=0,
-                frame_index=row,
-                seq=row,
-                ptp_offset_ns=0,
-                ptp_locked=True,
-            )
-            if row % 15 == 14:
-                w.flush()
-        w.flush()
-        k = 2 * ROWS / 1e6
-        return (
-            (time.perf_counter() - wall) / k,
-            (time.thread_time() - mine) / k,
-            (time.process_time() - cpu) / k,
-        )
+    """Microseconds per image: wall, the appending thread's CPU, the process's CPU."""
+    k = 2 * ROWS / 1e6
+    wall, mine, cpu = append_seconds(path, recipients, ROWS)
+    return wall / k, mine / k, cpu / k
 
 
 def main() -> int:
