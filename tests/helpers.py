@@ -34,6 +34,10 @@ class Ran:
     stdout: str
     stderr: str
 
+    def __iter__(self):
+        """``code, out, err = egosurg_in_process(...)``."""
+        return iter((self.returncode, self.stdout, self.stderr))
+
 
 def egosurg_in_process(capsys, *args: str) -> Ran:
     """The real dispatcher (protocol/cli.py), in this process: torch loads once per test file."""

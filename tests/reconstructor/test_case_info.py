@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from reconstructor.case.index import CaseIndex, Entry, checksum_file
+from tests.helpers import egosurg_in_process
 
 
 @pytest.fixture
@@ -43,26 +44,12 @@ def folder(tmp_path: Path) -> Path:
     return case
 
 
-class Ran:
-    def __init__(self, returncode: int, stdout: str) -> None:
-        self.returncode, self.stdout = returncode, stdout
-
-
-def run_egosurg(capsys, *args: str) -> Ran:
-    """The real dispatcher (protocol/cli.py), as the command runs it."""
-    from protocol.cli import main
-
-    capsys.readouterr()
-    code = main(list(args))
-    return Ran(code, capsys.readouterr().out)
-
-
 def _rows(stdout: str) -> dict[str, str]:
     return {line.split()[0]: line for line in stdout.splitlines() if line.startswith("t")}
 
 
 def test_case_info_shows_missing_and_cut_models_and_exits_1(folder, capsys):
-    done = run_egosurg(capsys, "case", "info", str(folder))
+    done = egosurg_in_process(capsys, "case", "info", str(folder))
     assert done.returncode == 1, done.stdout
     rows = _rows(done.stdout)
     assert " MISSING " in rows["t3"] and "models/t3.ply is missing" in rows["t3"]
@@ -74,7 +61,7 @@ def test_case_info_shows_missing_and_cut_models_and_exits_1(folder, capsys):
 
 
 def test_case_info_verify_finds_a_changed_model_by_its_checksum(folder, capsys):
-    done = run_egosurg(capsys, "case", "info", str(folder), "--verify")
+    done = egosurg_in_process(capsys, "case", "info", str(folder), "--verify")
     assert done.returncode == 1, done.stdout
     rows = _rows(done.stdout)
     assert " DAMAGED " in rows["t4"] and "does not match its checksum" in rows["t4"]
@@ -85,6 +72,6 @@ def test_case_info_of_an_intact_case_exits_0(folder, capsys):
     index = CaseIndex.read(folder)
     keep = tuple(e for e in index.timestamps if e.name in ("t1", "t2"))
     CaseIndex(**{**index.__dict__, "timestamps": keep}).write(folder)
-    done = run_egosurg(capsys, "case", "info", str(folder), "--verify")
+    done = egosurg_in_process(capsys, "case", "info", str(folder), "--verify")
     assert done.returncode == 0, done.stdout
     assert "2 as written, 0 MISSING, 0 DAMAGED, 0 unchecked" in done.stdout

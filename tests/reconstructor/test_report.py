@@ -28,20 +28,10 @@ from pathlib import Path
 import pytest
 
 from tests.browser import CHROMIUM_MISSING, SKIP_REASON, HeadlessChromium
-from tests.helpers import run_egosurg
+from tests.helpers import egosurg_in_process, run_egosurg
 from tests.reconstructor.tiny import tiny_config_toml, tiny_eval_session
 
 ROLES = ("surgeon", "assistant", "anaesthetist", "nurse_scrub", "circulator", "robot_assistant")
-
-
-def egosurg(capsys, *args: str) -> tuple[int, str, str]:
-    """The real dispatcher (protocol/cli.py) in this process: (exit code, stdout, stderr)."""
-    from protocol.cli import main
-
-    capsys.readouterr()
-    code = main(list(args))
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +74,7 @@ class Page(HTMLParser):
 
 
 def _full_report(case, capsys, out: Path, *extra: str) -> str:
-    code, stdout, err = egosurg(
+    code, stdout, err = egosurg_in_process(
         capsys, "report", str(case["case"]), "--roles", str(case["roles"]), "--sightline",
         str(case["los"]), "--sterile", str(case["sterile"]), "--timezone", "Europe/Berlin",
         "--out", str(out), *extra,
@@ -144,7 +134,7 @@ def test_the_report_opens_offline_in_chromium_every_picture_loads_and_it_prints(
 
 def test_inputs_not_given_say_not_run_with_the_command_that_makes_them(case, capsys, tmp_path):
     out = tmp_path / "bare.html"
-    code, _, err = egosurg(capsys, "report", str(case["case"]), "--out", str(out))
+    code, _, err = egosurg_in_process(capsys, "report", str(case["case"]), "--out", str(out))
     assert code == 0, err[-2000:]
     text = out.read_text()
     for section, command in (("sterile", "egosurg sterile"), ("sightline", "egosurg sightline"),
@@ -173,7 +163,7 @@ def test_each_contact_shows_its_evidence_and_the_real_camera_nearest_it(case, ca
     with (folder / "events.csv").open("a", newline="") as fh:
         csv.DictWriter(fh, header).writerow(row)
     out = tmp_path / "events.html"
-    code, _, err = egosurg(capsys, "report", str(case["case"]), "--sterile", str(folder),
+    code, _, err = egosurg_in_process(capsys, "report", str(case["case"]), "--sterile", str(folder),
                            "--timezone", "UTC", "--out", str(out))  # fmt: skip
     assert code == 0, err[-2000:]
     part = out.read_text().split('<h2 id="sterile">')[1].split("<h2")[0]
@@ -193,7 +183,7 @@ def test_each_contact_shows_its_evidence_and_the_real_camera_nearest_it(case, ca
         writer = csv.DictWriter(fh, header)
         writer.writeheader()
         writer.writerow(row)
-    code, _, err = egosurg(capsys, "report", str(case["case"]), "--sterile", str(folder),
+    code, _, err = egosurg_in_process(capsys, "report", str(case["case"]), "--sterile", str(folder),
                            "--timezone", "UTC", "--out", str(out))  # fmt: skip
     assert code == 0, err[-2000:]
     part = out.read_text().split('<h2 id="sterile">')[1].split("<h2")[0]
@@ -232,12 +222,12 @@ def test_a_sealed_session_without_its_identity_gives_a_report_without_real_frame
                        session=SessionId(name="copy", started_unix_ns=start))  # fmt: skip
     out = tmp_path / "sealed.html"
     args = ("report", str(folder), "--roles", str(roles), "--times", "2.0", "--out", str(out))
-    code, _, err = egosurg(capsys, *args)
+    code, _, err = egosurg_in_process(capsys, *args)
     assert code == 0, err[-2000:]
     assert "sealed and no --identity" in err
     text = out.read_text()
     assert 'id="sealed"' in text and "hospital-a" in text and 'real camera"' not in text
-    code, _, err = egosurg(capsys, *args, "--identity", str(identity))
+    code, _, err = egosurg_in_process(capsys, *args, "--identity", str(identity))
     assert code == 0, err[-2000:]
     text = out.read_text()
     assert 'id="sealed"' not in text and 'alt="surgeon nearest real camera"' in text
@@ -253,7 +243,7 @@ def test_a_sealed_session_without_its_identity_gives_a_report_without_real_frame
     ],
 )
 def test_bad_report_input_gets_one_clear_line(case, capsys, tmp_path, extra, message):
-    code, _, err = egosurg(capsys, "report", str(case["case"]), *extra, "--out",
+    code, _, err = egosurg_in_process(capsys, "report", str(case["case"]), *extra, "--out",
                            str(tmp_path / "r.html"))  # fmt: skip
     assert code == 2 and "Traceback" not in err, err
     (line,) = err.strip().splitlines()
@@ -264,13 +254,15 @@ def test_bad_report_input_gets_one_clear_line(case, capsys, tmp_path, extra, mes
 def test_not_a_case_and_files_of_another_session_are_refused_in_one_line(case, capsys, tmp_path):
     from tests.reconstructor.test_replay import _demo_style_session
 
-    code, _, err = egosurg(capsys, "report", str(tmp_path), "--out", str(tmp_path / "r.html"))
+    code, _, err = egosurg_in_process(
+        capsys, "report", str(tmp_path), "--out", str(tmp_path / "r.html")
+    )
     assert code == 2 and err.count("\n") == 1 and "is not a case folder" in err, err
     demo = _demo_style_session(tmp_path / "demo.h5")
     done = run_egosurg("sim", "roles", str(demo), "--every", "0.05", "--out",
                        str(tmp_path / "demo_roles.toml"))  # fmt: skip
     assert done.returncode == 0, done.stderr
-    code, _, err = egosurg(capsys, "report", str(case["case"]), "--roles",
+    code, _, err = egosurg_in_process(capsys, "report", str(case["case"]), "--roles",
                            str(tmp_path / "demo_roles.toml"), "--out",
                            str(tmp_path / "r.html"))  # fmt: skip
     assert code == 2 and err.count("\n") == 1 and "made for session 'demo-or1'" in err, err
@@ -278,7 +270,7 @@ def test_not_a_case_and_files_of_another_session_are_refused_in_one_line(case, c
     shutil.copytree(case["los"], los)
     record = (los / "made_for.toml").read_text()
     (los / "made_for.toml").write_text(record.replace("sim-intraoperative-seed3", "demo-or1"))
-    code, _, err = egosurg(capsys, "report", str(case["case"]), "--sightline", str(los),
+    code, _, err = egosurg_in_process(capsys, "report", str(case["case"]), "--sightline", str(los),
                            "--out", str(tmp_path / "r.html"))  # fmt: skip
     assert code == 2 and err.count("\n") == 1 and "made for session 'demo-or1'" in err, err
     assert not (tmp_path / "r.html").exists()
