@@ -42,6 +42,11 @@ class PeopleConfig:
     gate_m: float = 0.3
     gate_growth_m_s: float = 0.4
     max_speed_m_s: float = 1.5
+    # ... and whose head top is within height_gate_m of the track's usual height (people differ
+    # by 5-20 cm; a head stays within a few cm of its height unless the person bends), each
+    # metre of difference costing as much as height_weight metres of distance
+    height_gate_m: float = 0.15
+    height_weight: float = 1.0
     # a new track is tentative (not reported, and matched only after the confirmed ones) until
     # it is seen at confirm_seen of its first confirm_timestamps timestamps: a neighbour's
     # shoulder or stereo noise makes heads that last one or two
@@ -58,6 +63,16 @@ class PeopleConfig:
     max_gap_s: float = 3.0
     # ... and a track starting within this long after, where the gate reaches, continues it
     stitch_gap_s: float = 6.0
+    # ... and within this speed of where it was last seen (a walker missed for a few seconds
+    # walks on; the height and the least total cost over the case keep neighbours apart)
+    link_speed_m_s: float = 1.2
+    # a track that stays within static_radius_m of one place (90 % of its heads) with more than
+    # static_share_max of the room's background cubes round its head (the median over its
+    # detections) is equipment the background learned in part, not a person (in the sim, over
+    # 2 % round 7-21 % of people's heads and round 80-95 % of false heads that stay); a wider
+    # radius also takes people who stand still most of a short recording
+    static_share_max: float = 0.05
+    static_radius_m: float = 0.5
     # a track must be seen this many times, this surely on average, to be reported (stereo
     # noise makes short-lived or doubtful heads)
     min_detections: int = 5
@@ -73,6 +88,11 @@ class PeopleConfig:
     work_surface_max_m: float = 1.45
     gaze_reach_m: float = 2.2
     default_pitch_deg: float = 9.0
+    # a standing person faces into the group: the middle of the others standing within
+    # group_radius_m says which side is the front as strongly as arms reaching group_weight_m
+    # further out on that side
+    group_radius_m: float = 2.0
+    group_weight_m: float = 0.3
     # facing is smoothed over this many seconds (heads turn, but not between two stereo sets)
     facing_smooth_s: float = 1.0
     # a track moving faster than this faces where it goes

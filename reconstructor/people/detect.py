@@ -27,6 +27,8 @@ SHOULDER_RADIUS_M = 0.35
 REACH_RING_M = (0.22, 0.55)  # arms and hands held out in front
 REACH_MIN_Z_M = 0.98
 COLUMN_RADIUS_M = 0.3  # below this lie the table's top and the patient, not arms
+STATIC_RADIUS_M = 0.16
+STATIC_BELOW_M = 0.32
 
 
 @dataclass(frozen=True)
@@ -38,6 +40,10 @@ class Detection:
     gaze_pitch_rad: tuple[float, float]  # looking at what lies on the +normal / -normal side
     surface_m: tuple[float, float]  # how far the first raised surface is on each side (inf: none)
     confidence: float  # 0..1
+    # share of the room's background cubes around the head (within STATIC_RADIUS_M, from
+    # STATIC_BELOW_M below its top to one cube above): equipment the background learned in
+    # part, rarely a person's head, which moves through space the room leaves free
+    static_share: float = 0.0
 
     def normal_rad(self, side: int) -> float:
         """Facing of side 0 (+normal) or 1 (-normal)."""
@@ -54,6 +60,7 @@ class Frame:
     top_m: np.ndarray
     top_fg_m: np.ndarray
     fg_m: np.ndarray  # (M, 3) float32 foreground points
+    background: Background  # the room's cubes
 
 
 def make_frame(
@@ -71,7 +78,7 @@ def make_frame(
     p = np.asarray(points_m, np.float32).reshape(-1, 3)
     is_fg = background.is_foreground(p)
     fg = p[is_fg]
-    return Frame(grid, heights(p[~is_fg]), heights(fg), fg[fg[:, 2] > 0.05])
+    return Frame(grid, heights(p[~is_fg]), heights(fg), fg[fg[:, 2] > 0.05], background)
 
 
 def _disk(radius_cells: float) -> np.ndarray:
@@ -158,6 +165,7 @@ def _person_at(frame: Frame, xy: np.ndarray, top: float, config: PeopleConfig) -
                    _gaze(frame, head_xy, -normal, centre_z, config))  # fmt: skip
     confidence = float(isolation * column_share * min(1.0, len(head) / 60.0))
     return Detection(
+        static_share=_static_share(frame, head_xy, top),
         head_xy_m=(float(head_xy[0]), float(head_xy[1])),
         top_m=top,
         shoulder_axis_rad=axis,
@@ -166,6 +174,18 @@ def _person_at(frame: Frame, xy: np.ndarray, top: float, config: PeopleConfig) -
         surface_m=(front[1], back[1]),
         confidence=confidence,
     )
+
+
+def _static_share(frame: Frame, head_xy: np.ndarray, top: float) -> float:
+    """The share of background cubes in the box round the head (see ``Detection``)."""
+    bg = frame.background
+    row, col, _ = frame.grid.cells(head_xy[None, :])
+    r, c = int(row[0]), int(col[0])
+    k = round(STATIC_RADIUS_M / frame.grid.cell_m)
+    lo = max(int(np.floor((top - STATIC_BELOW_M) / frame.grid.cell_m)), 0)
+    hi = int(np.floor(top / frame.grid.cell_m)) + 1
+    block = bg.static[max(r - k, 0) : r + k + 1, max(c - k, 0) : c + k + 1, lo:hi]
+    return float(block.mean()) if block.size else 0.0
 
 
 def _gaze(

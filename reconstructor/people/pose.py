@@ -1,8 +1,9 @@
 """Each track's head pose over time: where the eye is and where it looks.
 
 Facing (yaw): a walking person faces where they go; a standing one faces across their shoulder
-line, on the side their arms reach out to (work is done in front) and where the room's raised
-surface is (the table) when it is on one side only. The evidence of each
+line, on the side their arms reach out to (work is done in front), where the room's raised
+surface is (the table) when it is on one side only, and where the others standing near them are
+(a team faces into the space it shares: ``group_sides``). The evidence of each
 timestamp is one vector, the reach difference along the shoulder normal plus the motion, summed
 over ``facing_smooth_s`` so that one unclear timestamp takes its neighbours' side. Pitch: a
 walker looks ``default_pitch_deg`` down; a standing person looks at the middle of the raised
@@ -51,7 +52,31 @@ def _velocities(times: np.ndarray, xy: np.ndarray, window_s: float) -> np.ndarra
     return out
 
 
-def head_poses(track: Track, config: PeopleConfig) -> list[HeadPose]:
+def group_sides(
+    track: Track, heads_at: dict[float, np.ndarray], config: PeopleConfig
+) -> np.ndarray:
+    """(N,) +1 / -1 / 0 for each of ``track``'s detections: on which side of its shoulder line
+    (+normal, -normal) the other people standing within ``group_radius_m`` are, on average
+    (0: nobody near). ``heads_at``: every track's head (x, y) at each time.
+
+    A team at work stands round what it works on, each facing into the space they share (the
+    F-formation of a group): the middle of the others is in front of a person, not behind."""
+    out = np.zeros(len(track.detections))
+    for i, (t, d) in enumerate(zip(track.times_s, track.detections, strict=True)):
+        own = np.asarray(d.head_xy_m)
+        others = heads_at.get(round(t, 6), np.zeros((0, 2)))
+        dist = np.hypot(*(others - own).T) if len(others) else np.zeros(0)
+        near = others[(dist > config.min_head_separation_m) & (dist <= config.group_radius_m)]
+        if len(near):
+            normal = np.array([math.cos(d.normal_rad(0)), math.sin(d.normal_rad(0))])
+            out[i] = float(np.sign(normal @ (near.mean(axis=0) - own)))
+    return out
+
+
+def head_poses(
+    track: Track, config: PeopleConfig, group_side: np.ndarray | None = None
+) -> list[HeadPose]:
+    """``group_side``: ``group_sides`` of the track (none: no group evidence)."""
     times = np.asarray(track.times_s)
     dets = track.detections
     xy = track.xy()
@@ -64,7 +89,10 @@ def head_poses(track: Track, config: PeopleConfig) -> list[HeadPose]:
         [float(d.surface_m[0] <= SURFACE_NEAR_M) - float(d.surface_m[1] <= SURFACE_NEAR_M)
          for d in dets]
     )  # fmt: skip
-    evidence = normals * (reach + SURFACE_WEIGHT_M * near_surface)[:, None]
+    group = np.zeros(len(dets)) if group_side is None else np.asarray(group_side, np.float64)
+    evidence = (
+        normals * (reach + SURFACE_WEIGHT_M * near_surface + config.group_weight_m * group)[:, None]
+    )
     walking = speed > config.walking_speed_m_s
     evidence[walking] += vel[walking] / speed[walking, None] * 0.3
     out = []

@@ -19,7 +19,7 @@ from reconstructor.people.background import Background
 from reconstructor.people.config import PeopleConfig
 from reconstructor.people.detect import Detection, detect, make_frame
 from reconstructor.people.heightmap import Grid
-from reconstructor.people.pose import HeadPose, head_poses
+from reconstructor.people.pose import HeadPose, group_sides, head_poses
 from reconstructor.people.sources import PeopleInputError, Source
 from reconstructor.people.track import Track, track_people
 
@@ -102,7 +102,21 @@ def find_people(
         if progress:
             progress("people", k + 1, n)
     t0 = time.perf_counter()
-    tracks = track_people(frames, config)
-    poses = {tr.id: head_poses(tr, config) for tr in tracks}
+    tracks, poses = people_from_detections(frames, config)
     seconds["track"] = time.perf_counter() - t0
     return People(tracks, poses, source.times_s, " and ".join(origin), seconds)
+
+
+def people_from_detections(
+    frames: list[tuple[float, list[Detection]]], config: PeopleConfig
+) -> tuple[list[Track], dict[int, list[HeadPose]]]:
+    """Each timestamp's heads (time order) joined into tracks, and each track's head poses."""
+    tracks = track_people(frames, config)
+    heads: dict[float, list[tuple[float, float]]] = {}
+    for tr in tracks:
+        for t, d in zip(tr.times_s, tr.detections, strict=True):
+            heads.setdefault(round(t, 6), []).append(d.head_xy_m)
+    heads_at = {t: np.array(xy) for t, xy in heads.items()}
+    return tracks, {
+        tr.id: head_poses(tr, config, group_sides(tr, heads_at, config)) for tr in tracks
+    }

@@ -9,18 +9,23 @@ doubtful head between a walker and someone standing bends the walker's velocity 
 each timestamp every live track predicts where its head is now (last position plus
 its velocity, the speed capped at ``max_speed_m_s``); detections are given to the confirmed
 tracks first, by the assignment of least total distance (``scipy.optimize.linear_sum_assignment``)
-within a gate that widens with the time since the track was last seen; a detection left over
+within a gate that widens with the time since the track was last seen and at the track's usual
+head height (within ``height_gate_m``, each metre of difference costing ``height_weight`` metres:
+people differ in height, which their scrubs do not show); a detection left over
 within ``duplicate_m`` of a confirmed track's head is that person again (a shoulder, a second
 peak of the same head) and is dropped; what is left goes to the tentative tracks the same way,
 and the rest may start new ones. A confirmed track missed by the detector coasts for at most
 ``max_gap_s``, then ends; the timestamps it coasted through are its gaps, kept and never filled
-in. Only confirmed tracks are reported, those seen too seldom or too doubtfully dropped, and a
-track that starts soon after another ended, near where that one was last seen, continues it.
+in. Only confirmed tracks are reported, those seen too seldom or too doubtfully dropped, and
+those that stay in one place with their head among the room's background cubes (equipment the
+background learned in part). The recording is whole before tracking starts, so the tracks are
+then linked over the whole case: a track that starts within ``stitch_gap_s`` after another
+ended, where a walker could have gone in between and at its height, continues it, the pairs
+chosen by least total cost at once (each track with at most one predecessor and one successor).
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -31,6 +36,7 @@ from reconstructor.people.detect import Detection
 
 START_CONFIDENCE = 0.6  # a detection must be this sure of itself to start a track
 NO_MATCH = 1e6
+TOP_WINDOW = 10  # detections a track's usual head height is taken over
 
 
 @dataclass
@@ -60,6 +66,10 @@ class Track:
             v *= max_speed_m_s / speed
         return xy + v * min(t_s - self.last_s, 1.0)
 
+    def top_m(self) -> float:
+        """The head top's usual height: the median over the last ``TOP_WINDOW`` detections."""
+        return float(np.median([d.top_m for d in self.detections[-TOP_WINDOW:]]))
+
     def gaps_s(self) -> list[tuple[float, float]]:
         """(last seen, seen again) around each run of missed timestamps inside the track."""
         times = np.asarray(self.times_s)
@@ -79,10 +89,12 @@ def _assign(
     for i, tr in enumerate(tracks):
         pred = tr.predict(t, c.max_speed_m_s)
         gate = min(c.gate_m + c.gate_growth_m_s * (t - tr.last_s), 1.2)
+        top = tr.top_m()
         for k, j in enumerate(free):
             dist = float(np.hypot(*(np.asarray(detections[j].head_xy_m) - pred)))
-            if dist <= gate:
-                cost[i, k] = dist
+            rise = abs(detections[j].top_m - top)
+            if dist <= gate and rise <= c.height_gate_m:
+                cost[i, k] = dist + c.height_weight * rise
     if not cost.size:
         return {}
     rows, cols = linear_sum_assignment(cost)
@@ -128,17 +140,30 @@ def track_people(frames: list[tuple[float, list[Detection]]], config: PeopleConf
             if detections[j].confidence >= START_CONFIDENCE:
                 live.append(Track(next_id, [t], [detections[j]]))
                 next_id += 1
+    # a track whose head sits, most of its life, among the room's background cubes is equipment
+    # the background learned in part, not a person
+    confirmed = sorted(
+        (tr for tr in done + live if tr.confirmed and not _equipment(tr, config)),
+        key=lambda tr: (tr.times_s[0], tr.id),
+    )
     kept = [
         tr
-        for tr in done + live
-        if tr.confirmed
-        and len(tr.times_s) >= config.min_detections
+        for tr in _linked(confirmed, config)
+        if len(tr.times_s) >= config.min_detections
         and np.mean([d.confidence for d in tr.detections]) >= config.min_track_confidence
     ]
-    kept = _stitched(sorted(kept, key=lambda tr: (tr.times_s[0], tr.id)), config)
     for k, tr in enumerate(kept, start=1):
         tr.id = k
     return kept
+
+
+def _equipment(track: Track, config: PeopleConfig) -> bool:
+    """A track that stays in one place (90 % of its heads within ``static_radius_m`` of their
+    median) with its head among the room's background cubes most of the time."""
+    xy = track.xy()
+    spread = np.percentile(np.hypot(*(xy - np.median(xy, axis=0)).T), 90)
+    share = np.median([d.static_share for d in track.detections])
+    return bool(spread <= config.static_radius_m and share > config.static_share_max)
 
 
 def _can_confirm(track: Track, config: PeopleConfig) -> bool:
@@ -156,24 +181,42 @@ def _near(detection: Detection, heads: list[np.ndarray], radius_m: float) -> boo
     return any(float(np.hypot(*(xy - h))) < radius_m for h in heads)
 
 
-def _stitched(tracks: list[Track], config: PeopleConfig) -> list[Track]:
-    """Tracks joined where one ends and another starts soon after, near where the first was last
-    seen (a person missed for a while, not a new person): the time between becomes a gap."""
-    out: list[Track] = []
-    for tr in tracks:
-        best, best_d = None, math.inf
-        for prev in out:
+def _linked(tracks: list[Track], config: PeopleConfig) -> list[Track]:
+    """Tracks joined where one ends and another starts within ``stitch_gap_s`` after, where the
+    gate reaches from where the first was last seen and at its height (a person missed for a
+    while, or lost when they bent, not a new person): the pairs of least total cost over the
+    whole case (``linear_sum_assignment``: each track has at most one successor and one
+    predecessor), the time between becoming a gap. The recording is whole before tracking, so
+    the linking looks at every track's end and start at once, not only the ones before it."""
+    n = len(tracks)
+    cost = np.full((n, n), NO_MATCH)
+    for a, prev in enumerate(tracks):
+        for b, tr in enumerate(tracks):
             gap = tr.times_s[0] - prev.last_s
             if not 0 < gap <= config.stitch_gap_s:
                 continue
-            d = float(np.hypot(*(tr.xy()[0] - prev.xy()[-1])))
-            if d <= config.gate_m + config.gate_growth_m_s * gap and d < best_d:
-                best, best_d = prev, d
-        if best is None:
-            out.append(tr)
+            d = float(np.hypot(*(tr.xy()[0] - prev.predict(tr.times_s[0], config.max_speed_m_s))))
+            rise = abs(tr.detections[0].top_m - prev.top_m())
+            if d <= config.gate_m + config.link_speed_m_s * gap and rise <= config.height_gate_m:
+                cost[a, b] = d + config.height_weight * rise
+    successor: dict[int, int] = {}
+    if n:
+        rows, cols = linear_sum_assignment(cost)
+        successor = {
+            int(a): int(b) for a, b in zip(rows, cols, strict=True) if cost[a, b] < NO_MATCH
+        }
+    has_prev = set(successor.values())
+    out: list[Track] = []
+    for a in range(n):
+        if a in has_prev:
             continue
-        best.missed_s.append(0.5 * (best.last_s + tr.times_s[0]))  # the gap between them
-        best.times_s += tr.times_s
-        best.detections += tr.detections
-        best.missed_s += tr.missed_s
-    return out
+        head = tracks[a]
+        while a in successor:
+            a = successor[a]
+            tr = tracks[a]
+            head.missed_s.append(0.5 * (head.last_s + tr.times_s[0]))  # the gap between them
+            head.times_s += tr.times_s
+            head.detections += tr.detections
+            head.missed_s += tr.missed_s
+        out.append(head)
+    return sorted(out, key=lambda tr: (tr.times_s[0], tr.id))
