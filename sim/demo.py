@@ -7,7 +7,7 @@ Example::
 Stages so far:
 1. build the simulated OR and write the rig's eight views, a top-down map and a ground-truth video;
 2. run the capture chain as deployed: two simulated Jetson agents (two ZED X each) and the
-   recorder as separate processes over loopback TCP; record about 10 s of the OR, sealed for the
+   recorder as separate processes over loopback TCP; record about 12 s of the OR, sealed for the
    demo's site key, stop, and print the session summary (``egosurg session info``, which opens it
    with the site identity; every later stage's reader does too, through ``EGOSURG_IDENTITY``);
 3. calibrate the rig: record a wand session through the same agents and recorder, run
@@ -21,8 +21,10 @@ Stages so far:
    refinement and EgoSurg against those views;
 6. batch-reconstruct three consecutive timestamps from there as a case (``egosurg reconstruct
    --every ... --warm-start``, a short schedule) and print its summary (``egosurg case info``).
-7. review the case: replay the surgeon's view (``egosurg replay --pip``) and the anaesthetist's
-   line of sight to a monitor (``egosurg sightline``);
+7. review the case with the roles a real case has: the people found in stage 2's session
+   (``egosurg people``, once a second), their tracks named (``egosurg people name``; the demo
+   names them by the sim's truth, and says so), then the surgeon's view replayed (``egosurg
+   replay --pip``) and the anaesthetist's line of sight to a monitor (``egosurg sightline``);
 8. the case report (``egosurg report``, docs/report.md): the drape's sterile field judged
    (``egosurg sterile``) and everything in one HTML file.
 
@@ -51,6 +53,7 @@ from protocol.sealing import IDENTITY_ENV
 from protocol.session import SessionReader
 from sim import pictures
 from sim.cli import write_pictures
+from sim.demo_names import TrueEyes
 from sim.deploy import SimRig, SimRigFiles, SimRigSpec, write_sim_rig
 from sim.timing import ClockSpec
 from sim.truth import align_to_truth, calibration_errors, content_time_s, true_rig_calibration
@@ -363,35 +366,116 @@ def stage_batch(out: Path, stamp: DemoTimestamp, steps: int, content_fps: float)
     _egosurg("case", "info", str(case))
 
 
-def stage_review(out: Path, seed: int, phase: str, stamp: DemoTimestamp) -> None:
-    """The paper's case studies as tools, on the case of stage 6: the surgeon's own view replayed
-    over the case with the nearest real camera inset, and whether the anaesthetist could see a
-    monitor from where they stood, and from a metre to their left and back."""
-    _stage(7, "review: replay the surgeon's view of the case, and the anaesthetist's line of sight")
+def stage_review(out: Path, seed: int, files: SimRigFiles, stamp: DemoTimestamp) -> None:
+    """The paper's case studies as tools, on the case of stage 6, with the roles a real case has:
+    the people found in the recording (``egosurg people`` on the session, once a second: the
+    sim's people move once a second), their tracks named (here by the sim's truth, for the demo
+    only), then one named person's view replayed over the case with the nearest real camera
+    inset, and whether the anaesthetist could see a monitor from where they stood, and from a
+    metre to their left and back."""
+    from protocol.formats.site import site_toml
+    from sim.roles import site_boxes
+    from sim.timing import read_session_clock
+
+    _stage(7, "review: find the people, name their tracks, replay a view, test a line of sight")
     case, review = out / "case", out / "review"
     review.mkdir(parents=True, exist_ok=True)
-    roles, site = review / "roles.toml", review / "site.toml"
+    site, people, roles = review / "site.toml", review / "people.toml", review / "roles.toml"
+    world = World.from_seed(seed, phase=files.spec.phase)
+    # the monitors, as a site measures them once, made for this session
+    site.write_text(site_toml(site_boxes(world), session=read_session_clock(stamp.session).session))
+    print(f"      the site's monitors: {site}")
+    with SessionReader(stamp.session) as reader:
+        started = reader.info.started_unix_ns
+        set_ns = reader.sets().set_unix_ns
+    first_s = (int(set_ns[0]) - started) / 1e9
+    t_mid = (int(set_ns[stamp.set_index]) - started) / 1e9
+    # once a second, in the middle of each second of the sim's content, as stage 4's timestamp:
+    # faster would show each picture again, and at a change of picture the cameras differ
+    t_from = first_s + (t_mid - first_s) % 1.0
+    print("      the people, found in the recording itself (no simulator on this path):")
     done = _egosurg(
-        "sim", "roles", str(stamp.session), "--seed", str(seed), "--phase", phase,
-        "--out", str(roles),
-        "--site-out", str(site),
+        "people", str(stamp.session), "--calibration", str(stamp.calibration), "--every", "1",
+        "--from", f"{t_from:.3f}", "--out", str(people),
     )  # fmt: skip
-    if done.returncode != 0:
-        print("      the sim's role viewpoints could not be written; see the message above")
+    if done.returncode != 0 or not people.is_file():
+        print("      no people found (see the message above; here 'egosurg people' needs 10 s or")
+        print("      more of the room: --record-s 12): no roles to review with")
         return
+    spec, latency_s = files.spec, ClockSpec().readout_latency_ns / 1e9
+
+    def true_eyes(t_case_s: float) -> dict[str, np.ndarray]:
+        """The sim's eyes in the picture the cameras showed at case time ``t_case_s``."""
+        t_exposure = (started - files.epoch_unix_ns) / 1e9 + t_case_s - latency_s
+        t = content_time_s(t_exposure, fps=spec.fps, content_fps=spec.content_fps,
+                           prerender_s=spec.prerender_s)  # fmt: skip
+        return {name: pose.centre_m for name, pose in world.head_poses(t).items()}
+
+    found = _name_tracks(people, true_eyes, world.head_poses(0.0), roles)
+    if found is None:
+        return
+    replay_role, viewer = found
     done = _egosurg(
-        "replay", str(case), "--role", "surgeon", "--roles", str(roles),
-        "--out", str(review / "surgeon.mp4"), "--size", "480x300", "--pip",
+        "replay", str(case), "--role", replay_role, "--roles", str(roles),
+        "--out", str(review / f"{replay_role}.mp4"), "--size", "480x300", "--pip",
     )  # fmt: skip
     if done.returncode != 0:
         print("      replay failed; see the message above")
     done = _egosurg(
-        "sightline", str(case), "--viewer", "anaesthetist", "--roles", str(roles),
+        "sightline", str(case), "--viewer", viewer, "--roles", str(roles),
         "--target", "monitor-a", "--site", str(site), "--offset", "1m left-posterior",
         "--out", str(review / "sightline"),
     )  # fmt: skip
     if done.returncode != 0:
         print("      line of sight failed; see the message above")
+
+
+def _name_tracks(
+    people: Path, true_eyes: TrueEyes, everyone: dict[str, Pose], roles: Path
+) -> tuple[str, str] | None:
+    """Stage 7's naming: the tracks named after the sim's people, written by ``egosurg people
+    name``; the roles to replay and to test the line of sight of (None: nobody to review)."""
+    import json
+
+    from sim.demo_names import MAX_NAMING_M, covering, name_by_truth
+
+    named = name_by_truth(people, true_eyes)
+    print(
+        "      naming the tracks: on a real case you do it ('egosurg people name "
+        f"{people} --list --suggest', or click them in 'egosurg view --people'); the demo "
+        f"names them by the SIMULATOR'S TRUTH, for the demo only: each track after the person "
+        f"whose true eye is nearest it (median over its keyframes, within {MAX_NAMING_M} m):"
+    )
+    for n in named:
+        print(f"        {n.track} = {n.role} ({n.median_m:.2f} m from the true eye)")
+    unfound = [r for r in everyone if r not in {n.role for n in named}]
+    if unfound:
+        print(
+            f"      no track within {MAX_NAMING_M} m of: {', '.join(unfound)} (someone who stands "
+            "still through the whole recording is taken for part of the room, a head hidden "
+            "by others is missed: docs/replay.md, 'Limits')"
+        )
+    if not named:
+        print("      no track is within reach of a person: nothing to review")
+        return None
+    done = _egosurg(
+        "people", "name", str(people), *(f"{n.track}={n.role}" for n in named),
+        "--out", str(roles),
+    )  # fmt: skip
+    if done.returncode != 0:
+        return None
+    index = json.loads((people.parent.parent / "case" / "case.json").read_text())
+    times = [float(e["t_s"]) for e in index["timestamps"] if e.get("status") == "done"]
+    through = covering(named, people, times)
+    if not through:
+        print("      no named track spans two of the case's timestamps: nothing to replay")
+        return None
+    pick = "surgeon" if "surgeon" in through else through[0]
+    viewer = "anaesthetist" if "anaesthetist" in through else through[0]
+    if {pick, viewer} != {"surgeon", "anaesthetist"}:
+        print(f"      the replay follows the {pick}, the line of sight the {viewer}: named "
+              "tracks over the case's timestamps")  # fmt: skip
+    return pick, viewer
 
 
 def stage_report(out: Path) -> None:
@@ -401,28 +485,36 @@ def stage_report(out: Path) -> None:
     import json
 
     from protocol.formats.site import site_toml
+    from protocol.formats.trajectory import read_trajectories
     from sim.contact import DRAPE_FIELD
     from sim.timing import read_session_clock
 
     _stage(8, "report: the case in one HTML file (health, timeline, events, views)")
     case, review = out / "case", out / "review"
-    roles = review / "roles.toml"
-    if not roles.is_file():
-        print("      no roles from stage 7: no report")
-        return
+    review.mkdir(parents=True, exist_ok=True)
     session = Path(json.loads((case / "case.json").read_text())["session"])
     field = review / "field.toml"  # the drape, made for this session
     field.write_text(site_toml([DRAPE_FIELD], session=read_session_clock(session).session))
+    roles = review / "roles.toml"
+    with_roles: tuple[str, ...] = ()
+    sterile_roles: tuple[str, ...] = ()
+    if roles.is_file():
+        # the gowned team, those of them the roles file has (stage 7 names the tracks it found)
+        named = {t.name for t in read_trajectories(roles)}
+        gowned = [r for r in ("surgeon", "assistant", "nurse_scrub") if r in named]
+        with_roles = ("--roles", str(roles))
+        sterile_roles = ("--sterile-roles", ",".join(gowned))
+    else:
+        print("      no roles from stage 7: contacts are given to no one, and no role's view")
     done = _egosurg(
-        "sterile", str(case), "--field", str(field), "--roles", str(roles),
-        "--sterile-roles", "surgeon,assistant,nurse_scrub", "--out", str(review / "sterile"),
+        "sterile", str(case), "--field", str(field), *with_roles, *sterile_roles,
+        "--out", str(review / "sterile"),
     )  # fmt: skip
     sterile = ("--sterile", str(review / "sterile")) if done.returncode == 0 else ()
     sightline = review / "sightline"
     sight = ("--sightline", str(sightline)) if (sightline / "sightline.csv").is_file() else ()
     done = _egosurg(
-        "report", str(case), "--roles", str(roles), *sterile, *sight,
-        "--out", str(review / "report.html"),
+        "report", str(case), *with_roles, *sterile, *sight, "--out", str(review / "report.html"),
     )  # fmt: skip
     if done.returncode != 0:
         print("      the report failed; see the message above")
@@ -432,7 +524,12 @@ def main(argv: list[str]) -> int:
     parser = command_parser("egosurg demo", __doc__)
     parser.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     parser.add_argument("--seed", type=int, default=0, help="scene seed")
-    parser.add_argument("--record-s", type=float, default=10.0, help="length of the recording")
+    parser.add_argument(
+        "--record-s",
+        type=float,
+        default=12.0,
+        help="length of the recording (10 s or more for stage 7 to find the people in it)",
+    )
     parser.add_argument(
         "--wand-s", type=float, default=36.0, help="length of the wand recording (stage 3)"
     )
@@ -453,7 +550,7 @@ def main(argv: list[str]) -> int:
     if stamp is not None:
         stage_evaluation(out, args.seed, files.spec.phase, stamp, args.steps)
         stage_batch(out, stamp, args.steps, files.spec.content_fps)
-        stage_review(out, args.seed, files.spec.phase, stamp)
+        stage_review(out, args.seed, files, stamp)
         stage_report(out)
     print(f"demo finished in {time.perf_counter() - t0:.0f} s; everything is under {out}/")
     return 0

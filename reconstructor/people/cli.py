@@ -22,10 +22,9 @@ from __future__ import annotations
 import logging
 import sys
 import time
-from pathlib import Path
 
 from protocol.command import CommandArgumentError, command_parser
-from protocol.formats.trajectory import read_trajectory_file, write_trajectories
+from protocol.formats.trajectory import read_trajectory_file
 from protocol.sealing.arguments import add_identity_argument, identity_from_args
 
 log = logging.getLogger(__name__)
@@ -83,7 +82,7 @@ def main(argv: list[str]) -> int:
         f"timestamp; background from {people.background_from})"
     )
     file = read_trajectory_file(out)
-    from reconstructor.people.names import describe
+    from reconstructor.replay.names import describe
 
     for tr in file.trajectories:
         print("  " + describe(tr))
@@ -99,7 +98,7 @@ def main_name(argv: list[str]) -> int:
     p.add_argument("--list", action="store_true", help="list the tracks")
     p.add_argument("--suggest", action="store_true", help="print suggestions from the room")
     args = p.parse_args(argv)
-    from reconstructor.people.names import describe, name_tracks, parse_names, suggest
+    from reconstructor.replay.names import describe, parse_names, suggest, write_roles
 
     file = read_trajectory_file(args.people)
     if args.list:
@@ -114,7 +113,6 @@ def main_name(argv: list[str]) -> int:
         raise CommandArgumentError("name at least one track (e.g. track3=surgeon), or --list")
     if not args.out:
         raise CommandArgumentError("give --out roles.toml, the roles file to write")
-    roles = name_tracks(file.trajectories, parse_names(args.names))
-    out = write_trajectories(Path(args.out), roles, file.session)
-    print(f"{out}: {len(roles)} roles ({', '.join(r.name for r in roles)})")
+    roles = write_roles(args.out, file, parse_names(args.names))
+    print(f"{args.out}: {len(roles)} roles ({', '.join(r.name for r in roles)})")
     return 0

@@ -8,7 +8,10 @@ to look through it), the site's target and field boxes, and "Save viewpoint", wh
 browser's current camera at the shown time to a trajectory file that ``egosurg replay
 --trajectory`` reads, with the case's session in its ``[session]`` table. The roles, site and
 field files (and a ``--save-to`` file that exists) are checked against the case's session
-(``session_check.py``): a file made for another session is refused in one line.
+(``session_check.py``): a file made for another session is refused in one line. With a people
+file (``--people``, from ``egosurg people``) the page also draws each track at the shown time
+and names tracks as roles into the roles file (``view_people.py``); the roles named there
+become role cameras at once.
 
 Security: the server binds 127.0.0.1 unless told otherwise, and serves the case only to its own
 page: the right Origin and Host and the token in the URL it prints (``view_boundary``); control
@@ -45,6 +48,7 @@ from reconstructor.replay.models import CaseModels
 from reconstructor.replay.path import CameraPath
 from reconstructor.replay.session_check import CaseInputs
 from reconstructor.replay.view_boundary import WILDCARD_HOSTS, Boundary, BrowserGate, netloc
+from reconstructor.replay.view_people import PeopleNaming, default_roles_path
 from reconstructor.replay.view_scene import (
     VIEWER_UNIT_M,
     ViserCamera,
@@ -62,6 +66,7 @@ log = logging.getLogger(__name__)
 
 TIME_SLIDER = "Case time (s)"  # the slider's label: seconds since the session started
 ROLE_COLOUR = (40, 110, 220)
+NO_ROLE = "(no role named yet)"  # the role menu's only entry before a track is named
 TARGET_COLOUR = (250, 170, 20)
 FIELD_COLOUR = (220, 30, 30)
 
@@ -70,7 +75,8 @@ FIELD_COLOUR = (220, 30, 30)
 class ViewConfig:
     host: str = "127.0.0.1"  # loopback only: anything else shows the case to the network
     port: int = 8080  # 0: any free port
-    roles: Path | None = None  # a roles TOML (egosurg sim roles)
+    roles: Path | None = None  # a roles TOML (egosurg people name, egosurg sim roles)
+    people: Path | None = None  # a people file (egosurg people): its tracks, named in the page
     sites: tuple[Path, ...] = ()  # site files: target boxes (monitors)
     fields: tuple[Path, ...] = ()  # site files: sterile field boxes
     save_to: Path = Path("viewpoints.toml")
@@ -146,7 +152,13 @@ class CaseViewer:
         self.models = CaseModels(folder, identity)  # a sealed session's case opens with it
         self.inputs = CaseInputs(Path(folder))  # each file checked against the case's session
         self.clock = CaseClock.for_case(Path(folder), pick_zone(config.timezone))
-        self.roles = self._read_roles(config.roles)
+        self.naming: PeopleNaming | None = None
+        if config.people is not None:  # names go to --roles, or roles.toml beside the file
+            roles_to = config.roles or default_roles_path(config.people)
+            self.naming = PeopleNaming(config.people, roles_to, self.inputs, self.set_roles)
+            self.roles = self._read_roles(roles_to if roles_to.is_file() else None)
+        else:
+            self.roles = self._read_roles(config.roles)
         sites, fields = config.sites, config.fields
         self.boxes = [(b, TARGET_COLOUR) for p in sites for b in self.inputs.boxes(p).values()]
         self.boxes += [(b, FIELD_COLOUR) for p in fields for b in self.inputs.boxes(p).values()]
@@ -246,6 +258,8 @@ class CaseViewer:
             if self.slider.value != entry.t_s:
                 self.slider.value = entry.t_s
             self._draw_roles(entry.t_s)
+            if self.naming is not None:
+                self.naming.draw(entry.t_s)
             self._preload(index + 1)
 
     def time_markdown(self, entry: Entry, index: int, gaussians: int) -> str:
@@ -310,12 +324,16 @@ class CaseViewer:
         self.slider.on_update(lambda _: self.show_time(float(self.slider.value)))
         self.play_button = gui.add_button("Play", disabled=n < 2)
         self.play_button.on_click(lambda _: self._set_playing(not self._play.is_set()))
-        if self.roles:
-            self.role_menu = gui.add_dropdown("Role", tuple(self.roles))
-            go = gui.add_button("Look through role")
-            go.on_click(lambda event: self.look_through(self.role_menu.value, event.client))
+        if self.roles or self.naming:  # with a people file, named roles come as they are named
+            self.role_menu = gui.add_dropdown("Role", tuple(self.roles) or (NO_ROLE,))
+            self.look_button = gui.add_button("Look through role", disabled=not self.roles)
+            self.look_button.on_click(
+                lambda event: self.look_through(self.role_menu.value, event.client)
+            )
         save = gui.add_button("Save viewpoint", hint=f"adds it to {self.config.save_to}")
         save.on_click(lambda event: event.client and self.save_from_client(event.client))
+        if self.naming is not None:
+            self.naming.build(self.server, self.gate.trusts)
 
     def _slider_marks(self) -> tuple[tuple[float, str], ...]:
         """The case's first and last timestamps, labelled with their time of day."""
@@ -340,6 +358,19 @@ class CaseViewer:
         if path is None:
             return {}
         return {t.name: CameraPath(t) for t in self.inputs.trajectories(path)}
+
+    def set_roles(self, roles: tuple[Trajectory, ...]) -> None:
+        """The roles just named in the page: their cameras drawn, offered under "Role"."""
+        with self._lock:
+            for name in set(self.frustums) - {r.name for r in roles}:
+                self.frustums.pop(name).remove()  # a name taken back: its camera goes
+            self.roles = {t.name: CameraPath(t) for t in roles}
+            self.role_menu.options = tuple(self.roles)
+            self.look_button.disabled = False
+            if self.index >= 0:
+                self._draw_roles(self.entry.t_s)
+                if self.naming is not None:
+                    self.naming.draw(self.entry.t_s)  # the balls' colours and labels
 
     def _role_camera(self, name: str, t_s: float) -> tuple[ViserCamera, float]:
         path = self.roles[name]

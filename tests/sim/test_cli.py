@@ -9,7 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
+from protocol.formats.trajectory import read_trajectories
 from protocol.formats.zed_conf import ZedFactoryCalibration
+from sim.world import World
 from tests.helpers import run_egosurg
 
 
@@ -131,7 +133,7 @@ def test_malformed_conf_is_reported_by_name(tmp_path):
 @pytest.mark.timeout(2400)
 def test_demo_runs_every_stage(tmp_path):
     out = run_egosurg(
-        "demo", "--out", str(tmp_path), "--record-s", "4", "--steps", "10", timeout=2300,
+        "demo", "--out", str(tmp_path), "--record-s", "12", "--steps", "10", timeout=2300,
     )  # fmt: skip
     assert out.returncode == 0, out.stderr
     assert "[3/8] calibration" in out.stdout and "[4/8] reconstruction" in out.stdout
@@ -156,7 +158,21 @@ def test_demo_runs_every_stage(tmp_path):
     times_s = sorted(float(e["t_s"]) for e in index["timestamps"])
     assert len(times_s) == 3 and np.allclose(np.diff(times_s), 1.0, atol=0.01), times_s
     assert "renders the people's motion 1 time(s) a second" in out.stdout
-    replay = cv2.VideoCapture(str(tmp_path / "review" / "surgeon.mp4"))
+    # stage 7 reviewed with estimated roles: the people found in the session (12 s: 10
+    # timestamps a second apart or more, what 'egosurg people' needs to learn the room from),
+    # their tracks named by the sim's truth (said on screen), the roles file written by
+    # 'egosurg people name': each role is a track, estimated keyframes with their confidences
+    assert "SIMULATOR'S TRUTH, for the demo only" in out.stdout, out.stdout
+    tracks = read_trajectories(tmp_path / "review" / "people.toml")
+    roles = read_trajectories(tmp_path / "review" / "roles.toml")
+    people_in_room = World.from_seed(0, phase="intraoperative").head_poses(0.0)
+    assert roles and {r.name for r in roles} <= set(people_in_room)
+    for role in roles:
+        assert any(t.keyframes == role.keyframes for t in tracks), role.name
+        assert all(k.confidence is not None for k in role.keyframes)
+    (replay_path,) = (tmp_path / "review").glob("*.mp4")
+    assert replay_path.stem in {r.name for r in roles}
+    replay = cv2.VideoCapture(str(replay_path))
     assert replay.get(cv2.CAP_PROP_FRAME_COUNT) >= 2
     assert (tmp_path / "review" / "sightline" / "sightline.csv").exists()
     # stage 8: the case report, one self-contained file

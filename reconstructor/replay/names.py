@@ -2,17 +2,27 @@
 file the review tools read (``--roles``): the named tracks only, renamed, with their confidences,
 gaps and session. Suggestions from the room (``suggest``) are printed as suggestions, never
 written as names: where a track stands says what it may be, not who it is.
+
+Here, in replay/, not in people/: the viewer names tracks too (``view_people.py``), and people/
+comes after replay/ in the reconstructor's parts (tests/test_package_rules.py); both the
+``egosurg people name`` command and the viewer write through ``write_roles``.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import re
+from pathlib import Path
 
 import numpy as np
 
-from protocol.formats.trajectory import Trajectory
-from reconstructor.people.sources import PeopleInputError
+from protocol.formats.trajectory import Trajectory, TrajectoryFile, write_trajectories
+from reconstructor.errors import CaseReplayError
+
+
+class NamingError(CaseReplayError, ValueError):
+    """Names that cannot be given; the message says which and what to write instead."""
+
 
 _PAIR = re.compile(r"^(track\d+)=([A-Za-z0-9_-]+)$")
 
@@ -23,18 +33,18 @@ def parse_names(pairs: list[str]) -> dict[str, str]:
     for text in pairs:
         m = _PAIR.match(text.strip())
         if m is None:
-            raise PeopleInputError(
+            raise NamingError(
                 f"{text!r}: write TRACK=ROLE, e.g. track3=surgeon (a role is letters, digits, "
                 "'-' or '_')"
             )
         track, role = m.groups()
         if track in out:
-            raise PeopleInputError(f"{track} is named twice ({out[track]}, {role}): name it once")
+            raise NamingError(f"{track} is named twice ({out[track]}, {role}): name it once")
         if role in out.values():
-            raise PeopleInputError(f"two tracks are named {role!r}: give each role one track")
+            raise NamingError(f"two tracks are named {role!r}: give each role one track")
         out[track] = role
     if not out:
-        raise PeopleInputError("name at least one track, e.g. track3=surgeon")
+        raise NamingError("name at least one track, e.g. track3=surgeon")
     return out
 
 
@@ -42,11 +52,40 @@ def name_tracks(tracks: tuple[Trajectory, ...], names: dict[str, str]) -> list[T
     known = {t.name: t for t in tracks}
     unknown = [n for n in names if n not in known]
     if unknown:
-        raise PeopleInputError(
+        raise NamingError(
             f"no {', '.join(unknown)} in the people file; it has "
             f"{', '.join(known)} ('egosurg people name FILE --list' shows where each stands)"
         )
     return [dataclasses.replace(known[t], name=role) for t, role in names.items()]
+
+
+def write_roles(
+    path: Path | str, people: TrajectoryFile, names: dict[str, str]
+) -> list[Trajectory]:
+    """The roles file for ``names`` (track -> role), with the people file's session: what
+    ``egosurg people name`` and the viewer's "Name track" write, one format for both."""
+    roles = name_tracks(people.trajectories, parse_names([f"{t}={r}" for t, r in names.items()]))
+    write_trajectories(Path(path), roles, people.session)
+    return roles
+
+
+def names_in(
+    roles: tuple[Trajectory, ...], tracks: tuple[Trajectory, ...], path: str
+) -> dict[str, str]:
+    """The names a roles file written from these tracks gives them (track -> role): each role is
+    the track whose keyframes and gaps it carries. A role that is no track of the people file
+    (the sim's truth, a path drawn by hand) is refused in one line: names written for these
+    tracks would replace it."""
+    out: dict[str, str] = {}
+    for role in roles:
+        same = [t.name for t in tracks if (t.keyframes, t.gaps_s) == (role.keyframes, role.gaps_s)]
+        if not same:
+            raise NamingError(
+                f"{path} holds {role.name!r}, which is no track of the people file: names go to "
+                "a roles file made from its tracks; give a new file (--roles NEW.toml)"
+            )
+        out[same[0]] = role.name
+    return out
 
 
 def describe(track: Trajectory) -> str:
