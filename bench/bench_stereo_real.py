@@ -16,7 +16,8 @@ answer; ``bad-2`` / ``bad-1``, the share that is a hole or more than 2 / 1 px of
 as errors, as in Middlebury's all-pixel scores); ``bad-2 ans``, more than 2 px off among the
 answers; ``EPE``, the mean absolute error in px among the answers; ``time``, seconds for the
 whole ``compute_depth`` (2 shared cores: a rough figure). The sim rows are bench_stereo.py's
-(the mean over the four cameras of ``--sim-phases``; ``--sim-phases ''`` skips them).
+(the mean over the four cameras of ``--sim-phases``; ``--sim-phases ''`` skips them), with each
+matcher's seconds per SVGA pair and their ratio to the default's in the same run.
 EVALUATION.md ("Stereo depth on real images") records a run.
 """
 
@@ -50,6 +51,7 @@ from reconstructor.errors import MatcherNotFoundError, MatcherWeightsError  # no
 
 REAL_COLUMNS = ("density", "bad-2", "bad-1", "bad-2 ans", "EPE px", "time s")
 SIM_COLUMNS = ("density", "textured", "blank", ">1%", ">3%", ">5%")
+SIM_TIME = "match s"  # seconds of the matcher's ``match`` per SVGA pair
 SEARCH_MARGIN = 1.25  # the search reaches this far past the largest true disparity
 DEFAULT = "ours (default)"
 TEXTBOOK = "textbook SGBM+WLS"
@@ -84,6 +86,8 @@ class GuidedAgreement(SgbmWlsMatcher):
 
 
 WARP_BEST = "ZNCC window: failed pixels warped by their best estimate"
+SGBM_OWN = "SGBM's own where WLS differs by 0.5-1.5 px"
+SGBM_OWN_ON_BEST = "window warped by the best + " + SGBM_OWN
 GUIDED = "+ WLS agreeing with the image-guided spread of kept pixels"
 
 
@@ -92,17 +96,25 @@ def variants() -> dict[str, Variant]:
     EVALUATION.md), then the textbook."""
     base = StereoConfig()
     best = replace(base, zncc_warp_failed_by_best=True)
+    own = replace(best, keep_sgbm_within_px=1.5)
     return {
         DEFAULT: Variant(base),
         WARP_BEST: Variant(best),
+        SGBM_OWN: Variant(replace(base, keep_sgbm_within_px=1.5)),
+        SGBM_OWN_ON_BEST: Variant(own),
         # each further change on top of the window warped by the best estimates
         "ZNCC check off": Variant(replace(best, min_zncc=-1.0)),
         "WLS agreement 1.0 px": Variant(replace(best, wls_max_change_px=1.0)),
         "left-right 2 px": Variant(replace(best, lr_max_diff_px=2.0)),
+        "SGBM's own where WLS differs by 0.5-1.0 px": Variant(
+            replace(best, keep_sgbm_within_px=1.0)
+        ),
         GUIDED: Variant(best, GuidedAgreement),
         "WLS agreement 1.0 px " + GUIDED: Variant(
             replace(best, wls_max_change_px=1.0), GuidedAgreement
         ),
+        # a further change on top of SGBM_OWN_ON_BEST
+        SGBM_OWN_ON_BEST + ", block 3 px": Variant(replace(own, block_size_px=3)),
         TEXTBOOK: Variant(None),
     }
 
@@ -206,15 +218,52 @@ def _cells(s: dict[str, float]) -> str:
     )
 
 
-def sim_table(results) -> str:
-    lines = ["| phase | matcher | " + " | ".join(SIM_COLUMNS) + " |"]
-    lines.append("|---|---|" + "---|" * len(SIM_COLUMNS))
+class TimedMatcher(StereoMatcher):
+    """A matcher that adds the seconds of each ``match`` to ``seconds[row]``."""
+
+    def __init__(self, inner: StereoMatcher, row: str, seconds: dict[str, list[float]]) -> None:
+        self.inner, self.row, self.seconds = inner, row, seconds
+        self.name = inner.name  # type: ignore[misc]  (the seam's ClassVar, per instance here)
+
+    def match(self, left_rgb, right_rgb, *, min_disparity_px, max_disparity_px):
+        t0 = time.perf_counter()
+        out = self.inner.match(
+            left_rgb,
+            right_rgb,
+            min_disparity_px=min_disparity_px,
+            max_disparity_px=max_disparity_px,
+        )
+        self.seconds[self.row].append(time.perf_counter() - t0)
+        return out
+
+
+def sim_rows(selected: dict[str, Variant], seconds: dict[str, list[float]]) -> dict[str, Row]:
+    """bench_stereo's rows for ``selected``, each matcher timed into ``seconds`` (the textbook
+    as well: a row with a config whose matcher is the textbook's)."""
+
+    def timed(name: str, v: Variant) -> Callable[[StereoConfig], StereoMatcher]:
+        def build(cfg: StereoConfig) -> StereoMatcher:
+            inner = TextbookSgbmWls() if v.config is None else v.build(cfg)
+            return TimedMatcher(inner, name, seconds)
+
+        return build
+
+    return {k: Row(v.config or StereoConfig(), matcher=timed(k, v)) for k, v in selected.items()}
+
+
+def sim_table(results, seconds: dict[str, list[float]], reference: str = DEFAULT) -> str:
+    """Mean over the cameras per phase and row; the last columns: the matcher's seconds per
+    pair (every phase) and its ratio to ``reference``'s."""
+    lines = ["| phase | matcher | " + " | ".join((*SIM_COLUMNS, SIM_TIME, "x default")) + " |"]
+    lines.append("|---|---|" + "---|" * (len(SIM_COLUMNS) + 2))
     groups = defaultdict(list)
     for phase, _serial, name, s in results:
         groups[(phase, name)].append(s)
+    ref = statistics.mean(seconds[reference]) if seconds.get(reference) else float("nan")
     for (phase, name), ss in groups.items():
         cells = " | ".join(f"{100 * statistics.mean(s[c] for s in ss):.1f}" for c in SIM_COLUMNS)
-        lines.append(f"| {phase} | {name} | {cells} |")
+        t = statistics.mean(seconds[name]) if seconds.get(name) else float("nan")
+        lines.append(f"| {phase} | {name} | {cells} | {t:.2f} | {t / ref:.2f} |")
     return "\n".join(lines)
 
 
@@ -244,10 +293,10 @@ def main() -> None:
     print("\nReal pairs (%, EPE in px, time in s):\n")
     print(real_table(results))
     if args.sim_phases:
-        rows = {k: Row(v.config, matcher=v.build) for k, v in selected.items()}
-        sim = sim_results(rows, phases=args.sim_phases.split(","))
-        print("\nThe sim, mean over the four cameras (%):\n")
-        print(sim_table(sim))
+        seconds: dict[str, list[float]] = defaultdict(list)
+        sim = sim_results(sim_rows(selected, seconds), phases=args.sim_phases.split(","))
+        print("\nThe sim, mean over the four cameras (%; the matcher's seconds per pair):\n")
+        print(sim_table(sim, seconds))
 
 
 if __name__ == "__main__":

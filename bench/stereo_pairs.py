@@ -2,7 +2,13 @@
 
 - ``motorcycle``: Middlebury 2014 Motorcycle as scikit-image ships it inside its wheel
   (``skimage.data.stereo_motorcycle``, 741 x 500, disparity with ``inf`` where unknown). Installed
-  by the project's ``bench`` extra (``pip install -e '.[bench]'``; ``make`` installs it).
+  by the project's ``bench`` extra (``pip install -e '.[bench]'``; ``make`` installs it). The
+  images and truth are the 2964 x 2000 originals ("perfect" rectification) area-averaged by 4,
+  so the disparity is a quarter of Middlebury's (7.2-59.9 px; ndisp 270 / 4) and is the left
+  view's (``x_right = x_left - d``, despite the docstring's ``img_left[10, 10 + disp]``
+  example): warped by it the right view matches the left best at a shift of 0, not +-0.25 px
+  (``tests/reconstructor/test_stereo_real.py`` checks +-1 px). ``doffs`` (31.1 px at this size)
+  only matters for depth, not for disparity.
 - ``aloe``: Middlebury 2006 Aloe at full size (1282 x 1110) from OpenCV's samples in Debian's
   ``opencv-doc`` (``aloeL.jpg``, ``aloeR.jpg``, ``aloeGT.png``: integer disparity of the left view,
   0 where unknown). Installed by ``make system-deps`` as root (``apt-get install opencv-doc``).

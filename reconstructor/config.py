@@ -53,7 +53,7 @@ INIT_METHODS: tuple[InitMethod, ...] = typing.get_args(InitMethod)
 
 @dataclass(frozen=True, kw_only=True)
 class ReconstructConfig:
-    stereo: StereoConfig | None = None  # None: the defaults for the session's resolution
+    stereo: StereoConfig | None = None  # None: the defaults (match scale by the session's width)
     stereo_matcher: str = "sgbm"  # or an installed plug-in (entry point egosurg.stereo_matchers)
     stereo_weights: str = ""  # local weights path for a learned matcher
     fill: FillConfig = field(default_factory=FillConfig)  # depth for blank walls and ceilings
@@ -109,9 +109,8 @@ class ReconstructConfig:
 
     def resolved(self, width_px: int) -> ReconstructConfig:
         """Fill in what depends on the session (the stereo defaults for its resolution)."""
-        if self.stereo is not None:
-            return self
-        return dataclasses.replace(self, stereo=StereoConfig.for_resolution(width_px))
+        stereo = self.stereo or StereoConfig()
+        return dataclasses.replace(self, stereo=stereo.for_width(width_px))
 
     def to_toml(self) -> str:
         return dumps(

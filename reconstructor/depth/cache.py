@@ -268,7 +268,7 @@ def _read(path: Path, ts: Timestamp, cfg: DepthSettings, key: str) -> DepthStage
                 left.camera.intrinsics,
                 right.camera.intrinsics,
                 right_from_left(left.camera, right.camera),
-                cfg.stereo.match_scale,
+                cfg.stereo.scale_for(left.camera.intrinsics.width_px),
                 cfg.stereo.rectify_alpha,
             )
             rgb = rect.rectify(left.image_rgb, right.image_rgb)[0]

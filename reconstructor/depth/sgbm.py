@@ -27,6 +27,10 @@ class SgbmWlsMatcher(StereoMatcher):
       check;
     - WLS agreement: the filtered disparity is within ``wls_max_change_px`` of the raw one
       (the halo SGBM's blocks fatten around foreground edges, and WLS's over-smoothed slopes).
+      With ``keep_sgbm_within_px`` above it, a pixel whose two estimates differ by more than
+      that but at most ``keep_sgbm_within_px`` keeps SGBM's own disparity instead (where WLS
+      over-smooths a slope, SGBM's is the better of the two: on real pairs 9-14 % of those
+      answers are > 2 px off against WLS's 17-28 %).
     """
 
     name = "sgbm"
@@ -49,9 +53,20 @@ class SgbmWlsMatcher(StereoMatcher):
             min_disparity_px=min_disparity_px,
             max_disparity_px=max_disparity_px,
         )
-        out = raw.filtered.copy()
+        out = self.estimate(raw)
         out[~self.keep(left_rgb, right_rgb, raw)] = np.nan
         return out
+
+    def estimate(self, raw: RawDisparities) -> np.ndarray:
+        """(H, W) float32: each pixel's answer if it is kept, the WLS map, or SGBM's own
+        disparity where they differ by more than ``wls_max_change_px`` and
+        ``keep_sgbm_within_px`` is on (the class docstring)."""
+        cfg = self.config
+        if cfg.keep_sgbm_within_px <= cfg.wls_max_change_px:
+            return raw.filtered.copy()
+        with np.errstate(invalid="ignore"):
+            differs = np.abs(raw.filtered - raw.left) > cfg.wls_max_change_px
+        return np.where(differs, raw.left, raw.filtered).astype(np.float32)
 
     def raw_disparities(
         self,
@@ -107,7 +122,9 @@ class SgbmWlsMatcher(StereoMatcher):
         cfg = self.config
         ok = lr_consistent(raw.left, raw.right, cfg.lr_max_diff_px)
         with np.errstate(invalid="ignore"):
-            ok &= np.abs(raw.filtered - raw.left) <= cfg.wls_max_change_px
+            ok &= np.abs(raw.filtered - raw.left) <= max(
+                cfg.wls_max_change_px, cfg.keep_sgbm_within_px
+            )
         if cfg.min_zncc > -1.0:
             # The window's pixels that failed a check are warped by 0, or by their best
             # estimate (SGBM's, else WLS's) with ``zncc_warp_failed_by_best``: see its comment.

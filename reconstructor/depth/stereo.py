@@ -22,7 +22,9 @@ and ceiling get a depth, 12-13 % of valid depths are more than 3 % off and 5-6 %
 (most of those on the blank surfaces); about 0.5 s per pair on 2 cores (HD1200 at
 ``match_scale`` 0.5: about 1.2 s). On real pairs with ground truth (Middlebury Motorcycle and
 Aloe, ``bench/bench_stereo_real.py``) it answers on 62-69 % of the pixels, with 0.3-2.3 % of its
-answers more than 2 px off (OpenCV's textbook SGBM+WLS: 78-89 %, 9-13 %).
+answers more than 2 px off (OpenCV's textbook SGBM+WLS: 78-89 %, 9-13 %); with the two options of
+``bench/configs/stereo_dense.toml`` (``zncc_warp_failed_by_best``, ``keep_sgbm_within_px``) on
+77-84 % with 0.6-2.9 % bad, for 19-20 % of the sim's depths more than 3 % off instead of 12-13 %.
 """
 
 from __future__ import annotations
@@ -218,7 +220,7 @@ def compute_depth(
     """
     check_images(left_rgb, right_rgb, left)
     cfg = config or StereoConfig.for_resolution(left.width_px)
-    rect = rectifier(left, right, right_from_left, cfg.match_scale, cfg.rectify_alpha)
+    rect = rectifier(left, right, right_from_left, cfg.scale_for(left.width_px), cfg.rectify_alpha)
     left_r, right_r, inside_l, inside_r = rect.rectify(left_rgb, right_rgb)
     fb = rect.intrinsics.fx_px * rect.baseline_m  # depth_m = fb / disparity_px
     m = matcher or SgbmWlsMatcher(cfg)

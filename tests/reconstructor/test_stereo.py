@@ -352,6 +352,7 @@ def test_uncalibrated_or_swapped_pairs_are_refused(world):
         ("min_zncc", 1.5),
         ("zncc_window_px", 2),
         ("lr_max_diff_px", 0.0),
+        ("keep_sgbm_within_px", -1.0),
     ],
 )
 def test_config_errors_name_the_field_and_value(field, value):
@@ -363,3 +364,17 @@ def test_defaults_follow_the_resolution():
     assert StereoConfig.for_resolution(960).match_scale == 1.0
     assert StereoConfig.for_resolution(1920).match_scale == 0.5
     assert StereoConfig.for_resolution(1920, match_scale=1.0).match_scale == 1.0
+
+
+def test_a_config_that_sets_other_stereo_keys_keeps_the_resolutions_match_scale():
+    """An HD1200 rig whose config tunes one stereo key still matches at half size (not silently
+    at full size, ~5x slower); a match_scale it names is kept."""
+    from reconstructor.config import ReconstructConfig
+
+    tuned = ReconstructConfig.from_toml("[stereo]\nuniqueness_ratio = 15\n")
+    assert tuned.resolved(1920).stereo.match_scale == 0.5
+    assert tuned.resolved(960).stereo.match_scale == 1.0
+    assert tuned.resolved(1920).stereo.uniqueness_ratio == 15
+    named = ReconstructConfig.from_toml("[stereo]\nmatch_scale = 0.8\n")
+    assert named.resolved(1920).stereo.match_scale == 0.8
+    assert ReconstructConfig().resolved(1920).stereo.match_scale == 0.5

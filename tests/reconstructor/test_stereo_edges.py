@@ -91,3 +91,41 @@ def test_a_confident_pixel_is_kept_when_its_neighbours_fail_another_check():
     answered_rows = keep[12:-10:4][:, 40:-10]
     assert answered_rows.mean() >= 0.9, f"only {answered_rows.mean():.0%} of the answers kept"
     assert not keep[1::4].any()  # no SGBM match, no answer
+
+
+class _FixedRaw(SgbmWlsMatcher):
+    """The matcher's checks and choice on a given SGBM+WLS matching (what SGBM and WLS answer
+    on a slope is hard to stage; the decision after them is what is tested)."""
+
+    def __init__(self, config: StereoConfig, raw: RawDisparities) -> None:
+        super().__init__(config)
+        self.raw = raw
+
+    def raw_disparities(self, left_rgb, right_rgb, *, min_disparity_px, max_disparity_px):
+        return self.raw
+
+
+def test_where_wls_strays_from_sgbm_by_little_the_answer_is_sgbms_own():
+    """With ``keep_sgbm_within_px`` a pixel whose WLS value is 1 px off SGBM's (WLS smoothing a
+    slope) is answered with SGBM's disparity, which passes every other check, where the default
+    leaves a hole; 3 px off (more than the setting) it stays a hole either way."""
+    left, right = _rectified_pair()
+    true = np.full(left.shape[:2], TRUE_DISPARITY_PX, np.float32)
+    filtered = true.copy()
+    filtered[40:80] += 1.0  # WLS 1 px off SGBM: within 1.5 px
+    filtered[100:140] += 3.0  # 3 px off: beyond it
+    raw = RawDisparities(left=true, right=true, filtered=filtered)
+    cols = slice(40, -10)
+    for setting in (0.0, 1.5):
+        disp = _FixedRaw(StereoConfig(keep_sgbm_within_px=setting), raw).match(
+            left, right, min_disparity_px=4.0, max_disparity_px=60.0
+        )
+        agreeing = disp[10:30, cols]
+        assert np.isfinite(agreeing).mean() >= 0.95
+        near, far = disp[45:75, cols], disp[105:135, cols]
+        assert np.isnan(far).all(), f"setting {setting}: a 3 px disagreement was answered"
+        if setting == 0.0:
+            assert np.isnan(near).all(), "the default answered where WLS and SGBM differ"
+        else:
+            assert np.isfinite(near).mean() >= 0.95, f"answered {np.isfinite(near).mean():.0%}"
+            np.testing.assert_allclose(near[np.isfinite(near)], TRUE_DISPARITY_PX)
