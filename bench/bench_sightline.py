@@ -22,7 +22,12 @@ Examples::
     .venv/bin/python bench/bench_sightline.py --times 2:8:2 --misses   # quick, list the misses
 
 Several ``--occluder-scale`` values run side by side on the same models (a comparison of the
-method's one tuning knob, ``SightlineConfig.occluder_scale``).
+method's one tuning knob, ``SightlineConfig.occluder_scale``); ``--conserve-opacity K ...`` adds
+configs that shrink by K and keep each Gaussian's integrated opacity
+(``SightlineConfig.conserve_opacity``). ``--csv`` writes every instant (truth, each config's
+answer, the observed share and, for a miss, its cause: who stands on the line to the blocked
+points, ``plan.who_blocks``, and whether a head clearance of ``NEAR_CHECK_M`` clears it, which
+points at the viewer's own shoulders or a neighbour within reach).
 """
 
 from __future__ import annotations
@@ -50,6 +55,7 @@ from sim.roles import role_trajectories, site_boxes, true_visible_fraction
 from sim.world import World
 
 VISIBLE_ENOUGH = 0.5  # the binary answer: at least half visible
+NEAR_CHECK_M = 0.6  # a miss's cause: does leaving out what lies this near the eye clear it?
 
 
 def true_surface_gaussians(world: World, t_s: float, shrink: int = 4) -> Gaussians:
@@ -82,6 +88,7 @@ class Case:
     truth: float
     ours: tuple[float, ...]  # one per compared config
     observed: float = float("nan")  # the tool's observed share at the target (a case only)
+    cause: str = ""  # a miss's (any config's): blockers by role, and the near check's answer
 
 
 def compare(
@@ -99,7 +106,9 @@ def compare(
     for k, t in enumerate(times_s):
         t0 = time.perf_counter()
         g = model_at(float(t))
-        for trajectory in role_trajectories(world, np.array([t])):
+        trajectories = role_trajectories(world, np.array([t]))
+        heads = {tr.name: CameraPath(tr).pose(float(t)).centre_m for tr in trajectories}
+        for trajectory in trajectories:
             pose = CameraPath(trajectory).pose(float(t))
             for box in boxes:
                 for label, shift in (("actual", np.zeros(3)),
@@ -114,13 +123,51 @@ def compare(
                         if observed_at is not None
                         else float("nan")
                     )
+                    cause = ""
+                    if any((o >= VISIBLE_ENOUGH) != (truth >= VISIBLE_ENOUGH) for o in ours):
+                        cause = _cause(g, eye, box, raster, configs[0], answers[0][1],
+                                       people={k: v for k, v in heads.items()
+                                               if k != trajectory.name})  # fmt: skip
                     cases.append(
-                        Case(float(t), trajectory.name, box.name, label, truth, ours, share)
+                        Case(float(t), trajectory.name, box.name, label, truth, ours, share, cause)
                     )
         if progress:
             print(f"  t = {t:6.2f} s ({k + 1}/{len(times_s)}): {time.perf_counter() - t0:.1f} s",
                   file=sys.stderr, flush=True)  # fmt: skip
     return cases
+
+
+def _cause(g, eye, box, raster, config, details, people) -> str:
+    """Who stands on the line to the points ``config`` calls blocked (other roles' standing
+    cylinders, ``plan.who_blocks``; "other" for none), and the answer with nothing within
+    ``NEAR_CHECK_M`` of the eye (the viewer's own shoulders, a neighbour within reach)."""
+    from protocol.formats.site import surface_points
+    from reconstructor.replay.plan import who_blocks
+
+    if "visible" not in details:
+        return "turned away"
+    pts = surface_points(box, np.asarray(eye, float), 12)
+    shares = who_blocks(eye, pts, ~details["visible"], people)
+    words = " ".join(f"{k}:{v:.2f}" for k, v in shares.items()) or "none blocked"
+    near = dataclasses.replace(config, head_clearance_m=NEAR_CHECK_M)
+    cleared = visible_fraction(g, eye, box, raster, config=near)[0]
+    return f"{words}; clearance {NEAR_CHECK_M:g} m: {cleared:.2f}"
+
+
+def config_label(c: SightlineConfig) -> str:
+    return f"scale {c.occluder_scale:g}" + (" conserved" if c.conserve_opacity else "")
+
+
+def write_csv(path: Path, cases: list[Case], configs: list[SightlineConfig]) -> None:
+    import csv
+
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["t_s", "viewer", "target", "position", "truth", "observed",
+                    *[config_label(c) for c in configs], "cause"])  # fmt: skip
+        for c in cases:
+            w.writerow([f"{c.t_s:g}", c.viewer, c.target, c.position, f"{c.truth:.3f}",
+                        f"{c.observed:.3f}", *[f"{o:.3f}" for o in c.ours], c.cause])  # fmt: skip
 
 
 def scores(cases: list[Case], i: int) -> tuple[float, float, float]:
@@ -135,12 +182,12 @@ def _row(label: str, sel: list[Case], configs: list[SightlineConfig]) -> str:
     cells = []
     for i in range(len(configs)):
         a, e, b = scores(sel, i)
-        cells.append(f"{'':18s}{100 * a:5.1f}% {e:5.3f} {b:+.3f}")
+        cells.append(f"{'':21s}{100 * a:5.1f}% {e:5.3f} {b:+.3f}")
     return f"{label:16s} {len(sel):4d} | " + " | ".join(cells)
 
 
 def table(cases: list[Case], configs: list[SightlineConfig], title: str) -> str:
-    head = " | ".join(f"occluder_scale {c.occluder_scale:g}: agree  MAE   bias" for c in configs)
+    head = " | ".join(f"{config_label(c):>21s}: agree  MAE   bias" for c in configs)
     lines = [title, f"{'viewer':16s} {'n':>4s} | {head}"]
     viewers = list(dict.fromkeys(c.viewer for c in cases))
     for name in [*viewers, "all"]:
@@ -182,11 +229,19 @@ def main(argv: list[str] | None = None) -> int:
                     help="with --case: its models, or its stored stereo points")  # fmt: skip
     ap.add_argument("--points-opacity", type=float, default=0.9,
                     help="--occluders points: each point's opacity (0.9)")  # fmt: skip
+    ap.add_argument("--conserve-opacity", type=float, nargs="+", default=[], metavar="K",
+                    help="also these occluder_scale values with conserve_opacity")  # fmt: skip
+    ap.add_argument("--csv", type=Path, help="write every instant here")
+    ap.add_argument("--no-observed", action="store_true",
+                    help="with --case: skip the observed share (a render per instant)")  # fmt: skip
     ap.add_argument("--misses", action="store_true", help="list the disagreements")
     args = ap.parse_args(argv)
     base = SightlineConfig()
     scales = args.occluder_scale or [base.occluder_scale]
-    configs = [dataclasses.replace(base, occluder_scale=s) for s in scales]
+    configs = [dataclasses.replace(base, occluder_scale=s) for s in scales] + [
+        dataclasses.replace(base, occluder_scale=k, conserve_opacity=True)
+        for k in args.conserve_opacity
+    ]
     times = _times(args.times)
     raster = RasterConfig(near_m=0.2)
     if args.case is None:
@@ -199,6 +254,8 @@ def main(argv: list[str] | None = None) -> int:
             args.case, times, args.occluders, args.points_opacity
         )
         title = f"reconstructed case {args.case} ({args.occluders})"
+        if args.no_observed:
+            observed_at = None
     t0 = time.perf_counter()
     cases = compare(world, model_at, times, configs, args.offset, raster, progress=True,
                     observed_at=observed_at)  # fmt: skip
@@ -209,12 +266,14 @@ def main(argv: list[str] | None = None) -> int:
     print(table(cases, configs, ""))
     if observed_at is not None:
         print(observed_split(cases, configs))
+    if args.csv is not None:
+        write_csv(args.csv, cases, configs)
     if args.misses:
         for c in cases:
             if any((o >= VISIBLE_ENOUGH) != (c.truth >= VISIBLE_ENOUGH) for o in c.ours):
                 ours = " ".join(f"{o:.2f}" for o in c.ours)
                 print(f"  miss t={c.t_s:6.2f} {c.viewer:15s} {c.target:18s} {c.position:18s} "
-                      f"truth {c.truth:.2f} ours {ours}")  # fmt: skip
+                      f"truth {c.truth:.2f} ours {ours}  {c.cause}")  # fmt: skip
     return 0
 
 
