@@ -130,7 +130,9 @@ def cmd_roles(args: argparse.Namespace) -> int:
         meta, set_s = clock.case_metadata, clock.set_times_s
         if len(set_s) == 0:
             raise CommandArgumentError(f"the session {path} holds no synchronised sets")
-        first_s, last_s = set_s[0], set_s[-1]
+        # a live rig's first set can be stamped a fraction of a millisecond before the
+        # session's start: the keyframes then start at 0
+        first_s, last_s = max(float(set_s[0]), 0.0), float(set_s[-1])
         offset_s, session = clock.sim_offset_s, clock.session
         if seed is None:
             if "seed" not in meta:
