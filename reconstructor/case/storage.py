@@ -22,10 +22,15 @@ per column, ``parent`` ``{model, xxh3_64, bytes, n}`` or null, and ``points`` ``
 when the file holds them), ``alive``, ``diff``, ``new``, and optionally ``points``.
 The child names its parent's checksum, so a parent that was redone or damaged is found.
 
-``points`` are the timestamp's fused stereo points (what its depth maps saw, before any
-training), on a ``POINTS_STEP_M`` grid, sorted, packed like ``new``: the observed geometry,
-which a warm model carries forward and training moves, so the sterile-field tool reads these
-(``load_points``). A reader that does not know them ignores them (same format version).
+``points`` are what the timestamp's stereo pairs observed (``depth/evidence.py``: every
+occupied 2 cm cell of stereo's own points, no filled ones, no cap; cases made before
+2026-11-29 hold the training cloud instead: filled and capped), on a ``POINTS_STEP_M`` grid,
+sorted, packed like ``new``: the observed geometry, which a warm model carries forward and
+training moves, so the sterile-field tool reads these (``load_points``). ``points_noise``, in
+the same order, is each point's depth change per pixel of disparity (``evidence.Observed.
+m_per_px``) on a ``NOISE_STEP_M`` grid (``meta.points.noise_step_m``; absent in older cases:
+``load_evidence`` gives None). A reader that does not know them ignores them (same format
+version).
 
 ``load_model(case, entry)`` reads any done entry (a compact file, or the full PLY of older
 cases) after checking its checksum and its parents'; replay and ``egosurg case export`` use it.
@@ -68,6 +73,7 @@ STORE_FORMAT_VERSION = 1
 SUFFIX = ".npz"
 SEALED_SUFFIX = ".npz.sealed"  # a sealed session's case: the same file, sealed
 POINTS_STEP_M = 2.0**-8  # 3.9 mm: the sterile tool's voxels are 5 cm
+NOISE_STEP_M = 2.0**-9  # 2 mm of depth per pixel (0.4 mm at 0.2 px): 0.05-0.5 m/px in a room
 _MAX_INFLATE_RATIO = 1032  # deflate's most: a stream of N bytes inflates to at most ~1032 N
 _CACHE_SIZE = 4  # decoded models kept: a chain is read forward, each from the one before
 
@@ -162,12 +168,14 @@ def write_model(
     alive: np.ndarray | None = None,
     steps: QuantSteps | None = None,
     points_m: np.ndarray | None = None,
+    points_noise: np.ndarray | None = None,
     seal: DerivedSeal | None = None,
 ) -> Stored:
     """Store ``g`` at ``path`` (atomically), as changes to ``parent`` when given (with
     ``parent_ref`` = the parent's ``{model, xxh3_64, bytes}`` and ``alive`` = which of the
     parent's rows ``g`` kept, in order, as its first rows), with the timestamp's fused points
-    ``points_m`` (M, 3) when given; sealed with ``seal`` (a sealed session's; the path then
+    ``points_m`` (M, 3) when given (and ``points_noise`` (M,), each one's metres of depth per
+    pixel of disparity, when known); sealed with ``seal`` (a sealed session's; the path then
     ends ``SEALED_SUFFIX``) in memory, so no plaintext reaches the disk. Returns what a reader
     decodes."""
     if parent is not None:
@@ -191,9 +199,16 @@ def write_model(
         "new": _pack(stored.q[kept:]),
     }
     if points_m is not None:
-        grid = _points_grid(points_m)
+        grid, order = _points_grid(points_m)
         meta["points"] = {"n": len(grid), "step_m": POINTS_STEP_M}
         arrays["points"] = _pack(grid)
+        if points_noise is not None:
+            noise = np.asarray(points_noise, np.float64).reshape(-1)
+            if len(noise) != len(np.asarray(points_m).reshape(-1, 3)):
+                raise ValueError("points_noise needs one value per point")
+            q = np.rint(noise[order] / NOISE_STEP_M).astype(np.int64)
+            meta["points"]["noise_step_m"] = NOISE_STEP_M
+            arrays["points_noise"] = _pack(q[:, None])
     arrays = {"meta": np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays}
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as zf:
@@ -241,41 +256,59 @@ def _source(path: Path, seal: DerivedSeal | None) -> Path | io.BytesIO:
         raise CaseStorageError(str(exc)) from None
 
 
-def _points_grid(points_m: np.ndarray) -> np.ndarray:
-    """(M, 3) int64 grid values of finite points, sorted (neighbours pack into small numbers)."""
+def _points_grid(points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """((M, 3) int64 grid values of the finite points, sorted (neighbours pack into small
+    numbers), (M,) which input point each row is)."""
     pts = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
-    grid = np.rint(pts[np.isfinite(pts).all(axis=1)] / POINTS_STEP_M).astype(np.int64)
+    finite = np.nonzero(np.isfinite(pts).all(axis=1))[0]
+    grid = np.rint(pts[finite] / POINTS_STEP_M).astype(np.int64)
+    order = np.lexsort(grid.T[::-1]) if len(grid) else np.zeros(0, np.int64)
+    grid = grid[order]
     if len(grid):
-        grid = grid[np.lexsort(grid.T[::-1])]
         grid[1:, 0] = np.diff(grid[:, 0])  # x is sorted: store its steps
-    return grid
+    return grid, finite[order]
 
 
 def load_points(
     case: Path | str, entry: Entry, seal: DerivedSeal | None = None
 ) -> np.ndarray | None:
-    """(M, 3) float64: the fused stereo points stored with a done entry, after checking its
+    """(M, 3) float64: the observed points stored with a done entry, after checking its
     checksum; None for a model stored without them (a PLY, or a case made before they were
     stored)."""
+    evidence = load_evidence(case, entry, seal)
+    return None if evidence is None else evidence[0]
+
+
+def load_evidence(
+    case: Path | str, entry: Entry, seal: DerivedSeal | None = None
+) -> tuple[np.ndarray, np.ndarray | None] | None:
+    """((M, 3) float64 points, (M,) float64 metres of depth per pixel of disparity or None
+    where the case did not store them) of a done entry, after checking its checksum; None for
+    a model stored without points."""
     folder = Path(case)
     if entry.status != "done" or not is_compact(entry):
         return None
     path = _checked(folder, entry.model, entry.xxh3_64, entry.bytes, entry.name)
     source = _source(path, seal)  # no identity, or not a recipient's: said as such
     try:
-        z = _read_arrays(source, ("meta", "points"))
+        z = _read_arrays(source, ("meta", "points", "points_noise"))
         meta = json.loads(z["meta"].tobytes())
         info = meta.get("points")
         if info is None:
             return None
         grid = _unpack(z["points"], int(info["n"]), 3)
+        noise = None
+        if "noise_step_m" in info:
+            noise = _unpack(z["points_noise"], int(info["n"]), 1)[:, 0] * float(
+                info["noise_step_m"]
+            )
     except (OSError, ValueError, KeyError, TypeError, zlib.error, zipfile.BadZipFile) as exc:
         raise CaseStorageError(
             f"{path}: its stored points cannot be read ({exc}); rerun the case's reconstruct "
             "command, which redoes damaged timestamps"
         ) from None
     grid[:, 0] = np.cumsum(grid[:, 0])
-    return grid * float(info["step_m"])
+    return grid * float(info["step_m"]), noise
 
 
 def _pack(table: np.ndarray | None) -> np.ndarray:
@@ -311,17 +344,17 @@ def _unpack(blob: np.ndarray, rows: int, cols: int) -> np.ndarray:
 
 
 def _read_arrays(path: Path | io.BytesIO, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
-    """The named uint8 arrays of a model file (``points`` may be absent). Every entry must be
-    stored uncompressed in the zip, as ``write_model`` writes it, and hold the bytes its
-    header claims, checked before reading: a file cannot make the reader allocate more than
-    its own size."""
+    """The named uint8 arrays of a model file (``points`` and ``points_noise`` may be
+    absent). Every entry must be stored uncompressed in the zip, as ``write_model`` writes it,
+    and hold the bytes its header claims, checked before reading: a file cannot make the
+    reader allocate more than its own size."""
     out: dict[str, np.ndarray] = {}
     with zipfile.ZipFile(path) as zf:
         for key in keys:
             try:
                 info = zf.getinfo(f"{key}.npy")
             except KeyError:
-                if key == "points":
+                if key in ("points", "points_noise"):
                     continue
                 raise
             if info.compress_type != zipfile.ZIP_STORED:

@@ -172,6 +172,7 @@ def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) ->
     work = case / ".work" / f"{step.name}.{os.getpid()}"
     shutil.rmtree(work, ignore_errors=True)
     from reconstructor.depth.cache import DepthCache
+    from reconstructor.depth.evidence import observed_of_reconstruction
 
     # memory 0: a worker sees each timestamp once; the folder serves reruns and other machines
     cache = DepthCache(Path(job.depth_cache), memory=0) if job.depth_cache else None
@@ -183,9 +184,12 @@ def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) ->
     alive = lineage.get("alive")
     if parent is None or alive is None or int(alive.sum()) != counts.get("kept"):
         parent, alive = None, None  # a keyframe, or a chain that cannot be followed
-    # with the fused points: what the stereo saw, for the sterile-field tool (storage.py)
+    # with what the stereo pairs saw (not the capped, filled training cloud), for the
+    # sterile-field tool and people (depth/evidence.py)
+    seen = observed_of_reconstruction(result.depth, ts.stereo_pairs())
     storage.write_model(case / rel, result.gaussians, parent=parent, parent_ref=lineage.get("ref"),
-                        alive=alive, points_m=result.fused.points_m, seal=seal)  # fmt: skip
+                        alive=alive, points_m=seen.points_m, points_noise=seen.m_per_px,
+                        seal=seal)  # fmt: skip
     model = case / rel
     digest, size = _checksum(model)
     _keep_run_folder(work, case / "runs" / step.name)

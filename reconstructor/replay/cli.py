@@ -262,10 +262,18 @@ def main_sterile(argv: list[str]) -> int:
     p.add_argument("--from", dest="t_from", type=float, help="first case time, s")
     p.add_argument("--to", dest="t_to", type=float, help="last case time, s")
     p.add_argument("--min-points", "--min-gaussians", dest="min_points", type=int, default=8,
-                   help="moving points of one person in the field for a contact (8)")  # fmt: skip
+                   help="moving points of one person in the field for a contact, each one 2 cm "
+                   "cell stereo saw (8)")  # fmt: skip
     p.add_argument("--min-timestamps", type=int, default=1, help="an event's shortest run (1)")
     p.add_argument("--static-fraction", type=float, default=0.5,
                    help="occupied this often: static scene (0.5)")  # fmt: skip
+    p.add_argument("--margin-sigmas", type=float, default=SterileConfig.margin_sigmas,
+                   help="a point counts in the box only this many depth uncertainties inside "
+                   f"it (0: on its faces counts; {SterileConfig.margin_sigmas:g})")  # fmt: skip
+    p.add_argument("--disparity-noise-px", type=float,
+                   default=SterileConfig.disparity_noise_px,
+                   help="the stereo matcher's disparity noise, pixels "
+                   f"({SterileConfig.disparity_noise_px:g})")  # fmt: skip
     p.add_argument("--allow-gaps", action="store_true", help="skip pending or failed timestamps")
     add_identity_argument(p)  # a sealed session's case
     add_timezone_argument(p)
@@ -285,8 +293,8 @@ def main_sterile(argv: list[str]) -> int:
     try:
         config = SterileConfig(
             min_points=args.min_points, static_fraction=args.static_fraction,
-            min_timestamps=args.min_timestamps,
-            sterile_roles=sterile_roles,
+            min_timestamps=args.min_timestamps, margin_sigmas=args.margin_sigmas,
+            disparity_noise_px=args.disparity_noise_px, sterile_roles=sterile_roles,
         )  # fmt: skip
     except ValueError as exc:
         raise CommandArgumentError(str(exc)) from None
@@ -327,10 +335,14 @@ def main_view(argv: list[str]) -> int:
     p = command_parser(
         "egosurg view",
         "Browse a case in a web browser (docs/replay.md, Viewer). Example:\n\n"
-        "    egosurg view case/ --roles roles.toml --site site.toml --field field.toml",
+        "    egosurg view case/ --roles roles.toml --site site.toml --field field.toml\n"
+        "    egosurg view case/ --people case/people.toml --roles case/roles.toml",
     )
     p.add_argument("case", help="a case folder")
     p.add_argument("--roles", help="a roles TOML: role cameras to look through")
+    p.add_argument(
+        "--people", help="a people file (egosurg people): name its tracks; names go to --roles"
+    )
     p.add_argument("--site", action="append", default=[], help="target boxes (repeatable)")
     p.add_argument("--field", action="append", default=[], help="field boxes (repeatable)")
     p.add_argument("--port", type=int, default=8080, help="HTTP port (8080; 0: any free)")
@@ -345,6 +357,7 @@ def main_view(argv: list[str]) -> int:
     start = inputs.trajectories(args.camera_from)[0].keyframes[0] if args.camera_from else None
     config = ViewConfig(
         host=args.host, port=args.port, roles=Path(args.roles) if args.roles else None,
+        people=Path(args.people) if args.people else None,
         sites=tuple(map(Path, args.site)), fields=tuple(map(Path, args.field)),
         save_to=Path(args.save_to), viewpoint_name=args.name, start=start,
         timezone=args.timezone,

@@ -20,7 +20,7 @@ import numpy as np
 from protocol.sealing import Identity
 from reconstructor.case.index import INDEX_NAME, CaseIndex, Entry
 from reconstructor.case.sealing import reader_seal
-from reconstructor.case.storage import load_model, load_points
+from reconstructor.case.storage import load_evidence, load_model, load_points
 from reconstructor.errors import CaseReplayError
 from reconstructor.splats.gaussians import Gaussians
 
@@ -94,6 +94,12 @@ class CaseModels:
     def load_points(self, entry: Entry) -> np.ndarray | None:
         """The fused stereo points stored with the entry's model (``storage.load_points``)."""
         return load_points(self.folder, entry, self.seal)
+
+    def load_evidence(self, entry: Entry) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """The observed points stored with the entry's model and each one's metres of depth
+        per pixel of disparity (None in cases made before they were kept):
+        ``storage.load_evidence``."""
+        return load_evidence(self.folder, entry, self.seal)
 
 
 class ModelSource:

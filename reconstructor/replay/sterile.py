@@ -2,9 +2,10 @@
 field box (the drape, the back table), grouped into events, each with the nearest role.
 
 **Static scene.** Each timestamp of a case is reconstructed on its own, so the same drape is
-made of different points each time; what stays is where they are (the points are each
-timestamp's fused stereo points, stored with its model; for a case stored without them, the
-centres of its Gaussians with opacity at least ``min_opacity``). The region around the
+made of different points each time; what stays is where they are (the points are what each
+timestamp's stereo pairs saw, one per occupied 2 cm cell, stored with its model:
+``depth/evidence.py``; for a case stored without them, the centres of its Gaussians with
+opacity at least ``min_opacity``). The region around the
 field (the box grown by ``reach_m``) is cut into ``voxel_m`` voxels; a voxel holding a point
 at ``static_fraction`` or more of the case's timestamps is the static scene (a per-voxel
 median over time, the classic background model of fixed cameras), grown by one voxel so that a
@@ -36,11 +37,22 @@ evidence, each against a kind of false event measured on a 60 s sim case (docs/r
    not a contact), and a median distance to its role's eye of at most
    ``max_role_distance_m`` (farther, it is nobody's arm).
 3. *An arm.* A hand in the field hangs from a shoulder, about 0.2 m below the eyes; the arm's
-   top may merge into a still body's static voxels, so a part must rise to within
-   ``max_shoulder_drop_m`` below its role's eye. A low heap of noise beside the drape does not.
+   top may merge into a still body's static voxels (with every cell stereo saw kept, a still
+   body's voxels are static up to the elbow, about 0.5 m below the eyes), so a part must rise
+   to within ``max_shoulder_drop_m`` below its role's eye. A low heap of noise beside the drape
+   does not.
 
 Parts of ``sterile_roles`` (the gowned team, whose work in the field is not a contact) are
 kept apart. Without roles, only the flicker test and the counts apply.
+
+**Margin** (off by default: measured, it removed no false event; docs/replay.md). With
+``margin_sigmas`` above 0, a point counts as inside the box only where it lies deeper inside
+than ``margin_sigmas`` times its depth uncertainty: the matcher's disparity noise
+(``disparity_noise_px``) times the metres of depth per pixel of disparity of the best camera
+that saw it (stored with each point). Stereo puts a hand that hovers beside the drape some
+centimetres into the box (0.2 px is 6 cm at 3.5 m); such a point is no evidence of a touch.
+The top face is exempt unless ``margin_on_top``: a hand on the drape lies just under it by
+construction of the box.
 
 **Events.** A role's consecutive contact timestamps form one event (``max_gap`` missed
 timestamps inside it are bridged); its start is its first contact timestamp, so it is late by
@@ -66,17 +78,31 @@ class SterileConfig:
     reach_m: float = 0.8  # blobs are traced this far around the box: an arm and a shoulder
     static_fraction: float = 0.5  # occupied at least this often: the static scene
     min_opacity: float = 0.05  # fainter: pruned floaters (a fresh Gaussian starts at 0.1)
-    min_points: int = 8  # points of one blob inside the box for a contact
+    # points of one blob inside the box for a contact: a case's stored points are one per
+    # occupied 2 cm cell of what stereo saw (depth/evidence.py), so 8 is ~32 cm^2 of hand
+    min_points: int = 8
     min_outside: int = 3  # and outside it: the arm that reaches in (a lone blob is a floater)
     max_gap: int = 1  # missed timestamps bridged inside one event
     max_role_distance_m: float = 0.4  # a blob farther from every role is no one's arm
     min_timestamps: int = 1  # 2 drops one-timestamp noise, and touches shorter than 2 intervals
     max_flicker: float = 0.2  # in-field voxels filled this often (median) are noise; 1 turns off
     flicker_window_s: float = 3.0  # ... at timestamps this far from now (a touch's own)
-    max_shoulder_drop_m: float | None = 0.4  # the blob rises to this below its role's eye
+    max_shoulder_drop_m: float | None = 0.55  # the blob rises to this below its role's eye
     split_by_role: bool = True  # each point to the body it joins: two people touching apart
     body_radius_m: float = 0.25  # a body column about its eye: the shoulders are ~0.2 m out
     sterile_roles: tuple[str, ...] = ()
+    # a point counts in the box only deeper inside than its depth uncertainty: the matcher's
+    # disparity noise times the metres per pixel of the camera that saw it (depth/evidence.py)
+    disparity_noise_px: float = 0.21  # the sim's floor, SGBM + WLS at SVGA (docs/replay.md)
+    # 0: off (the default: on the sim's seeds it removed no false event and cost the short
+    # touch most of its points and a timestamp of its start; docs/replay.md)
+    margin_sigmas: float = 0.0
+    margin_on_top: bool = False  # the top face too (a hand on the drape lies just under it)
+
+    def margin_m(self, m_per_px: np.ndarray) -> np.ndarray:
+        """(N,) how deep inside a box each point must lie to count, from its metres of depth
+        per pixel of disparity."""
+        return self.margin_sigmas * self.disparity_noise_px * np.asarray(m_per_px, float)
 
     def __post_init__(self) -> None:
         if not (0.01 <= self.voxel_m <= 0.5 and 0 <= self.reach_m <= 3):
@@ -95,6 +121,8 @@ class SterileConfig:
             raise ValueError(f"body_radius_m {self.body_radius_m}: give (0, 1]")
         if self.max_shoulder_drop_m is not None and not self.max_shoulder_drop_m > 0:
             raise ValueError(f"max_shoulder_drop_m {self.max_shoulder_drop_m}: give > 0 or None")
+        if not (self.disparity_noise_px >= 0 and self.margin_sigmas >= 0):
+            raise ValueError("disparity_noise_px and margin_sigmas: give >= 0")
 
 
 @dataclass(frozen=True)
@@ -162,7 +190,20 @@ class Region:
 
     def select(self, points_m: np.ndarray) -> np.ndarray:
         """(N, 3) world points -> the points inside the region."""
-        return points_m[np.all(np.abs(self.local(points_m)) < self.half_m, axis=1)]
+        return points_m[self.holds(points_m)]
+
+    def holds(self, points_m: np.ndarray) -> np.ndarray:
+        """(N,) bool: which of the world points lie inside the region."""
+        return np.all(np.abs(self.local(points_m)) < self.half_m, axis=1)
+
+    def depth_inside(self, points_m: np.ndarray, top: bool = True) -> np.ndarray:
+        """(N,) each point's distance inside the box to its nearest face (negative outside);
+        without ``top``, to its nearest face but the top one."""
+        local = (points_m - np.asarray(self.box.centre_m)) @ self.box.rotation
+        gap = np.asarray(self.box.size_m) / 2 - np.abs(local)
+        if not top:  # the top face's gap: only a point below the box's middle is near its bottom
+            gap[:, 2] = np.where(local[:, 2] < 0, gap[:, 2], np.inf)
+        return np.min(gap, axis=1)
 
     def voxels(self, points_m: np.ndarray) -> np.ndarray:
         """(N, 3) int voxel indices of points inside the region."""
@@ -219,17 +260,21 @@ def static_scene(region: Region, frames: list[np.ndarray]) -> np.ndarray:
 
 def moving_blobs(
     region: Region, bg: Background | np.ndarray, points_m: np.ndarray,
-    eyes_m: dict[str, np.ndarray], t_s: float = 0.0,
+    eyes_m: dict[str, np.ndarray], t_s: float = 0.0, margin_m: np.ndarray | None = None,
 ) -> tuple[int, list[Blob]]:  # fmt: skip
     """(moving points inside the box, the moving blobs that touch the box) at ``t_s``.
     ``bg``: the case's background (or a bare static grid: no flicker test); ``eyes_m``: each
-    role's eye then (empty: no roles)."""
+    role's eye then (empty: no roles); ``margin_m``: (N,) how deep inside the box each point
+    must lie to count as inside (its depth uncertainty, ``SterileConfig.margin_m``; None: on
+    the faces counts)."""
     cfg = region.config
     static = bg.static if isinstance(bg, Background) else bg
     v = region.voxels(points_m)
     moving = ~static[v[:, 0], v[:, 1], v[:, 2]]
     pts, v = points_m[moving], v[moving]
     inside = region.box.contains(pts)
+    if margin_m is not None:  # nearer a face than stereo can tell: not evidence of a touch
+        inside &= region.depth_inside(pts, cfg.margin_on_top) > np.asarray(margin_m)[moving]
     grid = np.zeros(region.shape, bool)
     grid[v[:, 0], v[:, 1], v[:, 2]] = True
     labels, n = ndimage.label(grid, structure=np.ones((3, 3, 3), bool))
@@ -253,7 +298,7 @@ def moving_blobs(
                 continue  # a body is within ~0.3 m of its eye's vertical, a reach adds an arm
             drop = cfg.max_shoulder_drop_m
             if eyes_m and drop is not None and pts[sel, 2].max() < eyes_m[role][2] - drop:
-                continue  # nothing rises to the shoulder: no arm, a heap of noise
+                continue  # nothing rises to the elbow: no arm, a heap of noise
             blobs.append(Blob(pts[sel], inside[sel], role, dist))
     return int(inside.sum()), blobs
 
@@ -338,6 +383,20 @@ def _distance(points_m: np.ndarray, eye_m: np.ndarray | None) -> float:
     if eye_m is None:
         return float("nan")
     return float(np.median(np.linalg.norm(points_m[:, :2] - eye_m[None, :2], axis=1)))
+
+
+def judge_field(
+    region: Region, frames: list[np.ndarray], margins: list[np.ndarray | None],
+    stamps: list[tuple[float, str]], eyes: list[dict[str, np.ndarray]],
+) -> tuple[list[Instant], list[Event]]:  # fmt: skip
+    """One field over a case: ``frames`` each timestamp's points in ``region`` (``holds``),
+    ``margins`` their margins (``SterileConfig.margin_m``; None: none), ``stamps`` each one's
+    (case time, model name), ``eyes`` each one's role eyes -> (instants, events)."""
+    bg = background(region, frames, [t for t, _ in stamps])
+    rows = []
+    for (t, name), pts, margin, eye in zip(stamps, frames, margins, eyes, strict=True):
+        rows.append(Instant(t, name, *moving_blobs(region, bg, pts, eye, t, margin)))
+    return rows, group_events(region.box, rows, region.config)
 
 
 def group_events(box: SiteBox, instants: list[Instant], config: SterileConfig) -> list[Event]:

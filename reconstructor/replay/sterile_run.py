@@ -42,15 +42,7 @@ from reconstructor.replay.run import RealCameras, case_raster, render_view
 from reconstructor.replay.session_check import MADE_FOR_NAME, CaseInputs, write_made_for
 from reconstructor.replay.sightline import visible_fraction
 from reconstructor.replay.sightline_pictures import outline_box
-from reconstructor.replay.sterile import (
-    Event,
-    Instant,
-    Region,
-    SterileConfig,
-    background,
-    group_events,
-    moving_blobs,
-)
+from reconstructor.replay.sterile import Event, Instant, Region, SterileConfig, judge_field
 from reconstructor.replay.sterile_evidence import CameraEvidence, camera_evidence
 from reconstructor.replay.sterile_pictures import event_plan, event_span
 from reconstructor.replay.video import burn_text, timecode
@@ -105,34 +97,40 @@ def sterile(
     models.require_span(entries[0].t_s, entries[-1].t_s, allow_gaps)
     regions = [Region(b, config) for b in boxes]
     frames: list[list[np.ndarray]] = [[] for _ in boxes]
-    stored = [models.load_points(e) for e in entries]
-    points = [p for p in stored if p is not None]  # entries[k]'s when every entry has them
-    evidence = "points" if len(points) == len(stored) else "gaussians"
-    if evidence == "gaussians" and points:
+    margins: list[list[np.ndarray | None]] = [[] for _ in boxes]
+    stored = [models.load_evidence(e) for e in entries]
+    evidence = "points" if all(s is not None for s in stored) else "gaussians"
+    if evidence == "gaussians" and any(s is not None for s in stored):
         log.warning("%s: some timestamps were stored without their points; judging every "
                     "timestamp on its Gaussians' centres", folder)  # fmt: skip
+    unknown = evidence == "gaussians" or any(s is not None and s[1] is None for s in stored)
+    if config.margin_sigmas > 0 and unknown:
+        log.warning("%s was made before its points kept their depth uncertainty: a point on a "
+                    "box's face counts as inside it (no margin test); reconstruct the case "
+                    "again for it", folder)  # fmt: skip
     with ModelSource(models, entries if evidence == "gaussians" else []) as source:
         for k, e in enumerate(entries):
+            noise: np.ndarray | None = None
             if evidence == "points":
-                pts = points[k]
+                pts, noise = stored[k]  # type: ignore[misc]
             else:
                 g = source.get(e)
                 keep = g.opacities().detach().numpy() >= config.min_opacity
                 pts = g.means_m.detach().numpy()[keep].astype(np.float64)
             for r, reg in enumerate(regions):
-                frames[r].append(reg.select(pts))
+                near = reg.holds(pts)
+                frames[r].append(pts[near])
+                margins[r].append(None if noise is None else config.margin_m(noise[near]))
             if progress is not None:
                 progress(k + 1, len(entries))
     instants: dict[str, list[Instant]] = {}
     events: list[Event] = []
-    for reg, pts_t in zip(regions, frames, strict=True):
-        bg = background(reg, pts_t, [e.t_s for e in entries])
-        rows = []
-        for e, pts in zip(entries, pts_t, strict=True):
-            count, blobs = moving_blobs(reg, bg, pts, _eyes(paths, e.t_s), e.t_s)
-            rows.append(Instant(e.t_s, e.name, count, blobs))
+    stamps = [(e.t_s, e.name) for e in entries]
+    eyes = [_eyes(paths, e.t_s) for e in entries]
+    for reg, pts_t, margin_t in zip(regions, frames, margins, strict=True):
+        rows, found = judge_field(reg, pts_t, margin_t, stamps, eyes)
         instants[reg.box.name] = rows
-        events += group_events(reg.box, rows, config)
+        events += found
     events.sort(key=lambda ev: (ev.start_s, ev.field, ev.role))
     out.mkdir(parents=True, exist_ok=True)
     clock = CaseClock.for_case(folder, pick_zone(timezone))
