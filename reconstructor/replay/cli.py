@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import signal
 import sys
 import threading
 from pathlib import Path
@@ -371,14 +372,23 @@ def main_view(argv: list[str]) -> int:
     identity = identity_from_args(args, needed=is_sealed_case(Path(args.case)))
     viewer = CaseViewer(Path(args.case), config, identity)
     print(f"egosurg view: {args.case} at {viewer.url} (Ctrl-C to stop)", flush=True)
+    signal.signal(signal.SIGINT, _stop_on_signal)
+    signal.signal(signal.SIGTERM, _stop_on_signal)
     try:
         viewer.wait()
     except KeyboardInterrupt:
         pass
     finally:
+        _exit_soon(10.0)  # before the close, which is what can hang
         viewer.close()
-        _exit_soon(10.0)
     return 0
+
+
+def _stop_on_signal(signum: int, frame: object) -> None:
+    """Ctrl-C (or a service manager's SIGTERM): the process ends within 10 s whatever a
+    library thread or the close does, then the close runs as after Ctrl-C."""
+    _exit_soon(10.0)
+    raise KeyboardInterrupt
 
 
 def _exit_soon(seconds: float) -> None:
