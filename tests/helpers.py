@@ -49,6 +49,31 @@ def egosurg_in_process(capsys, *args: str) -> Ran:
     return Ran(code, out.out, out.err)
 
 
+def one_camera_session(
+    path: Path, *, name: str, started_unix_ns: int, set_unix_ns: Sequence[int], metadata: dict
+) -> Path:
+    """A session of one 8 x 8 px camera (serial 7) with one set at each of ``set_unix_ns``:
+    what a review tool reads of a session's identity and times, without its pictures."""
+    import cv2
+
+    from protocol.session import CameraInfo, SessionWriter
+
+    jpeg = cv2.imencode(".jpg", np.zeros((8, 8, 3), np.uint8))[1].tobytes()
+    cam = CameraInfo(camera_serial=7, node_id="demo-node", resolution="HD1200", width=8, height=8,
+                     fps_nominal=15.0, encoding="jpeg", factory_conf_text="")  # fmt: skip
+    with SessionWriter(path, session_name=name, case_metadata=metadata, cameras=[cam],
+                       tolerance_ns=33_000_000, software_version="test",
+                       started_unix_ns=started_unix_ns) as writer:  # fmt: skip
+        for k, t in enumerate(set_unix_ns):
+            row = writer.append_frame(7, left=jpeg, right=jpeg, capture_unix_ns=t,
+                                      host_receive_unix_ns=t, recorder_receive_unix_ns=t,
+                                      frame_index=k, seq=k, ptp_offset_ns=0,
+                                      ptp_locked=True)  # fmt: skip
+            writer.append_set(t, [row], 0)
+        writer.close(set_unix_ns[-1] + 1)
+    return path
+
+
 def run_egosurg(
     *args: str, timeout: float = 300.0, cwd: Path | None = None, env: dict[str, str] | None = None
 ):

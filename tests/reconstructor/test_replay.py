@@ -17,7 +17,7 @@ from protocol.formats.site import read_site
 from protocol.formats.trajectory import Keyframe, Trajectory, read_trajectories, write_trajectories
 from reconstructor.replay.models import CaseModels, ModelSource
 from reconstructor.replay.path import CameraPath
-from tests.helpers import egosurg_in_process, run_egosurg
+from tests.helpers import egosurg_in_process, one_camera_session, run_egosurg
 from tests.reconstructor.tiny import tiny_config_toml, tiny_eval_session
 
 egosurg = egosurg_in_process
@@ -227,27 +227,12 @@ def test_reconstruct_leaves_out_a_damaged_view_names_it_and_records_it(case, tmp
 def _demo_style_session(path: Path) -> Path:
     """A session as the demo records one: live, named by the rig, started on 2026-11-28 at
     09:00 UTC, of the same sim seed and phase as the case's, its sets at 2.0-2.2 s."""
-    import cv2
-
-    from protocol.session import CameraInfo, SessionWriter
-
     start = 1_795_856_400_000_000_000
-    jpeg = cv2.imencode(".jpg", np.zeros((8, 8, 3), np.uint8))[1].tobytes()
-    cam = CameraInfo(camera_serial=7, node_id="demo-node", resolution="HD1200", width=8, height=8,
-                     fps_nominal=15.0, encoding="jpeg", factory_conf_text="")  # fmt: skip
-    meta = {"source": "egosurg demo", "seed": "3", "phase": "intraoperative"}
-    with SessionWriter(path, session_name="demo-or1", case_metadata=meta, cameras=[cam],
-                       tolerance_ns=33_000_000, software_version="test",
-                       started_unix_ns=start) as writer:  # fmt: skip
-        for k in range(4):
-            t = start + 2_000_000_000 + k * 66_666_667
-            row = writer.append_frame(7, left=jpeg, right=jpeg, capture_unix_ns=t,
-                                      host_receive_unix_ns=t, recorder_receive_unix_ns=t,
-                                      frame_index=k, seq=k, ptp_offset_ns=0,
-                                      ptp_locked=True)  # fmt: skip
-            writer.append_set(t, [row], 0)
-        writer.close(t + 1)
-    return path
+    return one_camera_session(
+        path, name="demo-or1", started_unix_ns=start,
+        set_unix_ns=[start + 2_000_000_000 + k * 66_666_667 for k in range(4)],
+        metadata={"source": "egosurg demo", "seed": "3", "phase": "intraoperative"},
+    )  # fmt: skip
 
 
 def test_review_files_of_another_session_are_refused_in_one_line_naming_both(case, capsys):

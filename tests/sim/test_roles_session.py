@@ -4,35 +4,20 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
-import numpy as np
-
 from protocol.formats.trajectory import read_trajectories
-from protocol.session import CameraInfo, SessionWriter
 from sim.timing import SIM_EPOCH_UNIX_NS
-from tests.helpers import run_egosurg
+from tests.helpers import one_camera_session, run_egosurg
 
 
 def _session(path: Path, first_set_offset_ns: int) -> Path:
     """A sim session (seed 3, intraoperative) whose first set lies ``first_set_offset_ns``
     from its start, then one set every 66.7 ms."""
-    jpeg = cv2.imencode(".jpg", np.zeros((8, 8, 3), np.uint8))[1].tobytes()
-    cam = CameraInfo(camera_serial=7, node_id="n", resolution="HD1200", width=8, height=8,
-                     fps_nominal=15.0, encoding="jpeg", factory_conf_text="")  # fmt: skip
-    meta = {"seed": "3", "phase": "intraoperative"}
     start = SIM_EPOCH_UNIX_NS + 5_000_000_000
-    with SessionWriter(path, session_name="live", case_metadata=meta, cameras=[cam],
-                       tolerance_ns=33_000_000, software_version="test",
-                       started_unix_ns=start) as writer:  # fmt: skip
-        for k in range(4):
-            t = start + first_set_offset_ns + k * 66_666_667
-            row = writer.append_frame(7, left=jpeg, right=jpeg, capture_unix_ns=t,
-                                      host_receive_unix_ns=t, recorder_receive_unix_ns=t,
-                                      frame_index=k, seq=k, ptp_offset_ns=0,
-                                      ptp_locked=True)  # fmt: skip
-            writer.append_set(t, [row], 0)
-        writer.close(t + 1)
-    return path
+    return one_camera_session(
+        path, name="live", started_unix_ns=start,
+        set_unix_ns=[start + first_set_offset_ns + k * 66_666_667 for k in range(4)],
+        metadata={"seed": "3", "phase": "intraoperative"},
+    )  # fmt: skip
 
 
 def test_a_first_set_stamped_just_before_the_start_still_gives_roles_from_0(tmp_path):
