@@ -89,6 +89,9 @@ WARP_BEST = "ZNCC window: failed pixels warped by their best estimate"
 SGBM_OWN = "SGBM's own where WLS differs by 0.5-1.5 px"
 SGBM_OWN_ON_BEST = "window warped by the best + " + SGBM_OWN
 GUIDED = "+ WLS agreeing with the image-guided spread of kept pixels"
+LEFT_BORDER = SGBM_OWN_ON_BEST + " + left border's band filled"
+SMOOTH_SGBM = SGBM_OWN_ON_BEST + " + SGBM's own where smooth and WLS differs by 1.5-2.5 px"
+SMOOTH_SGBM_BORDER = SMOOTH_SGBM + " + left border's band filled"
 
 
 def variants() -> dict[str, Variant]:
@@ -115,6 +118,11 @@ def variants() -> dict[str, Variant]:
         ),
         # a further change on top of SGBM_OWN_ON_BEST
         SGBM_OWN_ON_BEST + ", block 3 px": Variant(replace(own, block_size_px=3)),
+        LEFT_BORDER: Variant(replace(own, fill_left_border=True)),
+        SMOOTH_SGBM: Variant(replace(own, keep_smooth_sgbm_within_px=2.5)),
+        SMOOTH_SGBM_BORDER: Variant(
+            replace(own, keep_smooth_sgbm_within_px=2.5, fill_left_border=True)
+        ),
         TEXTBOOK: Variant(None),
     }
 

@@ -11,6 +11,7 @@ import numpy as np
 
 from reconstructor.depth.matcher import StereoMatcher
 from reconstructor.depth.stereo_config import StereoConfig
+from reconstructor.depth.stereo_occlusion import fill_left_border
 
 
 class SgbmWlsMatcher(StereoMatcher):
@@ -31,6 +32,13 @@ class SgbmWlsMatcher(StereoMatcher):
       that but at most ``keep_sgbm_within_px`` keeps SGBM's own disparity instead (where WLS
       over-smooths a slope, SGBM's is the better of the two: on real pairs 9-14 % of those
       answers are > 2 px off against WLS's 17-28 %).
+
+    With ``keep_smooth_sgbm_within_px`` SGBM's own answers further, up to that disagreement,
+    where its disparity is smooth around the pixel (within ``SMOOTH_RANGE_PX`` over
+    ``SMOOTH_WINDOW_PX`` square).
+
+    With ``fill_left_border``, the left border's band that has no partner in the right image is
+    then filled from each row's first answer where its width fits (``stereo_occlusion.py``).
     """
 
     name = "sgbm"
@@ -55,6 +63,8 @@ class SgbmWlsMatcher(StereoMatcher):
         )
         out = self.estimate(raw)
         out[~self.keep(left_rgb, right_rgb, raw)] = np.nan
+        if self.config.fill_left_border:
+            out = fill_left_border(out, self.config.left_border_slack_px)
         return out
 
     def estimate(self, raw: RawDisparities) -> np.ndarray:
@@ -62,7 +72,7 @@ class SgbmWlsMatcher(StereoMatcher):
         disparity where they differ by more than ``wls_max_change_px`` and
         ``keep_sgbm_within_px`` is on (the class docstring)."""
         cfg = self.config
-        if cfg.keep_sgbm_within_px <= cfg.wls_max_change_px:
+        if max(cfg.keep_sgbm_within_px, cfg.keep_smooth_sgbm_within_px) <= cfg.wls_max_change_px:
             return raw.filtered.copy()
         with np.errstate(invalid="ignore"):
             differs = np.abs(raw.filtered - raw.left) > cfg.wls_max_change_px
@@ -121,10 +131,14 @@ class SgbmWlsMatcher(StereoMatcher):
         docstring (a check whose threshold disables it is skipped)."""
         cfg = self.config
         ok = lr_consistent(raw.left, raw.right, cfg.lr_max_diff_px)
+        within = max(cfg.wls_max_change_px, cfg.keep_sgbm_within_px)
         with np.errstate(invalid="ignore"):
-            ok &= np.abs(raw.filtered - raw.left) <= max(
-                cfg.wls_max_change_px, cfg.keep_sgbm_within_px
-            )
+            change = np.abs(raw.filtered - raw.left)
+            agree = change <= within
+            if cfg.keep_smooth_sgbm_within_px > within:
+                smooth = disparity_range(raw.left, SMOOTH_WINDOW_PX) <= SMOOTH_RANGE_PX
+                agree |= (change <= cfg.keep_smooth_sgbm_within_px) & smooth
+        ok &= agree
         if cfg.min_zncc > -1.0:
             # The window's pixels that failed a check are warped by 0, or by their best
             # estimate (SGBM's, else WLS's) with ``zncc_warp_failed_by_best``: see its comment.
@@ -148,6 +162,10 @@ class RawDisparities:
 
 
 HIGHPASS_SIGMA_PX = 3.0  # removes shading gradients, which correlate at any disparity
+# keep_smooth_sgbm_within_px: SGBM's own disparity counts as smooth where it varies by at most
+# this over the window around the pixel
+SMOOTH_WINDOW_PX = 5
+SMOOTH_RANGE_PX = 1.0
 
 
 def sgbm_disparity(
@@ -179,6 +197,18 @@ def lr_consistent(disp_left: np.ndarray, disp_right: np.ndarray, max_diff_px: fl
     x_ri = np.where(inside, x_r, 0).astype(np.intp)
     d_r = np.take_along_axis(disp_right, x_ri, axis=1)
     return inside & (d_r > 0) & (np.abs(disp_left - d_r) <= max_diff_px)
+
+
+def disparity_range(disp_px: np.ndarray, window_px: int) -> np.ndarray:
+    """(H, W) float32: the largest minus the smallest finite disparity in the ``window_px``
+    square around each pixel (NaN where the window has none)."""
+    finite = np.isfinite(disp_px)
+    k = np.ones((window_px, window_px), np.uint8)
+    top = cv2.dilate(np.where(finite, disp_px, -np.inf).astype(np.float32), k)
+    low = cv2.erode(np.where(finite, disp_px, np.inf).astype(np.float32), k)
+    seen = cv2.dilate(finite.astype(np.uint8), k) > 0
+    with np.errstate(invalid="ignore", over="ignore"):
+        return np.where(seen, top - low, np.nan).astype(np.float32)
 
 
 def zncc_at_disparity(

@@ -24,7 +24,9 @@ and ceiling get a depth, 12-13 % of valid depths are more than 3 % off and 5-6 %
 Aloe, ``bench/bench_stereo_real.py``) it answers on 62-69 % of the pixels, with 0.3-2.3 % of its
 answers more than 2 px off (OpenCV's textbook SGBM+WLS: 78-89 %, 9-13 %); with the two options of
 ``bench/configs/stereo_dense.toml`` (``zncc_warp_failed_by_best``, ``keep_sgbm_within_px``) on
-77-84 % with 0.6-2.9 % bad, for 19-20 % of the sim's depths more than 3 % off instead of 12-13 %.
+77-84 % with 0.6-2.9 % bad, for 19-20 % of the sim's depths more than 3 % off instead of 12-13 %;
+with ``keep_smooth_sgbm_within_px`` and ``fill_left_border`` as well
+(``bench/configs/stereo_densest.toml``) on 82-88 % with 1.2-3.0 % bad.
 """
 
 from __future__ import annotations
@@ -238,11 +240,14 @@ def compute_depth(
     depth = np.full(disp.shape, np.nan, dtype=np.float32)
     depth[valid] = fb / disp[valid]
     valid &= (depth >= cfg.min_depth_m) & (depth <= cfg.max_depth_m)
-    # the matched right pixel must come from inside the right sensor as well
+    # the matched right pixel must come from inside the right sensor as well; a pixel whose
+    # partner is beyond the right image's left edge has none (the left border's band, answered
+    # only by ``StereoConfig.fill_left_border``) and is not checked
     w = disp.shape[1]
     x_r = np.rint(np.arange(w, dtype=np.float32)[None, :] - np.where(valid, disp, 0))
+    beyond = x_r < 0
     x_r = np.clip(x_r, 0, w - 1).astype(np.intp)
-    valid &= np.take_along_axis(inside_r, x_r, axis=1)
+    valid &= np.take_along_axis(inside_r, x_r, axis=1) | beyond
     depth[~valid] = np.nan
     log.debug("stereo %s: %.1f%% valid", m.name, 100 * valid.mean())
     return DepthMap(

@@ -41,6 +41,13 @@ class StereoConfig:
     # instead of 64 % at <= 2.9 % bad answers, but on the sim 19 % of depths > 3 % off instead of
     # 12.5 % (EVALUATION.md, "Stereo depth on real images"). Off until the protocols are rerun.
     keep_sgbm_within_px: float = 0.0
+    # Beyond keep_sgbm_within_px and up to this, keep SGBM's own disparity only where it is
+    # smooth around the pixel (it varies by at most 1 px over its 5 x 5 neighbours: not at a
+    # depth edge, where SGBM's blocks fatten). 0: off. 2.5 with keep_sgbm_within_px 1.5: on real
+    # pairs 1.1 points denser (Motorcycle's bad answers 2.94 -> 3.06 %), on the sim 0.5-0.6
+    # points more depths > 3 % off; with fill_left_border as well (bench/configs/
+    # stereo_densest.toml) 84.9 % dense at <= 2.98 % bad (EVALUATION.md, "Towards 85 %").
+    keep_smooth_sgbm_within_px: float = 0.0
     min_zncc: float = 0.3
     zncc_window_px: int = 7
     # How the photometric check warps the neighbours in a pixel's window that failed the
@@ -50,6 +57,14 @@ class StereoConfig:
     # sim 2 points more depths > 3 % off (EVALUATION.md, "Stereo depth on real images"). Off until
     # the near-field and egocentric protocols are rerun with it.
     zncc_warp_failed_by_best: bool = False
+    # Fill each row's leading hole, the left border's band whose partner lies outside the right
+    # image, with the row's first answer, where the hole is no wider than that answer's
+    # disparity plus ``left_border_slack_px`` (``stereo_occlusion.py``). On real pairs with
+    # bench/configs/stereo_dense.toml's options 2.7-4.1 points denser, 0.4-22 % of the filled
+    # pixels > 2 px off; on the sim 0.4-0.5 points more depths > 3 % off (EVALUATION.md,
+    # "Towards 85 %"). Off by default for that.
+    fill_left_border: bool = False
+    left_border_slack_px: float = 8.0
     rectify_alpha: float = 0.0  # 0: crop to pixels every sensor saw; 1: keep every sensor pixel
 
     def __post_init__(self) -> None:
@@ -78,6 +93,14 @@ class StereoConfig:
             raise bad("wls_max_change_px", self.wls_max_change_px, "must be positive")
         if self.keep_sgbm_within_px < 0:
             raise bad("keep_sgbm_within_px", self.keep_sgbm_within_px, "must be >= 0 (0: off)")
+        if self.keep_smooth_sgbm_within_px < 0:
+            raise bad(
+                "keep_smooth_sgbm_within_px",
+                self.keep_smooth_sgbm_within_px,
+                "must be >= 0 (0: off)",
+            )
+        if self.left_border_slack_px < 0:
+            raise bad("left_border_slack_px", self.left_border_slack_px, "must be >= 0")
         if not -1.0 <= self.min_zncc < 1.0:
             raise bad("min_zncc", self.min_zncc, "must be in [-1, 1) (-1 disables the check)")
         if self.zncc_window_px < 3 or self.zncc_window_px % 2 == 0:

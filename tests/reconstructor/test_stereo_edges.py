@@ -6,8 +6,14 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from reconstructor.depth.sgbm import RawDisparities, SgbmWlsMatcher, sgbm_disparity
+from reconstructor.depth.sgbm import (
+    RawDisparities,
+    SgbmWlsMatcher,
+    disparity_range,
+    sgbm_disparity,
+)
 from reconstructor.depth.stereo_config import StereoConfig
+from reconstructor.depth.stereo_occlusion import fill_left_border
 
 TRUE_DISPARITY_PX = 21.5
 
@@ -129,3 +135,102 @@ def test_where_wls_strays_from_sgbm_by_little_the_answer_is_sgbms_own():
         else:
             assert np.isfinite(near).mean() >= 0.95, f"answered {np.isfinite(near).mean():.0%}"
             np.testing.assert_allclose(near[np.isfinite(near)], TRUE_DISPARITY_PX)
+
+
+def test_the_left_borders_band_without_a_partner_is_filled_by_its_geometry():
+    """The first ``d`` columns of the left image have no partner in the right one: the default
+    leaves them holes; with ``fill_left_border`` they take the disparity of the surface they lie
+    on (the plane's, exactly), and nothing else changes."""
+    left, right = _rectified_pair()
+    rows = slice(10, -10)
+    band = slice(0, int(TRUE_DISPARITY_PX))  # x < d - 0.5: no partner
+    plain, filled = (
+        SgbmWlsMatcher(StereoConfig(fill_left_border=on)).match(
+            left, right, min_disparity_px=4.0, max_disparity_px=60.0
+        )
+        for on in (False, True)
+    )
+    assert np.isfinite(plain[rows, band]).mean() < 0.05
+    answered = np.isfinite(filled[rows, band])
+    assert answered.mean() >= 0.9, f"only {answered.mean():.0%} of the band filled"
+    err = np.abs(filled[rows, band][answered] - TRUE_DISPARITY_PX)
+    assert err.max() <= 1.0 and np.median(err) < 0.3
+    rest = slice(int(TRUE_DISPARITY_PX) + 2, None)
+    np.testing.assert_array_equal(filled[:, rest], plain[:, rest])
+
+
+def _fill_left_border_loop(disp: np.ndarray, slack_px: float) -> np.ndarray:
+    """The slow twin of ``fill_left_border``: one row and one pixel at a time."""
+    out = disp.copy()
+    for y in range(disp.shape[0]):
+        answers = [x for x in range(disp.shape[1]) if np.isfinite(disp[y, x])]
+        if not answers or answers[0] == 0:
+            continue
+        first = answers[0]
+        d = disp[y, first]
+        if first > d + slack_px:
+            continue  # a hole wider than the band: pixels the right camera sees are in it
+        for x in range(first):
+            if x - d < -0.5:
+                out[y, x] = d
+    return out
+
+
+def test_fill_left_border_matches_a_loop_and_leaves_unexplained_holes():
+    rng = np.random.default_rng(3)
+    disp = rng.uniform(2, 30, (40, 60)).astype(np.float32)
+    for y in range(40):  # leading holes of every width, and holes further in
+        disp[y, : rng.integers(0, 45)] = np.nan
+    disp[rng.uniform(size=disp.shape) < 0.2] = np.nan
+    disp[5] = np.nan  # a row without answers
+    fast = fill_left_border(disp, 8.0)
+    np.testing.assert_array_equal(fast, _fill_left_border_loop(disp, 8.0))
+    row = np.full((1, 60), np.nan, np.float32)
+    row[0, 40:] = 20.0  # first answer at 40 with d = 20: 12 px wider than band + slack
+    assert np.isnan(fill_left_border(row, 8.0)[0, :40]).all()
+    row[0, 25:] = 20.0  # first answer at 25: the band is x < 19.5, 20-24 stay holes
+    out = fill_left_border(row, 8.0)[0]
+    np.testing.assert_array_equal(out[:20], 20.0)
+    assert np.isnan(out[20:25]).all()
+
+
+def test_sgbms_own_is_kept_further_only_where_it_is_smooth():
+    """With ``keep_smooth_sgbm_within_px`` a pixel whose WLS value is 2 px off SGBM's (beyond
+    ``keep_sgbm_within_px``) is answered with SGBM's own where SGBM's disparity is smooth around
+    it, and left a hole within 2 px of a step in SGBM's disparity (a depth edge, where its
+    blocks fatten); without the option both are holes."""
+    left, right = _rectified_pair()
+    true = np.full(left.shape[:2], TRUE_DISPARITY_PX, np.float32)
+    sgbm_left = true.copy()
+    sgbm_left[:, 300:] += 3.0  # a step in SGBM's own map at column 300
+    filtered = true + 2.0  # WLS 2 px off SGBM everywhere
+    raw = RawDisparities(left=sgbm_left, right=true, filtered=filtered)
+    rows = slice(12, -12)
+    for setting in (0.0, 2.5):
+        config = StereoConfig(keep_sgbm_within_px=1.5, keep_smooth_sgbm_within_px=setting)
+        disp = _FixedRaw(config, raw).match(
+            left, right, min_disparity_px=4.0, max_disparity_px=60.0
+        )
+        smooth, at_step = disp[rows, 60:290], disp[rows, 298:300]
+        assert np.isnan(at_step).all(), f"setting {setting}: answered beside SGBM's step"
+        if setting == 0.0:
+            assert np.isnan(smooth).all(), "answered where WLS strays by 2 px without the option"
+        else:
+            assert np.isfinite(smooth).mean() >= 0.95, f"answered {np.isfinite(smooth).mean():.0%}"
+            np.testing.assert_allclose(smooth[np.isfinite(smooth)], TRUE_DISPARITY_PX)
+
+
+def test_disparity_range_matches_a_loop():
+    rng = np.random.default_rng(4)
+    disp = rng.uniform(5, 40, (20, 30)).astype(np.float32)
+    disp[rng.uniform(size=disp.shape) < 0.4] = np.nan
+    disp[:6, :6] = np.nan  # a window with no disparity at all
+    fast = disparity_range(disp, 5)
+    slow = np.full_like(disp, np.nan)
+    for y in range(disp.shape[0]):
+        for x in range(disp.shape[1]):
+            win = disp[max(0, y - 2) : y + 3, max(0, x - 2) : x + 3]
+            win = win[np.isfinite(win)]
+            if win.size:
+                slow[y, x] = win.max() - win.min()
+    np.testing.assert_allclose(fast, slow, equal_nan=True)
