@@ -353,6 +353,8 @@ def test_uncalibrated_or_swapped_pairs_are_refused(world):
         ("zncc_window_px", 2),
         ("lr_max_diff_px", 0.0),
         ("keep_sgbm_within_px", -1.0),
+        ("keep_smooth_sgbm_within_px", -1.0),
+        ("left_border_slack_px", -2.0),
     ],
 )
 def test_config_errors_name_the_field_and_value(field, value):
