@@ -5,10 +5,13 @@ On a real case a reviewer names the tracks (``egosurg people name FILE --list --
 ``egosurg view --people``). The demo has no reviewer, so it gives each track the name of the
 person whose true eye (``World.head_poses``, at the sim time whose picture the cameras showed:
 the sim rig's content loops and changes once a second, ``sim.truth.content_time_s``) is nearest
-the track's eye, median over the track's keyframes, each person and each track at most once,
-nearest pairs first, and only within ``MAX_NAMING_M`` (the distance bench/bench_people.py
-matches within). The roles file itself is then written by ``egosurg people name``, as a
-reviewer's would be: the track's estimated keyframes under the person's name, never the truth's.
+the track's eye, median over the track's keyframes, nearest pairs first and only within
+``MAX_NAMING_M`` (the distance bench/bench_people.py matches within). Each track takes one
+person; a person may take several tracks (someone lost behind the table comes back as a new
+track), as a reviewer would name them, as long as they do not overlap in time (one person is
+one track at a time: ``reconstructor.replay.names.join_tracks``). The roles file itself is then
+written by ``egosurg people name``, as a reviewer's would be: the tracks' estimated keyframes
+joined under the person's name, the time between them a gap, never the truth's.
 """
 
 from __future__ import annotations
@@ -46,20 +49,29 @@ def median_distances_m(track: Trajectory, true_eyes: TrueEyes) -> dict[str, floa
     return {name: float(np.median(d)) for name, d in per.items()}
 
 
+def _overlap(a: Trajectory, b: Trajectory) -> bool:
+    """The two tracks share an instant (the rule ``egosurg people name`` refuses)."""
+    return a.span_s[0] <= b.span_s[1] and b.span_s[0] <= a.span_s[1]
+
+
 def name_by_truth(
     people: Path, true_eyes: TrueEyes, max_m: float = MAX_NAMING_M
 ) -> list[TruthName]:
-    """Tracks of the people file ``people`` named after the sim's people."""
+    """Tracks of the people file ``people`` named after the sim's people: each track at most
+    once, a person's tracks never overlapping in time."""
+    tracks = {t.name: t for t in read_trajectories(people)}
     pairs = sorted(
-        (d, t.name, role)
-        for t in read_trajectories(people)
+        (d, name, role)
+        for name, t in tracks.items()
         for role, d in median_distances_m(t, true_eyes).items()
     )
     named: list[TruthName] = []
     for d, track, role in pairs:
         if d > max_m:
             break
-        if all(n.track != track and n.role != role for n in named):
+        if any(n.track == track for n in named):
+            continue
+        if not any(n.role == role and _overlap(tracks[n.track], tracks[track]) for n in named):
             named.append(TruthName(track, role, d))
     return named
 
@@ -68,13 +80,13 @@ def covering(
     named: list[TruthName], people: Path, case_times_s: list[float], min_timestamps: int = 2
 ) -> list[str]:
     """The named roles whose tracks span at least ``min_timestamps`` of the case's timestamps
-    (replay and sightline show the case where the role's eye is known), most first, then the
-    longest tracks."""
+    (replay and sightline show the case where the role's eye is known: inside one of its
+    tracks, not between two), most first, then the longest tracks."""
     tracks = {t.name: t for t in read_trajectories(people)}
     out = []
-    for n in named:
-        t0, t1 = tracks[n.track].span_s
-        inside = sum(t0 - 1e-6 <= t <= t1 + 1e-6 for t in case_times_s)
+    for role in dict.fromkeys(n.role for n in named):
+        spans = [tracks[n.track].span_s for n in named if n.role == role]
+        inside = sum(any(a - 1e-6 <= t <= b + 1e-6 for a, b in spans) for t in case_times_s)
         if inside >= min_timestamps:
-            out.append((inside, t1 - t0, n.role))
+            out.append((inside, sum(b - a for a, b in spans), role))
     return [role for *_, role in sorted(out, reverse=True)]

@@ -26,7 +26,8 @@ Format (version 1)::
 
 An estimated trajectory (``egosurg people``) marks each keyframe's ``confidence`` and the spans
 in which the person was seen by no camera (``gaps_s``: the last keyframe before, the first
-after); a replay moves through a gap as through any interval, and says so.
+after); a role joined from several tracks has the time between them as gaps too. Replay and
+sightline show no view and give no answer from inside a gap: nobody knows where that eye was.
 
 ``[session]`` names the recording the times belong to (``protocol/formats/session_id.py``):
 the review commands refuse a file made for another session than the case's, and warn about one

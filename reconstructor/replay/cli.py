@@ -170,6 +170,12 @@ def main_replay(argv: list[str]) -> int:
             f"case's spacing ({stats.spacing_s:.3f} s), marked STALE in the video",
             file=sys.stderr,
         )
+    if stats.gap_frames:  # a card, not a view: nobody followed the role there
+        print(
+            f"{stats.gap_frames} of {stats.frames} frames fall in the path's gaps (seen by no "
+            "camera, or between two tracks): shown as NOT FOLLOWED cards, no view",
+            file=sys.stderr,
+        )
     if stats.damaged_images:  # shown as "DAMAGED" in the inset, never as the changed image
         print(
             f"warning: --pip: {len(stats.damaged_images)} damaged real frame(s) not shown "

@@ -136,6 +136,11 @@ class ReplayObserved:
         self._video.write(burn_text(overlay(rgb, obs.observed), lines))
         self._rows.append((t_s, entry.name, obs.share, flagged))
 
+    def card(self, shown: np.ndarray) -> None:
+        """A frame with no view (the replay's gap card): the same card, no row in the CSV."""
+        if self._video is not None:
+            self._video.write(shown)
+
     def __exit__(self, exc_type: object, *exc: object) -> None:
         if self._video is None:
             return

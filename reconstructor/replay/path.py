@@ -4,6 +4,10 @@ eyes, orientations by spherical linear interpolation (slerp), field of view line
 A natural cubic spline (scipy) passes through every keyframe with a continuous velocity and
 acceleration, so a replay does not jerk at keyframes; slerp turns at a constant rate between
 two keyframes along the shortest arc.
+
+A trajectory's gaps (``gaps_s``: an estimated person hidden from every camera, or between two
+tracks joined as one role) are kept: ``gap_at`` says whether a time lies inside one, where the
+spline's eye is no one's, and replay and sightline show no view from there.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from reconstructor.errors import TrajectoryTimeError
 class CameraPath:
     def __init__(self, trajectory: Trajectory) -> None:
         self.name = trajectory.name
+        self.gaps_s = trajectory.gaps_s
         keys = trajectory.keyframes
         self.times_s = np.array([k.time_s for k in keys])
         poses = [k.pose() for k in keys]
@@ -47,6 +52,10 @@ class CameraPath:
                 f"{what} {t_s:.3f} s is outside trajectory {self.name!r}'s keyframes "
                 f"({t0:.3f} s to {t1:.3f} s)"
             )
+
+    def gap_at(self, t_s: float) -> tuple[float, float] | None:
+        """The gap ``t_s`` lies inside (its ends are keyframes: seen), or None."""
+        return next(((a, b) for a, b in self.gaps_s if a < t_s < b), None)
 
     def pose(self, t_s: float) -> Pose:
         self.require_inside(t_s)

@@ -9,6 +9,12 @@ than the case's spacing (past a gap, or past the case's end when ``--to`` asks f
 marked ``STALE`` with the model's age, and counted in ``ReplayStats.stale_frames``. The
 models come from :class:`ModelSource`, which reads ahead in a thread when ``preload`` is on.
 
+A frame inside one of the path's gaps (an estimated role hidden from every camera there, or
+between two of the tracks it joins: ``reconstructor/replay/names.py``) shows no view: nobody
+knows where that eye was, and a view from the spline through the gap would look real. It is a
+grey card that says ``NOT FOLLOWED`` with the gap's span, keeps the video's clock (the grid's
+real cameras still show that instant), and is counted in ``ReplayStats.gap_frames``.
+
 Each frame is for a team to read (``frame.py``, ``clock.py``): the time of day and the case's
 id are burned in above the case time, and pixels no Gaussian covers show as a magenta hatch with
 a legend ("no data"), not as black. With ``--pip`` the nearest real camera's frame is inset;
@@ -97,6 +103,7 @@ class ReplayStats:
     damaged_images: tuple[str, ...] = ()  # --pip frames not shown: "SN<serial> row <r> left"
     stale_frames: int = 0  # frames marked STALE: their model older than the case's spacing
     spacing_s: float = 0.0  # the case's interval between timestamps
+    gap_frames: int = 0  # frames inside the path's gaps: a NOT FOLLOWED card, no view
 
     @property
     def fps(self) -> float:
@@ -217,6 +224,15 @@ class RealCameras:
 
 
 STALE_SLACK_S = 1e-3  # timestamps' times are stored to the millisecond
+GAP_GREY = 64  # a gap card's background: no render is this flat
+
+
+def gap_card(size_px: tuple[int, int], lines: list[str], gap: tuple[float, float], who: str):
+    """The frame shown inside a gap of ``who``'s path: no view, the labels and what happened."""
+    w, h = size_px
+    said = (f"NOT FOLLOWED: {who} seen by no camera {gap[0]:.3f}-{gap[1]:.3f} s (hidden, or "
+            "between two tracks): no view")  # fmt: skip
+    return burn_text(np.full((h, w, 3), GAP_GREY, np.uint8), [*lines, said])
 
 
 def is_stale(t_s: float, entry: Entry, spacing_s: float) -> bool:
@@ -252,18 +268,21 @@ def replay(
     models = CaseModels(folder, identity)  # a sealed session's case opens with it
     times = frame_times(path, models, config)
     order = [models.entry_at(float(t)) for t in times]
+    gaps = [path.gap_at(float(t)) for t in times]
+    seen = [t for t, gap in zip(times, gaps, strict=True) if gap is None]
+    rendered = [e for e, gap in zip(order, gaps, strict=True) if gap is None]
     raster = case_raster(folder, config.near_m, config.device)
     clock = CaseClock.for_case(folder, pick_zone(config.timezone))
     real_wanted = config.pip or config.layout == "grid"
     real = RealCameras(models, identity, clock) if real_wanted else None
     grid = []
     if real is not None and config.layout == "grid":
-        eyes = np.array([path.pose(float(t)).centre_m for t in times])
+        eyes = np.array([path.pose(float(t)).centre_m for t in (seen or times)])
         grid = real.nearest(eyes, GRID_CAMERAS)
     t_start, stale = time.perf_counter(), 0
     try:
         with (
-            ModelSource(models, order, preload=config.preload) as source,
+            ModelSource(models, rendered, preload=config.preload) as source,
             Mp4Writer(out, config.video_size_px, config.fps) as video,
             ReplayObserved(
                 folder,
@@ -274,15 +293,22 @@ def replay(
                 enabled=config.observed,
             ) as observed,  # fmt: skip
         ):
-            for k, (t, entry) in enumerate(zip(times, order, strict=True)):
+            for k, (t, entry, gap) in enumerate(zip(times, order, gaps, strict=True)):
+                label = frame_label(float(t), path.name, entry, models.spacing_s, clock)
+                if gap is not None:
+                    shown = gap_card(config.size_px, label, gap, path.name)
+                    observed.card(shown)
+                    if real is not None and grid:
+                        shown = grid_layout(shown, [real.sensor_frame(s, float(t)) for s in grid])
+                    video.write(shown)
+                    if progress is not None:
+                        progress(k + 1, len(times))
+                    continue
                 camera = path.camera(float(t), config.size_px)
                 rgb, _, alpha = render_view(source.get(entry), camera, raster)
                 observed.add(float(t), entry, source.get(entry), camera, rgb, raster)
                 stale += is_stale(float(t), entry, models.spacing_s)
-                shown = burn_text(
-                    show_no_data(rgb, alpha),
-                    frame_label(float(t), path.name, entry, models.spacing_s, clock),
-                )
+                shown = burn_text(show_no_data(rgb, alpha), label)
                 shown = no_data_legend(shown)
                 if real is not None and config.pip:
                     pip = real.frame(camera.pose.centre_m, float(t))
@@ -293,7 +319,7 @@ def replay(
                 video.write(shown)
                 if progress is not None:
                     progress(k + 1, len(times))
-            waited, loads = source.waited_s, len({e.name for e in order})
+            waited, loads = source.waited_s, len({e.name for e in rendered})
     except UserError:
         out.unlink(missing_ok=True)  # never leave half a video that looks whole
         raise
@@ -310,4 +336,5 @@ def replay(
         damaged_images=tuple(real.damaged) if real is not None else (),
         stale_frames=stale,
         spacing_s=models.spacing_s,
+        gap_frames=len(times) - len(seen),
     )

@@ -54,11 +54,12 @@ class SightScene:
         return cls(cams, boxes, others, clock)
 
     def people_at(self, t_s: float, viewer: str) -> dict[str, np.ndarray]:
-        """Each other role's eye at ``t_s`` (held at its first or last keyframe outside them)."""
+        """Each other role's eye at ``t_s`` (held at its first or last keyframe outside them;
+        a role inside one of its gaps is nowhere known, and left out)."""
         return {
             p.name: p.pose(float(np.clip(t_s, *p.span_s))).centre_m
             for p in self.others
-            if p.name != viewer
+            if p.name != viewer and p.gap_at(t_s) is None
         }
 
 

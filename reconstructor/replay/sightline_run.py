@@ -1,5 +1,11 @@
 """``sightline`` over a case: the CSV, the timeline plot and the paired renders at the worst
-instants, for the viewer's own position and a counterfactual one."""
+instants, for the viewer's own position and a counterfactual one.
+
+A timestamp inside one of the viewer's gaps (an estimated role seen by no camera there, or
+between two of the tracks it joins) gets no answer: no row, no plan, a warning with the count,
+and on the timeline a grey band ("not followed") that the line does not cross. Another role
+inside one of its gaps is not drawn on the plans and blocks no one's line.
+"""
 
 from __future__ import annotations
 
@@ -70,6 +76,7 @@ def sightline(
             "share no timestamp"
         )
     models.require_span(entries[0].t_s, entries[-1].t_s)
+    entries = _followed(entries, path)
     raster = case_raster(folder, EYE_NEAR_M, device)
     observed = CaseObserved(folder, case_raster(folder, device=device))
     out.mkdir(parents=True, exist_ok=True)
@@ -91,11 +98,30 @@ def sightline(
             if progress is not None:
                 progress(k + 1, len(entries))
         _write_csv(out / "sightline.csv", rows, box)
-        _plot(out / "timeline.png", rows, box, path.name, scene.clock)
+        _plot(out / "timeline.png", rows, box, path.name, scene.clock, path.gaps_s)
         _worst_renders(out, rows, path, box, source, models, raster, size_px, worst, scene)
     # egosurg report checks the folder's session
     write_made_for(out, folder, "sightline", f"{path.name} sees {box.name}")
     return rows
+
+
+def _followed(entries: list, path: CameraPath) -> list:
+    """The timestamps outside the viewer's gaps: inside one, nobody knows where the eye was."""
+    kept = [e for e in entries if path.gap_at(e.t_s) is None]
+    if len(kept) < len(entries):
+        spans = ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in path.gaps_s)
+        log.warning(
+            "sightline: %d of %d timestamps fall in %s's gaps (%s: seen by no camera, or between "
+            "two tracks) and get no answer", len(entries) - len(kept), len(entries), path.name,
+            spans,
+        )  # fmt: skip
+    if not kept:
+        raise CaseReplayError(
+            f"every timestamp the viewer {path.name!r} spans falls in one of its gaps (seen by "
+            "no camera, or between two tracks): no eye to answer from; name a track that covers "
+            "the case's timestamps"
+        )
+    return kept
 
 
 def obstruction_words(rows: list[SightRow], position: str) -> str:
@@ -154,8 +180,9 @@ def _write_csv(path: Path, rows: list[SightRow], box: SiteBox) -> None:
 
 
 def _plot(
-    path: Path, rows: list[SightRow], box: SiteBox, viewer: str, clock: CaseClock | None = None
-) -> None:
+    path: Path, rows: list[SightRow], box: SiteBox, viewer: str, clock: CaseClock | None = None,
+    gaps_s: tuple[tuple[float, float], ...] = (),
+) -> None:  # fmt: skip
     import matplotlib
 
     matplotlib.use("Agg")
@@ -168,11 +195,18 @@ def _plot(
         t = np.array([r.t_s for r in sel])
         f = np.array([r.visible_fraction for r in sel])
         colour = f"C{i}"
-        ax.plot(t, f, "o-", color=colour, label=f"{viewer} {label}", ms=3)
+        # the line never crosses a gap: between two answers on either side of one, a break
+        cut = [k for k in range(1, len(t)) if any(t[k - 1] < b and a < t[k] for a, b in gaps_s)]
+        ax.plot(np.insert(t, cut, np.nan), np.insert(f, cut, np.nan), "o-", color=colour,
+                label=f"{viewer} {label}", ms=3)  # fmt: skip
         dt = np.median(np.diff(t)) if len(t) > 1 else 0.5
         for tk, fk in zip(t, f, strict=True):
             if fk < VISIBLE_ENOUGH:  # occluded: less than half visible, shaded
                 ax.axvspan(tk - dt / 2, tk + dt / 2, color=colour, alpha=0.15, lw=0)
+    t_all = [r.t_s for r in rows]
+    shown = [(max(a, min(t_all)), min(b, max(t_all))) for a, b in gaps_s]  # within the answers
+    for k, (a, b) in enumerate((a, b) for a, b in shown if a < b):
+        ax.axvspan(a, b, color="grey", alpha=0.3, lw=0, label="not followed" if k == 0 else None)
     ax.axhline(VISIBLE_ENOUGH, color="grey", ls=":", lw=1)
     ax.set(xlabel="case time (s)", ylabel=f"{box.name} visible", ylim=(-0.03, 1.03))
     ax.set_title(f"line of sight to {box.name} (shaded: less than half visible)", fontsize=10)

@@ -9,13 +9,17 @@ when not empty) and writes the roles file (``--roles``; default ``roles.toml`` b
 file) through ``reconstructor.replay.names``: the file ``egosurg people name`` writes, in its
 format, which replay, sightline, sterile, the report and the viewer's role cameras read. "Clear
 name" takes a track's name back. The panel lists each track (when, where it mostly stands, how
-sure) and the room's suggestions, labelled as suggestions: they are never written as names.
+sure), each role with the tracks it joins, and the room's suggestions, labelled as suggestions:
+they are never written as names.
 
-A roles file that already exists is read as the names it gives these tracks (a role is the
-track whose keyframes it carries); one holding a role that is no track of the people file (the
-sim's truth, a path drawn by hand) is refused in one line before the page is served, since
-writing the names would replace it. Only a browser that came through the viewer's gate
-(``view_boundary``) writes.
+A person lost and found again is a new track: naming a second track with a role already given
+joins it to that role (its keyframes after the first track's, the time between a gap: see
+``names.py``); a track that overlaps the role's others in time is refused in one line, the file
+left as it was. A roles file that already exists is read as the names it gives these tracks (a
+role is the join of the tracks whose keyframes it carries); one holding a role that is no track
+of the people file (the sim's truth, a path drawn by hand) is refused in one line before the
+page is served, since writing the names would replace it. Only a browser that came through the
+viewer's gate (``view_boundary``) writes.
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ import numpy as np
 
 from protocol.errors import UserError
 from protocol.formats.trajectory import Trajectory, TrajectoryFile, read_trajectory_file
-from reconstructor.replay.names import describe, names_in, suggest, write_roles
+from reconstructor.replay.names import describe, names_in, role_lines, suggest, write_roles
 from reconstructor.replay.path import CameraPath
 from reconstructor.replay.session_check import CaseInputs
 
@@ -96,6 +100,9 @@ class PeopleNaming:
         for name, track in self.tracks.items():
             role = self.names.get(name)
             lines.append(f"- {'**' + role + '**: ' if role else ''}{describe(track)}")
+        if self.names:
+            lines += ["", "Roles and the tracks they join:", ""]
+            lines += [f"- {line}" for line in role_lines(self.names, self.file.trajectories)]
         lines += ["", "Suggestions from where each stands (not identities):", ""]
         lines += [f"- {line}" for line in suggest(self.file.trajectories)]
         return "\n".join(lines)
@@ -142,8 +149,9 @@ class PeopleNaming:
         return str(self.other_role.value).strip() or str(self.role_menu.value)
 
     def name(self, track: str, role: str) -> tuple[Trajectory, ...]:
-        """Give ``track`` the name ``role`` and write the roles file; ``UserError`` (one line,
-        the file left as it was) for an unknown track, a bad name or a role already given."""
+        """Give ``track`` the name ``role`` and write the roles file (a role already given
+        joins this track too); ``UserError`` (one line, the file left as it was) for an unknown
+        track, a bad name or a track that overlaps the role's others in time."""
         names = {t: r for t, r in self.names.items() if t != track}
         names[track] = role
         return self._write(names)

@@ -54,7 +54,7 @@ class PageInputs:
     command: str = ""
     generated: str = ""
     not_run: dict[str, str] = field(default_factory=dict)  # section -> the command to make it
-    uncovered_times: list[float] = field(default_factory=list)  # asked, but no role's keyframes
+    uncovered_times: list[float] = field(default_factory=list)  # asked, no role's eye (gaps too)
 
 
 def _pct(x: float) -> str:

@@ -41,22 +41,24 @@ class Thumb:
 @dataclass(frozen=True)
 class RoleShare:
     role: str
-    instants: int  # case timestamps inside the role's keyframes that were measured
+    instants: int  # case timestamps inside the role's keyframes (not its gaps) measured
     mean_share: float  # mean observed share of the role's view over them; NaN: unknown
     inferred_instants: int  # of them, under well_observed_share: the view rests on inference
     note: str = ""  # why unknown
 
 
 def _inside(path: CameraPath, t_s: float) -> bool:
+    """Inside the role's keyframes and outside its gaps (no one knows where the eye was there:
+    the report shows no view from the spline through a gap)."""
     a, b = path.span_s
-    return a - 1e-9 <= t_s <= b + 1e-9
+    return a - 1e-9 <= t_s <= b + 1e-9 and path.gap_at(t_s) is None
 
 
 def role_thumbs(
     models: CaseModels, paths: list[CameraPath], times_s: list[float],
     real: RealCameras | None, observed: CaseObserved,
 ) -> list[Thumb]:  # fmt: skip
-    """Each role at each time inside both the case and its keyframes."""
+    """Each role at each time inside both the case and its keyframes, outside its gaps."""
     raster = case_raster(models.folder, EYE_NEAR_M)
     order = [models.entry_at(t) for t in times_s]
     out = []

@@ -9,9 +9,11 @@ starting at the second timestamp. What a reviewer relies on:
 - a click on a track (the page's own messages over the real websocket, through the viewer's
   gate) picks it, and "Name track" writes the roles file: byte for byte the file ``egosurg
   people name`` writes for the same names, which the review commands read;
-- a name given twice or a name that is no name is refused and the file left as it was; the
-  names written come back when the viewer is opened again; a roles file holding a role that is
-  no track (the sim's truth) is refused in one line before the page is served;
+- a role given to a second track that overlaps its first in time, or a name that is no name,
+  is refused and the file left as it was; a role given to a second track that starts after the
+  first ended joins them (one role, the time between a gap); the names written come back when
+  the viewer is opened again; a roles file holding a role that is no track (the sim's truth) is
+  refused in one line before the page is served;
 - with Debian's chromium, the real page lists the tracks and the suggestions (labelled as
   such), and its "Name track" button writes the file.
 """
@@ -120,14 +122,15 @@ def test_tracks_are_drawn_at_the_shown_time_and_named_from_the_page(case, tmp_pa
         set_value(page, v, "Name track", True)
         assert wait_for(lambda: len(read_trajectory_file(roles).trajectories) == 2)
         named = roles.read_bytes()
-        # "surgeon" once more, for track 3: refused, the file as it was
+        # "surgeon" once more, for track 3, which is seen at 2.5 s as track 2 is: refused
         set_value(page, v, "Other name", "")
         page.send(click_message("/people/track3"))
         assert wait_for(lambda: v.naming.track_menu.value == "track3")
         set_value(page, v, "Name track", True)
         assert wait_for(lambda: "names not written" in caplog.text), caplog.text
         page.close()
-        assert "two tracks are named 'surgeon'" in caplog.text
+        said = "track2 (2.0-2.5 s) and track3 (at 2.5 s) are both named 'surgeon' but overlap"
+        assert f"{said} at 2.5 s" in caplog.text
         assert roles.read_bytes() == named
         # the named roles are the viewer's role cameras now, at the named track's eye
         assert tuple(v.role_menu.options) == ("surgeon", "anaesthetist")
@@ -154,6 +157,48 @@ def test_tracks_are_drawn_at_the_shown_time_and_named_from_the_page(case, tmp_pa
         with pytest.raises(NamingError, match="write TRACK=ROLE"):
             again.naming.name("track3", "dr who")
         assert [t.name for t in read_trajectory_file(roles).trajectories] == ["surgeon"]
+
+
+def test_a_second_track_named_with_a_role_already_given_joins_that_role(case, tmp_path, caplog):
+    """The surgeon is track1 at 2.0 s, lost, and track2 at 2.5 s: named surgeon both from the
+    page, they are one role, the time between them a gap; opened again, both carry the name."""
+    eyes = {"track1": (2.0, (1.0, -1.0, 1.6)), "track2": (2.5, (1.2, -0.8, 1.6)),
+            "track3": (2.0, (-1.0, 1.0, 1.5))}  # fmt: skip
+    people = write_file(tmp_path / "people.toml", [
+        Trajectory(name=n, keyframes=(Keyframe(time_s=t, eye_m=eye, look_at_m=(0.0, 0.0, 1.0),
+                                               confidence=0.8),))
+        for n, (t, eye) in eyes.items()
+    ])  # fmt: skip
+    roles = tmp_path / "roles.toml"
+    config = ViewConfig(port=0, people=people, roles=roles, save_to=tmp_path / "v.toml")
+    with CaseViewer(case, config) as v:
+        page = RawBrowser(v)
+        page.received_bytes(1.0)
+        page.send(CAMERA)
+        set_value(page, v, "Name as", "surgeon")
+        assert wait_for(lambda: v.naming.role_menu.value == "surgeon")
+        for track in ("track1", "track2"):
+            page.send(click_message(f"/people/{track}"))
+            assert wait_for(lambda track=track: v.naming.track_menu.value == track)
+            set_value(page, v, "Name track", True)
+            assert wait_for(lambda track=track: track in v.naming.names), caplog.text
+        page.close()
+        (surgeon,) = read_trajectory_file(roles).trajectories
+        assert [k.time_s for k in surgeon.keyframes] == [2.0, 2.5]
+        assert surgeon.gaps_s == ((2.0, 2.5),)  # nobody followed the surgeon in between
+        assert v.naming.labels["track1"].text == "track1 = surgeon"
+        assert v.naming.labels["track2"].text == "track2 = surgeon"
+        assert "surgeon = track1 + track2: 2.0-2.5 s" in v.naming.list_text.content
+        # the role camera stands at each track's eye at its own time
+        for t, track in ((2.0, "track1"), (2.5, "track2")):
+            v.slider.value = t
+            np.testing.assert_allclose(v.frustums["surgeon"].position, eyes[track][1], atol=1e-9)
+        # a third track seen at 2.0 s as track1 is: one person cannot be both, refused
+        with pytest.raises(NamingError, match=r"track1 .* and track3 .* overlap at 2\.0 s"):
+            v.naming.name("track3", "surgeon")
+        assert len(read_trajectory_file(roles).trajectories) == 1
+    with CaseViewer(case, config) as again:
+        assert again.naming.names == {"track1": "surgeon", "track2": "surgeon"}
 
 
 def test_a_roles_file_that_is_not_of_these_tracks_is_refused_in_one_line(case, tmp_path):
