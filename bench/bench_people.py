@@ -11,9 +11,13 @@ A truth person is matched at each timestamp to at most one track by least total 
 Examples::
 
     .venv/bin/python bench/bench_people.py --phases intraoperative --seconds 20 --hz 2
-    .venv/bin/python bench/bench_people.py --sessions /tmp/es   # sessions made before
+    .venv/bin/python bench/bench_people.py --cases intraoperative=/tmp/case_intra --seconds 60
 
 Sessions are written (``egosurg sim eval-set`` at ``--hz`` fps) under ``--work`` and kept.
+``--cases PHASE=CASE,...``: reconstructed cases of those sessions (``egosurg reconstruct
+SESSION --every 0.5s ...``), each judged through both routes on the same timestamps: the
+evidence the case stores (its cells, with the cameras that saw them) and its session's stereo
+(the session's cached points, made again and timed on ``--stereo-timed`` of them).
 """
 
 from __future__ import annotations
@@ -133,39 +137,53 @@ HEADER = (
 )
 
 
+def session_clouds(session: Path, every_s: float) -> tuple[list[np.ndarray], float]:
+    """Each timestamp's stereo points of a session (every ``every_s`` s) and the seconds they
+    took, made once and kept beside the session (``people_points_every<s>.npz``)."""
+    from reconstructor.people.sources import open_source
+
+    source = open_source(session, every_s=every_s)
+    cache = session.parent / f"people_points_every{every_s:g}.npz"
+    if cache.is_file():  # the stereo points of an earlier run (delete it to make them again)
+        z = np.load(cache)
+        return [z[f"k{k}"] for k in range(len(source.times_s))], float(z["read_s"])
+    t0 = time.perf_counter()
+    clouds = [source.points(k) for k in range(len(source.times_s))]
+    read_s = time.perf_counter() - t0
+    np.savez(cache, read_s=read_s, **{f"k{k}": c for k, c in enumerate(clouds)})
+    return clouds, read_s
+
+
 def run_phase(session: Path, seed: int, phase: str, every_s: float) -> tuple[str, dict]:
+    from reconstructor.people.sources import open_source
+
+    source = open_source(session, every_s=every_s)
+    clouds, read_s = session_clouds(session, every_s)
+    return judge(source, clouds, read_s, seed, phase, session.parent / "calibration.toml", every_s)
+
+
+def judge(source, clouds, read_s, seed, phase, calibration, every_s, label=""):  # type: ignore[no-untyped-def]
+    """``find_people`` on ``clouds`` (one per timestamp of ``source``, made in ``read_s``),
+    judged against the world's truth: the report's lines and the numbers."""
+    from protocol.formats.rig_calibration import RigCalibration
     from reconstructor.people.config import PeopleConfig
     from reconstructor.people.run import find_people
-    from reconstructor.people.sources import open_source
     from sim.world import World
 
     config = PeopleConfig()
-    source = open_source(session, every_s=every_s)
-    cache = session.parent / f"people_points_every{every_s:g}.npz"
-    if cache.is_file():  # the stereo points of an earlier run (--fresh makes them again)
-        z = np.load(cache)
-        clouds = [z[f"k{k}"] for k in range(len(source.times_s))]
-        read_s = float(z["read_s"])
-    else:
-        t0 = time.perf_counter()
-        clouds = [source.points(k) for k in range(len(source.times_s))]
-        read_s = time.perf_counter() - t0
-        np.savez(cache, read_s=read_s, **{f"k{k}": c for k, c in enumerate(clouds)})
     source = dataclasses.replace(source, _load=lambda k: clouds[k])
     t0 = time.perf_counter()
     people = find_people(source, config)
     wall = time.perf_counter() - t0 + read_s
     people.seconds["read"] = read_s
     world = World.from_seed(seed, phase=phase)
-    from protocol.formats.rig_calibration import RigCalibration
-
-    rig = RigCalibration.read(session.parent / "calibration.toml")
+    rig = RigCalibration.read(calibration)
     centres = np.array([s.camera.pose.centre_m for s in rig.sensors if s.side == "left"])
     duration = source.times_s[-1] - source.times_s[0] + every_s
     scores = score(world, people, config, centres, duration)
     n = len(source.times_s)
     sec = people.seconds
-    lines = [f"\n{phase}, seed {seed}: {n} timestamps over {duration:.0f} s, "
+    lines = [f"\n{phase}{label}, seed {seed}: {n} timestamps over {duration:.0f} s, "
              f"{len(people.tracks)} tracks for {len(scores)} people; "
              f"{wall / n:.2f} s per timestamp (reading points {sec['read'] / n:.2f}, "
              f"finding people {(sec['detect'] + sec['background'] + sec['track']) / n:.2f})",
@@ -184,6 +202,39 @@ def run_phase(session: Path, seed: int, phase: str, every_s: float) -> tuple[str
     return "\n".join(lines), {"scores": scores, "people": people, "all": allsc}
 
 
+def run_case(  # type: ignore[no-untyped-def]
+    case: Path, session: Path, seed: int, phase: str, every_s: float, time_session: int
+):
+    """The case's timestamps through both routes: its stored evidence (read and checked, timed
+    over all of them) and its session's stereo (the session's cached points at the same sets;
+    made again and timed on ``time_session`` of them)."""
+    from reconstructor.case.index import CaseIndex
+    from reconstructor.people.sources import open_source
+
+    stored = open_source(case)
+    t0 = time.perf_counter()
+    clouds = [stored.points(k) for k in range(len(stored.times_s))]
+    read_s = time.perf_counter() - t0
+    calibration = case / "calibration.toml"
+    yield judge(stored, clouds, read_s, seed, phase, calibration, every_s, " (case evidence)")[0]
+    n_pts = [len(c) for c in clouds]
+    sets = [e.set_index for e in CaseIndex.read(case).timestamps if e.status == "done"]
+    all_sets, _ = session_clouds(session, every_s)  # every set of a 2 Hz session: k = set
+    again = open_source(case, stored_first=False)
+    assert again.times_s == stored.times_s
+    picks = np.linspace(0, len(sets) - 1, time_session).round().astype(int) if time_session else []
+    t0 = time.perf_counter()
+    for k in picks:
+        again.points(int(k))
+    per_ts = (time.perf_counter() - t0) / max(len(picks), 1)
+    clouds = [all_sets[s] for s in sets]
+    text = judge(stored, clouds, per_ts * len(sets), seed, phase, calibration, every_s,
+                 f" (session stereo, timed on {len(picks)} timestamps)")[0]  # fmt: skip
+    yield text
+    yield (f"points per timestamp, median: case evidence (seen twice) {np.median(n_pts):.0f}, "
+           f"session stereo (seen twice) {np.median([len(c) for c in clouds]):.0f}")  # fmt: skip
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--seeds", default="3", help="comma-separated world seeds (3)")
@@ -191,9 +242,21 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=20.0, help="length of each phase's session")
     ap.add_argument("--hz", type=float, default=2.0, help="timestamps per second")
     ap.add_argument("--work", default="/tmp/bench_people", help="where sessions are written")
+    ap.add_argument("--cases", help="PHASE=CASE,...: cases of --work's sessions, both routes")
+    ap.add_argument("--stereo-timed", type=int, default=3,
+                    help="timestamps whose session stereo is made again and timed (3)")  # fmt: skip
     args = ap.parse_args()
     from sim.eval_set import EvalSetSpec, write_eval_set
 
+    if args.cases:
+        for item in args.cases.split(","):
+            phase, case = item.split("=", 1)
+            seed = int(args.seeds.split(",")[0])
+            folder = Path(args.work) / f"seed{seed}-{args.seconds:g}s-{args.hz:g}hz"
+            session = folder / phase / "session.h5"
+            for text in run_case(Path(case), session, seed, phase, 1 / args.hz, args.stereo_timed):
+                print(text, flush=True)
+        return 0
     for seed in (int(s) for s in args.seeds.split(",")):
         for phase in args.phases.split(","):
             folder = Path(args.work) / f"seed{seed}-{args.seconds:g}s-{args.hz:g}hz"

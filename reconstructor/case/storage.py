@@ -29,7 +29,10 @@ sorted, packed like ``new``: the observed geometry, which a warm model carries f
 training moves, so the sterile-field tool reads these (``load_points``). ``points_noise``, in
 the same order, is each point's depth change per pixel of disparity (``evidence.Observed.
 m_per_px``) on a ``NOISE_STEP_M`` grid (``meta.points.noise_step_m``; absent in older cases:
-``load_evidence`` gives None). A reader that does not know them ignores them (same format
+``load_evidence`` gives None). ``points_seen_by``, in the same order, is each point's bitmask
+of the stereo cameras that saw its cell (``evidence.Observed.seen_by``; bit ``i`` is
+``meta.points.cameras[i]``, the left sensors' names ``SN<serial>``; absent in older cases:
+``load_observation`` gives None). A reader that does not know them ignores them (same format
 version).
 
 ``load_model(case, entry)`` reads any done entry (a compact file, or the full PLY of older
@@ -169,15 +172,18 @@ def write_model(
     steps: QuantSteps | None = None,
     points_m: np.ndarray | None = None,
     points_noise: np.ndarray | None = None,
+    points_seen_by: np.ndarray | None = None,
+    points_cameras: tuple[str, ...] | list[str] | None = None,
     seal: DerivedSeal | None = None,
 ) -> Stored:
     """Store ``g`` at ``path`` (atomically), as changes to ``parent`` when given (with
     ``parent_ref`` = the parent's ``{model, xxh3_64, bytes}`` and ``alive`` = which of the
     parent's rows ``g`` kept, in order, as its first rows), with the timestamp's fused points
     ``points_m`` (M, 3) when given (and ``points_noise`` (M,), each one's metres of depth per
-    pixel of disparity, when known); sealed with ``seal`` (a sealed session's; the path then
-    ends ``SEALED_SUFFIX``) in memory, so no plaintext reaches the disk. Returns what a reader
-    decodes."""
+    pixel of disparity, when known; and ``points_seen_by`` (M,), each one's bitmask of the
+    cameras ``points_cameras`` that saw it, when known); sealed with ``seal`` (a sealed
+    session's; the path then ends ``SEALED_SUFFIX``) in memory, so no plaintext reaches the
+    disk. Returns what a reader decodes."""
     if parent is not None:
         if alive is None or parent_ref is None or len(alive) != parent.num:
             raise ValueError("a delta needs the parent's reference and one alive flag per row")
@@ -209,6 +215,15 @@ def write_model(
             q = np.rint(noise[order] / NOISE_STEP_M).astype(np.int64)
             meta["points"]["noise_step_m"] = NOISE_STEP_M
             arrays["points_noise"] = _pack(q[:, None])
+        if points_seen_by is not None:
+            masks = np.asarray(points_seen_by).reshape(-1)
+            cameras = list(points_cameras or ())
+            if len(masks) != len(np.asarray(points_m).reshape(-1, 3)):
+                raise ValueError("points_seen_by needs one mask per point")
+            if not cameras or len(cameras) > 31 or (masks.size and masks.max() >> len(cameras)):
+                raise ValueError("points_seen_by needs the cameras its bits name (at most 31)")
+            meta["points"]["cameras"] = cameras
+            arrays["points_seen_by"] = _pack(masks[order].astype(np.int64)[:, None])
     arrays = {"meta": np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays}
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as zf:
@@ -285,30 +300,75 @@ def load_evidence(
     """((M, 3) float64 points, (M,) float64 metres of depth per pixel of disparity or None
     where the case did not store them) of a done entry, after checking its checksum; None for
     a model stored without points."""
+    seen = load_observation(case, entry, seal)
+    return None if seen is None else (seen.points_m, seen.m_per_px)
+
+
+@dataclass(frozen=True)
+class StoredEvidence:
+    """What a done entry stores of what its stereo pairs saw (``depth/evidence.py``):
+    ``points_m`` (M, 3) float64; ``m_per_px`` (M,) float64 or None; ``seen_by`` (M,) uint32
+    bitmask of ``cameras`` (bit ``i`` is ``cameras[i]``) or None where the case did not store
+    them (made before they were kept: unknown, not "no camera")."""
+
+    points_m: np.ndarray
+    m_per_px: np.ndarray | None
+    seen_by: np.ndarray | None
+    cameras: tuple[str, ...]
+
+
+def stores_seen_by(case: Path | str, entry: Entry, seal: DerivedSeal | None = None) -> bool:
+    """Whether a done entry's points carry their cameras (``points_seen_by``): reads only the
+    file's ``meta``, after checking its checksum."""
+    folder = Path(case)
+    if entry.status != "done" or not is_compact(entry):
+        return False
+    path = _checked(folder, entry.model, entry.xxh3_64, entry.bytes, entry.name)
+    try:
+        meta = json.loads(_read_arrays(_source(path, seal), ("meta",))["meta"].tobytes())
+    except (OSError, ValueError, KeyError, TypeError, zipfile.BadZipFile) as exc:
+        raise CaseStorageError(
+            f"{path}: its header cannot be read ({exc}); rerun the case's reconstruct "
+            "command, which redoes damaged timestamps"
+        ) from None
+    return bool((meta.get("points") or {}).get("cameras"))
+
+
+def load_observation(
+    case: Path | str, entry: Entry, seal: DerivedSeal | None = None
+) -> StoredEvidence | None:
+    """The evidence stored with a done entry, after checking its checksum; None for a model
+    stored without points."""
     folder = Path(case)
     if entry.status != "done" or not is_compact(entry):
         return None
     path = _checked(folder, entry.model, entry.xxh3_64, entry.bytes, entry.name)
     source = _source(path, seal)  # no identity, or not a recipient's: said as such
     try:
-        z = _read_arrays(source, ("meta", "points", "points_noise"))
+        z = _read_arrays(source, ("meta", "points", "points_noise", "points_seen_by"))
         meta = json.loads(z["meta"].tobytes())
         info = meta.get("points")
         if info is None:
             return None
-        grid = _unpack(z["points"], int(info["n"]), 3)
+        n = int(info["n"])
+        grid = _unpack(z["points"], n, 3)
         noise = None
         if "noise_step_m" in info:
-            noise = _unpack(z["points_noise"], int(info["n"]), 1)[:, 0] * float(
-                info["noise_step_m"]
-            )
+            noise = _unpack(z["points_noise"], n, 1)[:, 0] * float(info["noise_step_m"])
+        cameras = tuple(str(c) for c in info.get("cameras") or ())
+        seen_by = None
+        if cameras:
+            masks = _unpack(z["points_seen_by"], n, 1)[:, 0]
+            if masks.size and (masks.min() < 0 or masks.max() >> len(cameras)):
+                raise ValueError(f"a camera mask names more than its {len(cameras)} cameras")
+            seen_by = masks.astype(np.uint32)
     except (OSError, ValueError, KeyError, TypeError, zlib.error, zipfile.BadZipFile) as exc:
         raise CaseStorageError(
             f"{path}: its stored points cannot be read ({exc}); rerun the case's reconstruct "
             "command, which redoes damaged timestamps"
         ) from None
     grid[:, 0] = np.cumsum(grid[:, 0])
-    return grid * float(info["step_m"]), noise
+    return StoredEvidence(grid * float(info["step_m"]), noise, seen_by, cameras)
 
 
 def _pack(table: np.ndarray | None) -> np.ndarray:
@@ -344,17 +404,17 @@ def _unpack(blob: np.ndarray, rows: int, cols: int) -> np.ndarray:
 
 
 def _read_arrays(path: Path | io.BytesIO, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
-    """The named uint8 arrays of a model file (``points`` and ``points_noise`` may be
-    absent). Every entry must be stored uncompressed in the zip, as ``write_model`` writes it,
-    and hold the bytes its header claims, checked before reading: a file cannot make the
-    reader allocate more than its own size."""
+    """The named uint8 arrays of a model file (``points``, ``points_noise`` and
+    ``points_seen_by`` may be absent). Every entry must be stored uncompressed in the zip, as
+    ``write_model`` writes it, and hold the bytes its header claims, checked before reading: a
+    file cannot make the reader allocate more than its own size."""
     out: dict[str, np.ndarray] = {}
     with zipfile.ZipFile(path) as zf:
         for key in keys:
             try:
                 info = zf.getinfo(f"{key}.npy")
             except KeyError:
-                if key in ("points", "points_noise"):
+                if key in ("points", "points_noise", "points_seen_by"):
                     continue
                 raise
             if info.compress_type != zipfile.ZIP_STORED:

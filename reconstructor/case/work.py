@@ -189,6 +189,7 @@ def _reconstruct(job: ChainJob, step: StepJob, warm_from: str, progress: Any) ->
     seen = observed_of_reconstruction(result.depth, ts.stereo_pairs())
     storage.write_model(case / rel, result.gaussians, parent=parent, parent_ref=lineage.get("ref"),
                         alive=alive, points_m=seen.points_m, points_noise=seen.m_per_px,
+                        points_seen_by=seen.seen_by, points_cameras=seen.cameras,
                         seal=seal)  # fmt: skip
     model = case / rel
     digest, size = _checksum(model)

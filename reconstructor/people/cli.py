@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
+from pathlib import Path
 
 from protocol.command import CommandArgumentError, command_parser
 from protocol.formats.trajectory import read_trajectory_file
@@ -95,15 +96,28 @@ def main_name(argv: list[str]) -> int:
     p.add_argument("people", help="the people file 'egosurg people' wrote")
     p.add_argument("names", nargs="*", help="TRACK=ROLE, e.g. track3=surgeon")
     p.add_argument("--out", help="the roles file to write (for the review tools' --roles)")
-    p.add_argument("--list", action="store_true", help="list the tracks")
+    p.add_argument(
+        "--list", action="store_true", help="list the tracks (and the roles an --out file names)"
+    )
     p.add_argument("--suggest", action="store_true", help="print suggestions from the room")
     args = p.parse_args(argv)
-    from reconstructor.replay.names import describe, parse_names, suggest, write_roles
+    from reconstructor.replay.names import (
+        describe,
+        names_in,
+        parse_names,
+        role_lines,
+        suggest,
+        write_roles,
+    )
 
     file = read_trajectory_file(args.people)
     if args.list:
         for tr in file.trajectories:
             print(describe(tr))
+        if not args.names and args.out and Path(args.out).is_file():  # the names given so far
+            roles_file = read_trajectory_file(args.out).trajectories
+            given = names_in(roles_file, file.trajectories, args.out)
+            print("\n".join([f"{args.out}:", *role_lines(given, file.trajectories)]))
     if args.suggest:
         for line in suggest(file.trajectories):
             print(line)
@@ -113,6 +127,9 @@ def main_name(argv: list[str]) -> int:
         raise CommandArgumentError("name at least one track (e.g. track3=surgeon), or --list")
     if not args.out:
         raise CommandArgumentError("give --out roles.toml, the roles file to write")
-    roles = write_roles(args.out, file, parse_names(args.names))
+    names = parse_names(args.names)
+    roles = write_roles(args.out, file, names)
     print(f"{args.out}: {len(roles)} roles ({', '.join(r.name for r in roles)})")
+    for line in role_lines(names, file.trajectories):  # which tracks each role joins
+        print("  " + line)
     return 0

@@ -14,8 +14,9 @@ class PeopleConfig:
     # the height map's cell: a head is about 0.2 m across, so 4 cm gives it ~20 cells
     cell_m: float = 0.04
     # a point counts only with this many points in the 3 x 3 x 3 cubes of cell_m around it
-    # (stereo outliers scatter; a surface is dense)
-    min_points_per_cell: int = 8
+    # (stereo outliers scatter; a surface is dense; 12 rather than 8 since a case's full-scale
+    # evidence is read: EVALUATION.md, change 15)
+    min_points_per_cell: int = 12
     # nothing taller or shorter stands in an OR: head tops of adults, ceiling equipment excluded
     head_top_min_m: float = 1.35
     head_top_max_m: float = 2.05
@@ -73,6 +74,11 @@ class PeopleConfig:
     # radius also takes people who stand still most of a short recording
     static_share_max: float = 0.05
     static_radius_m: float = 0.5
+    # a track missed between two timestamps at most fill_span_s apart at which it was seen takes
+    # a head no track took there, however doubtful, within fill_m of the line between them (most
+    # misses are runs of 1-3 s with a doubtful head near the person: EVALUATION.md, change 14)
+    fill_m: float = 0.35
+    fill_span_s: float = 3.5
     # a track must be seen this many times, this surely on average, to be reported (stereo
     # noise makes short-lived or doubtful heads)
     min_detections: int = 5

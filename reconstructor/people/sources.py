@@ -1,13 +1,16 @@
 """Each timestamp's stereo points, from a reconstructed case or straight from a session.
 
-A case (``docs/case.md``) keeps each done timestamp's fused stereo points beside its model; they
-are read through the case's own loader (``storage.load_points``), which checks each file against
-its checksum (a sealed session's case with the identity given, refused in one line without
-one). A session (``.h5``, sealed ones opened with ``identity``) is read set by set every
-``every_s`` seconds and its stereo depth computed with the reconstructor's matcher at quarter
-scale, keeping the points a second camera confirms (``seen_twice``; no fusion, no training).
-The room's floor area is the box of the rig's camera centres (the cameras hang on the walls)
-with a margin.
+A case (``docs/case.md``) keeps with each done timestamp's model what its stereo pairs saw
+(``depth/evidence.py``: every occupied 2 cm cell, and which cameras saw it); they are read through
+the case's own loader (``storage.load_observation``), which checks each file against its
+checksum (a sealed session's case with the identity given, refused in one line without one),
+and the cells a second camera confirms are kept (``seen_twice_cells``: the same test as
+``seen_twice``, on the cameras' masks). A case made before the masks were stored is read from
+its session when that is still there, else from its stored points unfiltered. A session
+(``.h5``, sealed ones opened with ``identity``) is read set by set every ``every_s`` seconds and
+its stereo depth computed with the reconstructor's matcher at half scale, keeping the points a
+second camera confirms (``seen_twice``; no fusion, no training). The room's floor area is the
+box of the rig's camera centres (the cameras hang on the walls) with a margin.
 """
 
 from __future__ import annotations
@@ -61,6 +64,42 @@ def seen_twice(
     return np.concatenate(out, axis=0) if out else np.zeros((0, 3))
 
 
+def seen_twice_cells(
+    points_m: np.ndarray,
+    seen_by: np.ndarray,
+    cameras: int,
+    room_xy_m: tuple[float, float, float, float],
+    cell_m: float,
+) -> np.ndarray:
+    """(M, 3): ``seen_twice`` for stored evidence, whose points carry a bitmask of the cameras
+    that saw them (``seen_by``, bit ``i`` for camera ``i`` of ``cameras``) instead of coming in
+    one cloud per camera: a point is kept when at least two cameras saw its cube of ``cell_m``
+    or its neighbours (one of them may be its own; a point's own cameras all see its cube)."""
+    pts = np.asarray(points_m, np.float64).reshape(-1, 3)
+    masks = np.asarray(seen_by).reshape(-1).astype(np.uint32)
+    lo = np.array([room_xy_m[0], room_xy_m[1], 0.0])
+    shape = np.ceil((np.array([room_xy_m[2], room_xy_m[3], SEEN_TWICE_TOP_M]) - lo) / cell_m)
+    shape = shape.astype(int)
+    cube = np.floor((pts - lo) / cell_m).astype(np.int64)
+    inside = np.all((cube >= 0) & (cube < shape), axis=1)
+    cube, masks, pts = cube[inside], masks[inside], pts[inside]
+    idx = tuple(cube.T)
+    grid = np.zeros(shape, np.uint32)  # the cameras that saw each cube, as bits
+    for bit in range(cameras):
+        has = (masks >> bit) & 1 == 1
+        grid[tuple(cube[has].T)] |= np.uint32(1 << bit)
+    # with its 26 neighbours: an OR over a 3 x 3 x 3 cube is three OR passes of 3 along the axes
+    for axis in range(3):
+        spread = grid.copy()
+        lead = [slice(None)] * 3
+        lag = [slice(None)] * 3
+        lead[axis], lag[axis] = slice(1, None), slice(None, -1)
+        spread[tuple(lead)] |= grid[tuple(lag)]
+        spread[tuple(lag)] |= grid[tuple(lead)]
+        grid = spread
+    return pts[np.bitwise_count(grid[idx]) >= 2]
+
+
 class PeopleInputError(ReconstructError, ValueError):
     """Input ``egosurg people`` cannot use; the message says what to give instead."""
 
@@ -70,7 +109,7 @@ class Source:
     """What ``egosurg people`` reads: the times, the points at each, the room, the session."""
 
     path: Path
-    kind: str  # "case" or "session"
+    kind: str  # "case evidence", "case session", "case points" or "session"
     times_s: tuple[float, ...]
     session: SessionId | None
     room_xy_m: tuple[float, float, float, float]  # xmin, ymin, xmax, ymax
@@ -100,15 +139,17 @@ def open_source(
     t_from_s: float | None = None,
     t_to_s: float | None = None,
     use_session: bool = True,
+    stored_first: bool = True,
 ) -> Source:
     """A case folder (with ``case.json``) or a session file; one clear error otherwise. A case
-    is read at its timestamps from its session when that is still there (``use_session``),
-    else from the fused points it keeps."""
+    is read from the evidence it stores when that names its cameras (``stored_first``), else
+    at its timestamps from its session when that is still there (``use_session``), else from
+    the points it keeps, unfiltered."""
     from reconstructor.case.index import INDEX_NAME
 
     path = Path(path)
     if path.is_dir() and (path / INDEX_NAME).is_file():
-        return _case_source(path, t_from_s, t_to_s, identity, use_session)
+        return _case_source(path, t_from_s, t_to_s, identity, use_session, stored_first)
     if path.is_file() and path.suffix in (".h5", ".hdf5"):
         return _session_source(path, identity, every_s, calibration, t_from_s, t_to_s)
     if not path.exists():
@@ -129,6 +170,7 @@ def _case_source(
     t_to_s: float | None,
     identity: Identity | None,
     use_session: bool,
+    stored_first: bool,
 ) -> Source:
     from reconstructor.case import storage
     from reconstructor.case.index import CaseIndex
@@ -148,44 +190,71 @@ def _case_source(
     if not cal_path.is_file():
         raise PeopleInputError(f"{folder} has no calibration.toml; restore it from the run")
     session = Path(index.session)
-    if use_session and session.is_file():
-        # the case's own session: each timestamp's four stereo pairs, checked across cameras,
-        # are cleaner than the fused points the case keeps (stereo streaks survive fusion)
+    room = room_xy(RigCalibration.read(cal_path))
+    compact = storage.is_compact(entries[0])
+    # a sealed session's case keeps its points sealed: refused here, in one line naming the
+    # recipients, without a recipient's identity
+    seal = reader_seal(folder, index, identity, "its stereo points") if compact else None
+    masked = stored_first and compact and storage.stores_seen_by(folder, entries[0], seal)
+    thin = masked and _match_scale(folder) < MATCH_SCALE
+    if (not masked or thin) and use_session and session.is_file():
+        # a case made before the cameras were stored with each cell (stereo streaks survive in
+        # the stored points), or matched coarser than heads need: its own session's four
+        # stereo pairs, checked across cameras
+        if thin:
+            log.info("%s matched stereo at %g scale, too thin for heads: reading its session "
+                     "at %g", folder, _match_scale(folder), MATCH_SCALE)  # fmt: skip
         src = _session_source(
             session, identity, 1e-3, cal_path, None, None, [e.set_index for e in entries]
         )
-        return dataclasses.replace(src, path=folder, kind="case")
-    # a sealed session's case keeps its points sealed: refused here, in one line naming the
-    # recipients, without a recipient's identity
-    seal = reader_seal(folder, index, identity, "its stereo points")
-    log.warning(
-        "%s: its session %s is not here; finding people in the fused points the case keeps "
-        "(less clean: give the session beside the case for the better answer)",
-        folder,
-        session,
-    )
-    if not storage.is_compact(entries[0]):
+        return dataclasses.replace(src, path=folder, kind="case session")
+    if not compact:
         raise PeopleInputError(
             f"{folder} stores no stereo points with its models (a case made before they were "
             "kept): give its session instead, 'egosurg people SESSION.h5 ...'"
         )
+    if not masked or thin:
+        log.warning(
+            "%s: its session %s is not read here and its points %s; finding people in them "
+            "(less clean: give the session beside the case for the better answer)",
+            folder,
+            session,
+            "were matched coarser than heads need" if thin else "do not say which cameras saw them",
+        )
 
     def load(k: int) -> np.ndarray:
-        points = storage.load_points(folder, entries[k], seal)
-        if points is None:
+        seen = storage.load_observation(folder, entries[k], seal)
+        if seen is None:
             raise PeopleInputError(
                 f"{folder}: {entries[k].name} stores no stereo points; give the session instead"
             )
-        return points
+        if seen.seen_by is None:
+            return seen.points_m
+        return seen_twice_cells(
+            seen.points_m, seen.seen_by, len(seen.cameras), room, SEEN_TWICE_CELL_M
+        )
 
     return Source(
         path=folder,
-        kind="case",
+        kind="case evidence" if masked else "case points",
         times_s=tuple(e.t_s for e in entries),
         session=case_session(folder),
-        room_xy_m=room_xy(RigCalibration.read(cal_path)),
+        room_xy_m=room,
         _load=load,
     )
+
+
+def _match_scale(folder: Path) -> float:
+    """The stereo match scale a case was made with (its ``config.toml``; 0 there means the
+    resolution's default, half size or more: as fine as ``egosurg people`` matches)."""
+    import tomllib
+
+    try:
+        table = tomllib.loads((folder / "config.toml").read_text())
+        scale = float(table.get("stereo", {}).get("match_scale", 0.0))
+    except (OSError, ValueError, TypeError, AttributeError):
+        return 1.0  # no readable record: the stored evidence is what there is
+    return scale or 1.0
 
 
 def _session_source(

@@ -22,6 +22,9 @@ background learned in part). The recording is whole before tracking starts, so t
 then linked over the whole case: a track that starts within ``stitch_gap_s`` after another
 ended, where a walker could have gone in between and at its height, continues it, the pairs
 chosen by least total cost at once (each track with at most one predecessor and one successor).
+Last, a track missed for a while between two sightings takes the heads found on its way that no
+track took, however doubtful (``fill_m``): where the person was before and after says which
+head is theirs; the rest of the time stays a gap.
 """
 
 from __future__ import annotations
@@ -152,9 +155,43 @@ def track_people(frames: list[tuple[float, list[Detection]]], config: PeopleConf
         if len(tr.times_s) >= config.min_detections
         and np.mean([d.confidence for d in tr.detections]) >= config.min_track_confidence
     ]
+    if config.fill_m > 0:
+        _fill_misses(kept, frames, config)
     for k, tr in enumerate(kept, start=1):
         tr.id = k
     return kept
+
+
+def _fill_misses(tracks: list[Track], frames: list[tuple[float, list[Detection]]],
+                 config: PeopleConfig) -> None:  # fmt: skip
+    """A track missed at a timestamp between two at which it was seen (at most
+    ``fill_span_s`` apart) takes a head found there that no track took, however doubtful, within
+    ``fill_m`` of the line between them and at the track's height: the recording is whole, so
+    where the person was before and after says which head is theirs."""
+    used = {id(d) for tr in tracks for d in tr.detections}
+    found = {round(t, 6): dets for t, dets in frames}
+    for tr in tracks:
+        times = list(tr.times_s)
+        for t in sorted(set(tr.missed_s)):
+            k = int(np.searchsorted(times, t))
+            if not 0 < k < len(times) or times[k] - times[k - 1] > config.fill_span_s + 1e-6:
+                continue
+            a, b = tr.detections[k - 1], tr.detections[k]
+            w = (t - times[k - 1]) / (times[k] - times[k - 1])
+            where = (1 - w) * np.asarray(a.head_xy_m) + w * np.asarray(b.head_xy_m)
+            top = 0.5 * (a.top_m + b.top_m)
+            best, best_d = None, config.fill_m
+            for d in found.get(round(t, 6), []):
+                dist = float(np.hypot(*(np.asarray(d.head_xy_m) - where)))
+                if id(d) not in used and dist <= best_d and abs(d.top_m - top) <= 0.1:
+                    best, best_d = d, dist
+            if best is None:
+                continue
+            used.add(id(best))
+            times.insert(k, t)
+            tr.detections.insert(k, best)
+            tr.missed_s = [m for m in tr.missed_s if abs(m - t) > 1e-6]
+        tr.times_s = times
 
 
 def _equipment(track: Track, config: PeopleConfig) -> bool:

@@ -236,8 +236,9 @@ def test_the_viewer_and_the_sterile_tools_points_open_with_the_identity_only(sea
 def test_people_read_a_sealed_cases_own_points_with_the_identity_and_refuse_without(sealed_case):
     """A sealed case whose session is gone: ``egosurg people`` finds people in the points the
     case keeps, which are sealed: opened with a recipient's identity, refused (naming the
-    recipients) without one, before any timestamp is read."""
-    from reconstructor.people.sources import open_source
+    recipients) without one, before any timestamp is read; the cells a second camera confirmed
+    (their stored camera masks) are what it reads."""
+    from reconstructor.people.sources import SEEN_TWICE_CELL_M, open_source, seen_twice_cells
 
     case = sealed_case["case"]
     with pytest.raises(IdentityRequiredError, match="hospital-a"):
@@ -251,4 +252,8 @@ def test_people_read_a_sealed_cases_own_points_with_the_identity_and_refuse_with
     for k, entry in enumerate(done):
         points = source.points(k)
         assert points.shape[1] == 3 and len(points) > 100
-        assert np.array_equal(points, storage.load_points(case, entry, seal))
+        seen = storage.load_observation(case, entry, seal)
+        assert seen is not None and seen.seen_by is not None and len(seen.cameras) >= 2
+        kept = seen_twice_cells(seen.points_m, seen.seen_by, len(seen.cameras),
+                                source.room_xy_m, SEEN_TWICE_CELL_M)  # fmt: skip
+        assert np.array_equal(points, kept) and len(points) < len(seen.points_m)

@@ -1,12 +1,14 @@
 """The evidence a case stores with each timestamp (``reconstructor/depth/evidence.py``): what the
 stereo pairs saw, every occupied cell of it, each with the depth uncertainty of the best camera
-that saw it; and it survives the model file (``storage.write_model`` / ``load_evidence``)."""
+that saw it and which cameras saw it; and it survives the model file (``storage.write_model`` /
+``load_evidence`` / ``load_observation``)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from protocol.camera import Intrinsics, Pose
 from reconstructor.case import storage
@@ -48,6 +50,11 @@ def test_every_cell_seen_is_kept_with_the_best_cameras_depth_uncertainty():
     centre = np.all(np.abs(seen.points_m[:, :2]) < 0.3, axis=1)  # inside both views
     assert np.allclose(seen.m_per_px[centre], 1.0**2 / (120.0 * 0.12))
     assert np.allclose(seen.m_per_px[np.abs(seen.points_m[:, 0]) > 0.8], 2.0**2 / (120.0 * 0.12))
+    # which cameras saw each cell: both inside the near camera's patch, the far one outside it
+    assert seen.cameras == ("SN1", "SN2") and seen.seen_by.dtype == np.uint8
+    assert np.all(seen.seen_by[centre] == 0b11)
+    assert np.all(seen.seen_by[np.abs(seen.points_m[:, 0]) > 0.8] == 0b10)
+    assert set(np.unique(seen.seen_by)) == {0b10, 0b11}
 
 
 def test_the_depth_uncertainty_is_stored_with_the_points_and_read_back_in_their_order(
@@ -77,3 +84,40 @@ def test_the_depth_uncertainty_is_stored_with_the_points_and_read_back_in_their_
                   bytes=size, status="done", gaussians=g.num)  # fmt: skip
     loaded = storage.load_evidence(tmp_path, entry)
     assert loaded is not None and loaded[1] is None and len(loaded[0]) == len(points)
+
+
+def test_which_cameras_saw_each_point_is_stored_with_them_and_older_files_say_unknown(
+    tmp_path: Path,
+):
+    rng = np.random.default_rng(4)
+    points = rng.uniform([-3.0, -2.5, 0.0], [3.0, 2.5, 2.8], size=(4000, 3))
+    masks = rng.integers(1, 16, size=len(points)).astype(np.uint8)  # four cameras
+    cameras = ("SN11", "SN12", "SN13", "SN14")
+    g = random_gaussians(50, 0, seed=1)
+
+    def entry_of(name: str) -> Entry:
+        path = tmp_path / "models" / f"{name}.npz"
+        digest, size = checksum_file(path)
+        return Entry(name=name, t_s=0.0, set_index=0, model=f"models/{name}.npz",
+                     xxh3_64=digest, bytes=size, status="done", gaussians=g.num)  # fmt: skip
+
+    storage.write_model(tmp_path / "models" / "a.npz", g, points_m=points,
+                        points_noise=np.full(len(points), 0.1), points_seen_by=masks,
+                        points_cameras=cameras)  # fmt: skip
+    seen = storage.load_observation(tmp_path, entry_of("a"))
+    assert seen is not None and seen.seen_by is not None and seen.cameras == cameras
+    order = np.lexsort(np.rint(points / storage.POINTS_STEP_M).T[::-1])
+    assert np.array_equal(seen.seen_by, masks[order])
+    assert storage.stores_seen_by(tmp_path, entry_of("a"))
+    # the points and noise read as before, for a reader that does not know the masks
+    back = storage.load_evidence(tmp_path, entry_of("a"))
+    assert back is not None and np.allclose(back[0], seen.points_m)
+    # a file written before the masks were stored: unknown, not "no camera"
+    storage.write_model(tmp_path / "models" / "b.npz", g, points_m=points)
+    old = storage.load_observation(tmp_path, entry_of("b"))
+    assert old is not None and old.seen_by is None and old.cameras == ()
+    assert not storage.stores_seen_by(tmp_path, entry_of("b"))
+    # a mask with a bit for a camera the file does not name is refused when written
+    with pytest.raises(ValueError, match="cameras"):
+        storage.write_model(tmp_path / "models" / "c.npz", g, points_m=points,
+                            points_seen_by=masks, points_cameras=cameras[:3])  # fmt: skip

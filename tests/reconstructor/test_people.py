@@ -144,7 +144,7 @@ def test_tracks_named_as_roles_make_the_roles_file_the_review_tools_read(bodies,
     ("args", "says"),
     [
         (("track9=surgeon",), "no track9 in the people file; it has track1, track2"),
-        (("track1=surgeon", "track2=surgeon"), "two tracks are named 'surgeon'"),
+        (("track1=surgeon", "track2=surgeon"), "are both named 'surgeon' but overlap"),
         (("surgeon",), "write TRACK=ROLE"),
     ],
 )
@@ -182,3 +182,39 @@ def test_a_confidence_or_gap_out_of_range_is_refused_with_the_entry_named(tmp_pa
         path.write_text(base.format(gaps=gaps, conf=conf))
         with pytest.raises(TrajectoryFileError, match=says):
             read_trajectory_file(path)
+
+
+def test_a_cases_camera_masks_keep_what_a_second_camera_saw_as_the_clouds_do():
+    """The people stage's check against stereo streaks (a wrong match lies along one camera's
+    rays, where no other camera sees anything), on a case's stored cells with their camera
+    masks, keeps exactly what it keeps on the cameras' own clouds: a surface three cameras saw
+    stays, a streak only one saw goes, and a point beside a second camera's (the next cube) is
+    confirmed by it."""
+    from reconstructor.people.sources import SEEN_TWICE_CELL_M, seen_twice, seen_twice_cells
+
+    rng = np.random.default_rng(5)
+    cell = 0.02
+    room_xy = (-2.0, -2.0, 2.0, 2.0)
+    surface = np.stack(np.meshgrid(np.arange(-0.5, 0.5, cell), np.arange(-0.5, 0.5, cell),
+                                   [1.0], indexing="ij"), -1).reshape(-1, 3) + cell / 2  # fmt: skip
+    streak = np.array([1.2, 0.3, 0.5]) + np.arange(40)[:, None] * np.array([0.0, 0.0, cell])
+    clouds = [
+        np.concatenate([surface, streak + cell / 2]),  # camera 0: the surface and a streak
+        surface[rng.random(len(surface)) < 0.5],  # camera 1: half the surface
+        surface[rng.random(len(surface)) < 0.5] + [0.0, 0.0, cell],  # camera 2: a cube above
+        np.array([[-1.5, -1.5, 0.3]]),  # camera 3: a lone point nobody else saw
+    ]
+    cells: dict[tuple[int, int, int], int] = {}
+    for bit, cloud in enumerate(clouds):
+        for c in map(tuple, np.floor(cloud / cell).astype(int)):
+            cells[c] = cells.get(c, 0) | (1 << bit)
+    keys = np.array(list(cells))
+    points = (keys + 0.5) * cell
+    masks = np.array(list(cells.values()), np.uint8)
+    kept = seen_twice_cells(points, masks, 4, room_xy, SEEN_TWICE_CELL_M)
+    from_clouds = seen_twice(clouds, room_xy, SEEN_TWICE_CELL_M)
+    expected = np.unique(np.round(from_clouds / cell, 3), axis=0)
+    assert np.array_equal(np.unique(np.round(kept / cell, 3), axis=0), expected)
+    assert len(kept) >= len(surface)  # the surface stays, every cell of it
+    assert not np.any(np.isclose(kept[:, 0], 1.2 + cell / 2))  # none of the streak
+    assert not np.any(np.all(np.isclose(kept, [-1.5 + cell / 2, -1.5 + cell / 2, 0.31]), 1))

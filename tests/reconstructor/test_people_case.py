@@ -1,7 +1,8 @@
 """``egosurg people`` end to end on a reconstructed sim case: 12 timestamps at 2 Hz of the
-intraoperative phase (six people), reconstructed with a tiny training config, people found
-(the empty room recorded by the same rig as the background) with the ``sim`` package made
-unimportable (the command must not lean on the simulator's truth), then
+intraoperative phase (six people), reconstructed with a tiny training config (stereo at half
+scale, as fine as heads need: what the case stores is what people are found in, no stereo run
+again), people found (the empty room recorded by the same rig as the background) with the
+``sim`` package made unimportable (the command must not lean on the simulator's truth), then
 judged against ``World.head_poses`` as bench/bench_people.py judges a whole phase."""
 
 from __future__ import annotations
@@ -39,7 +40,9 @@ def people_case(tmp_path_factory):
     write_eval_set(root / "es", spec)
     session = root / "es" / "intraoperative" / "session.h5"
     config = root / "tiny.toml"
-    config.write_text(tiny_config_toml(3))
+    # the tiny config's quarter-scale stereo is too thin for heads (the command would read the
+    # session instead): the case matches at half scale, so its stored evidence is read
+    config.write_text(tiny_config_toml(3).replace("match_scale = 0.25", "match_scale = 0.5"))
     code = main_reconstruct([str(session), "--every", "0.5s", "--out", str(root / "case"),
                              "--config", str(config), "--cold"])  # fmt: skip
     assert code == 0
@@ -56,6 +59,7 @@ def test_the_command_runs_without_the_simulator_and_writes_the_people_file(peopl
     _, out, run = people_case
     assert run.returncode == 0, run.stderr[-2000:]
     assert "tracks over 12 timestamps" in run.stdout
+    assert "12 timestamps (case evidence)" in run.stderr  # the case's own cells, no stereo
     file = read_trajectory_file(out)
     assert file.session is not None and file.session.name  # the case's session, recorded
     assert len(file.trajectories) >= 4

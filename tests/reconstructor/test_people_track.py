@@ -80,6 +80,36 @@ def test_a_person_missed_for_a_moment_keeps_their_track_and_the_time_is_a_gap():
     assert tracks[0].gaps_s() == [(TIMES_S[6], TIMES_S[10])]  # marked, not filled in
 
 
+def test_a_person_missed_for_a_while_takes_the_doubtful_heads_on_their_way_and_no_one_elses():
+    """The recording is whole: a person missed for 1.5 s (the detector found only doubtful
+    heads there) takes the doubtful head that lies on the line from where they were last seen
+    to where they are seen again, not one beside it further than ``fill_m``, and not a head
+    another track holds; with ``fill_m`` 0 the time stays a gap."""
+    frames = []
+    for k, t in enumerate(TIMES_S):
+        me = head(0.1 * k, 1.0)  # walking along x at 0.2 m/s
+        other = head(0.1 * k, 0.45, top_m=1.8)  # a taller neighbour walking beside them
+        if k == 7:
+            found = [head(0.72, 1.05, confidence=0.3), other]  # on their way
+        elif k == 8:
+            found = [head(0.8, 1.6, confidence=0.3), other]  # 0.6 m to the side: not theirs
+        elif k == 9:
+            found = [other]  # only the neighbour, whom another track holds
+        else:
+            found = [me, other]
+        frames.append((t, found))
+    config = PeopleConfig(fill_m=0.35, fill_span_s=3.5)
+    tracks = track_people(frames, config)
+    mine = next(tr for tr in tracks if tr.xy()[0][1] > 0.9)
+    assert len(tracks) == 2
+    assert mine.times_s == [t for k, t in enumerate(TIMES_S) if k not in (8, 9)]
+    assert mine.detections[7].confidence == 0.3 and mine.detections[7].head_xy_m == (0.72, 1.05)
+    assert np.all(mine.xy()[:, 1] > 0.9)  # never the neighbour's head
+    assert mine.gaps_s() == [(TIMES_S[7], TIMES_S[10])]  # the rest still a gap
+    off = next(tr for tr in track_people(frames, PeopleConfig(fill_m=0.0)) if tr.xy()[0][1] > 0.9)
+    assert off.gaps_s() == [(TIMES_S[6], TIMES_S[10])]
+
+
 def test_confirming_on_more_timestamps_than_the_window_is_refused_in_one_line():
     with pytest.raises(ReconstructConfigError, match=r"confirm_seen=6 must be 1\.\.") as err:
         PeopleConfig(confirm_seen=6, confirm_timestamps=5)
