@@ -76,8 +76,18 @@ def main(argv: list[str]) -> int:
     t0 = time.perf_counter()
     people = find_people(source, config, background=background, progress=_progress)
     wall = time.perf_counter() - t0
-    out = write_people(args.out, people, config, source.session)
     n = len(source.times_s)
+    if not people.tracks:
+        # an empty people file is no trajectory file the review tools could read: write none
+        print(
+            f"{source.path}: nobody found in {n} timestamps ({wall / n:.2f} s per timestamp); "
+            f"{args.out} not written. If people were in the room, check --from/--to and, where "
+            "someone stood still for most of the span, give --background EMPTY_ROOM (a recording "
+            "of the empty room)",
+            file=sys.stderr,
+        )
+        return 1
+    out = write_people(args.out, people, config, source.session)
     print(
         f"{out}: {len(people.tracks)} tracks over {n} timestamps ({wall / n:.2f} s per "
         f"timestamp; background from {people.background_from})"
