@@ -66,6 +66,9 @@ log = logging.getLogger(__name__)
 
 TIME_SLIDER = "Case time (s)"  # the slider's label: seconds since the session started
 ROLE_COLOUR = (40, 110, 220)
+# a role's camera where nobody followed them (inside a gap of its trajectory, or before or after
+# its keyframes): drawn where the path would put it, grey, and labelled so
+NOT_FOLLOWED_COLOUR = (150, 150, 150)
 NO_ROLE = "(no role named yet)"  # the role menu's only entry before a track is named
 TARGET_COLOUR = (250, 170, 20)
 FIELD_COLOUR = (220, 30, 30)
@@ -178,6 +181,7 @@ class CaseViewer:
         self.index = -1
         self.splats: Any = None
         self.frustums: dict[str, Any] = {}  # role -> its frustum in the scene
+        self.labels: dict[str, Any] = {}  # role -> its frustum's label
         self.box_nodes: dict[str, Any] = {}  # site box -> its wireframe
         self._player = threading.Thread(target=self._play_loop, name="view-play", daemon=True)
 
@@ -364,6 +368,7 @@ class CaseViewer:
         with self._lock:
             for name in set(self.frustums) - {r.name for r in roles}:
                 self.frustums.pop(name).remove()  # a name taken back: its camera goes
+                self.labels.pop(name, None)
             self.roles = {t.name: CameraPath(t) for t in roles}
             self.role_menu.options = tuple(self.roles)
             self.look_button.disabled = False
@@ -378,16 +383,31 @@ class CaseViewer:
         aspect = self.config.start_aspect
         return viser_camera(path.pose(t), path.fov_deg(t), aspect), aspect
 
+    def role_label(self, name: str, t_s: float) -> str:
+        """The role camera's label at ``t_s``: its name, and where nobody followed that person
+        (a gap of its trajectory, before or after its keyframes) that it is not followed there,
+        so a camera on the path's guess is never taken for their eye."""
+        path = self.roles[name]
+        gap = path.gap_at(t_s)
+        if gap is not None:
+            return f"{name} (not followed {gap[0]:.1f}-{gap[1]:.1f} s)"
+        t0, t1 = path.span_s
+        if t_s < t0 - 1e-6 or t_s > t1 + 1e-6:
+            return f"{name} (followed {t0:.1f}-{t1:.1f} s only)"
+        return name
+
     def _draw_roles(self, t_s: float) -> None:
         for name in self.roles:
             cam, aspect = self._role_camera(name, t_s)
+            label = self.role_label(name, t_s)
+            colour = ROLE_COLOUR if label == name else NOT_FOLLOWED_COLOUR
             frustum = self.server.scene.add_camera_frustum(
                 f"/roles/{name}", fov=cam.fov_rad, aspect=aspect, scale=0.15,
-                color=ROLE_COLOUR, wxyz=cam.wxyz, position=cam.position,
+                color=colour, wxyz=cam.wxyz, position=cam.position,
             )  # fmt: skip
             frustum.on_click(lambda event, name=name: self.look_through(name, event.client))
             self.frustums[name] = frustum
-            self.server.scene.add_label(f"/roles/{name}/label", name)
+            self.labels[name] = self.server.scene.add_label(f"/roles/{name}/label", label)
 
     def _set_start_camera(self) -> None:
         start = self.config.start

@@ -412,6 +412,38 @@ def test_role_cameras_and_site_boxes_are_drawn(case, tmp_path):
         np.testing.assert_allclose(matrix_from_quat_wxyz(box.wxyz)[:, 0], (0, 1, 0), atol=1e-9)
 
 
+def test_a_role_camera_where_nobody_followed_the_person_says_so(case, tmp_path):
+    """Inside a gap of a role's trajectory (hidden from every camera, or between two tracks
+    joined as one role), and past its last keyframe, the camera is grey and labelled: the path's
+    guess there is nobody's eye."""
+    from reconstructor.replay.view import NOT_FOLLOWED_COLOUR, ROLE_COLOUR
+
+    look = (0.0, 0.0, 1.0)
+    roles = tmp_path / "roles.toml"
+    write_trajectories(roles, [
+        Trajectory(name="surgeon", keyframes=(
+            Keyframe(time_s=2.0, eye_m=(0.5, -1.5, 1.7), look_at_m=look),
+            Keyframe(time_s=2.2, eye_m=(0.4, -1.5, 1.7), look_at_m=look),
+            Keyframe(time_s=2.8, eye_m=(0.0, -1.5, 1.7), look_at_m=look),
+        ), gaps_s=((2.2, 2.8),)),
+        Trajectory(name="anaesthetist", keyframes=(
+            Keyframe(time_s=1.5, eye_m=(-1.5, 0.0, 1.6), look_at_m=look),
+            Keyframe(time_s=2.2, eye_m=(-1.5, 0.1, 1.6), look_at_m=look),
+        )),
+    ])  # fmt: skip
+    config = ViewConfig(port=0, roles=roles, save_to=tmp_path / "v.toml")
+    with CaseViewer(case, config) as v:
+        v.slider.value = TIMES_S[0]
+        for name in ("surgeon", "anaesthetist"):
+            assert v.labels[name].text == name
+            assert tuple(v.frustums[name].color) == ROLE_COLOUR
+        v.slider.value = TIMES_S[1]  # 2.5 s: inside the surgeon's gap, after the other's end
+        assert v.labels["surgeon"].text == "surgeon (not followed 2.2-2.8 s)"
+        assert v.labels["anaesthetist"].text == "anaesthetist (followed 1.5-2.2 s only)"
+        for name in ("surgeon", "anaesthetist"):
+            assert tuple(v.frustums[name].color) == NOT_FOLLOWED_COLOUR
+
+
 def grey_band(rgb: np.ndarray) -> np.ndarray:
     """The lower 60 % of an RGB image (above it the page shows its panel and a notice), grey,
     downsampled to 64 x 24: compares layout and shading, not pixels."""
