@@ -83,7 +83,9 @@ class SterileConfig:
     min_points: int = 8
     min_outside: int = 3  # and outside it: the arm that reaches in (a lone blob is a floater)
     max_gap: int = 1  # missed timestamps bridged inside one event
-    max_role_distance_m: float = 0.4  # a blob farther from every role is no one's arm
+    # a part's median distance from its role's eye, farther: no one's arm (a still body's full
+    # reach, 0.66 m to the drape, gave 0.45-0.49 m: its moving part is the forearm and hand)
+    max_role_distance_m: float = 0.5
     min_timestamps: int = 1  # 2 drops one-timestamp noise, and touches shorter than 2 intervals
     max_flicker: float = 0.2  # in-field voxels filled this often (median) are noise; 1 turns off
     flicker_window_s: float = 3.0  # ... at timestamps this far from now (a touch's own)

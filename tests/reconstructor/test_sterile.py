@@ -392,6 +392,34 @@ def test_a_hand_reaching_past_another_persons_eye_stays_its_owners():
     assert {e.role for e in _contacts(frames, eyes, loose)} == {"owner"}
 
 
+def test_a_full_reach_from_a_still_body_is_a_contact_but_a_sprawl_farther_out_is_not():
+    """The sim's missed touch: a person standing still 0.66 m from the spot they touch (their
+    body static, so their moving part is the arm from the elbow and the hand, its median
+    0.45-0.5 m from the eye's vertical) is reported; the same arm ending in a sprawl of points
+    over the drape, most of them 0.6 m out or more, is nobody's arm."""
+    rng = np.random.default_rng(4)
+    eye = np.array([0.0, -0.95, 1.6])
+    hand = np.array([0.0, -0.29, 0.97])
+    assert abs(np.linalg.norm(hand[:2] - eye[:2]) - 0.66) < 1e-9
+    arm = _arm(eye, hand, rng)
+    palm = _line((0.0, -0.33, 0.97), (0.0, -0.25, 0.97), rng=rng)
+    sprawl = np.concatenate([_line((x, -0.36, 0.97), (x, -0.16, 0.97), rng=rng)
+                             for x in np.linspace(-0.08, 0.08, 5)])  # fmt: skip
+
+    def frames(hand_points):
+        out = [np.concatenate([_slab(), _body(eye, rng)]) for _ in range(6)]
+        out[3] = np.concatenate([out[3], arm, hand_points])
+        return out
+
+    reach = _contacts(frames(palm), {"p": eye})
+    assert [e.start_s for e in reach] == [1.5]
+    assert 0.4 < reach[0].blobs[0].role_distance_m <= 0.5  # what 0.4 m used to miss
+    assert _contacts(frames(palm), {"p": eye}, SterileConfig(max_role_distance_m=0.4)) == []
+    far = _contacts(frames(sprawl), {"p": eye}, SterileConfig(max_role_distance_m=5.0))
+    assert far and far[0].blobs[0].role_distance_m > 0.55
+    assert _contacts(frames(sprawl), {"p": eye}) == []
+
+
 # ---- each contact with what the real cameras saw: a still and a clip from the best camera ----
 OLD_EVENT_COLUMNS = ["event", "field", "kind", "role", "role_distance_m", "start_s", "end_s",
                      "timestamps", "peak_t_s", "peak_points", "contact_x_m", "contact_y_m",
