@@ -320,18 +320,45 @@ def write_sim_rig(directory: Path | str, spec: SimRigSpec | None = None) -> SimR
     )
 
 
-class SimRig:
-    """The agent and recorder processes of a simulated rig. Logs go to ``<dir>/logs/``."""
+def render_threads_per_agent(agents: int) -> int:
+    """The renderer's threads (``NUMBA_NUM_THREADS``) for each of ``agents`` sim agents that
+    share this machine: its cores shared out, at least one each.
 
-    def __init__(self, files: SimRigFiles) -> None:
+    Each agent prerenders its cameras with Numba's parallel kernels, which by default start a
+    thread per core in every process. Two agents on two cores then run four threads whose
+    parallel loops wait at their barriers for a thread the other process holds off its core.
+    Each pixel is computed on its own, so the frames are the same either way; what it saves is
+    in BENCHMARKS.md ("A sim rig's prerendering", bench/bench_sim_rig.py)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, cores // max(agents, 1))
+
+
+class SimRig:
+    """The agent and recorder processes of a simulated rig. Logs go to ``<dir>/logs/``.
+
+    ``render_threads``: the Numba threads of each agent process (``render_threads_per_agent``
+    when None; 0 leaves Numba's default, a thread per core in every agent). A
+    ``NUMBA_NUM_THREADS`` in the environment wins over both."""
+
+    def __init__(self, files: SimRigFiles, *, render_threads: int | None = None) -> None:
         self.files = files
         self.logs = files.directory / "logs"
         self.logs.mkdir(exist_ok=True)
         self.procs: dict[str, subprocess.Popen] = {}
+        if render_threads is None:
+            render_threads = render_threads_per_agent(len(files.node_configs))
+        if render_threads < 0:
+            raise ValueError(f"render_threads={render_threads} must be 0 (default) or more")
+        self.render_threads = render_threads
 
     def _spawn(self, name: str, *args: str) -> subprocess.Popen:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         env.pop(IDENTITY_ENV, None)  # the rig's processes hold no identity, as on a real rig
+        if args[0] == "agent" and self.render_threads and "NUMBA_NUM_THREADS" not in env:
+            env["NUMBA_NUM_THREADS"] = str(self.render_threads)
         with open(self.logs / f"{name}.log", "ab") as log:  # the child keeps its own handle
             proc = subprocess.Popen(
                 [sys.executable, "-m", "protocol.cli", *args],

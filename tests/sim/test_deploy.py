@@ -4,13 +4,16 @@ is the rig its camera tables name."""
 
 from __future__ import annotations
 
+import os
+
+import psutil
 import pytest
 
 from protocol.errors import ConfigError
 from protocol.formats.camera_config import SIM_PHASES, SIM_RIG_CAMERAS, FaultSpec, SimSourceConfig
 from protocol.formats.node_config import NodeConfig, PtpConfig
 from protocol.formats.rig_config import RigConfig
-from sim.deploy import SimRigSpec, write_sim_rig
+from sim.deploy import SimRig, SimRigSpec, render_threads_per_agent, write_sim_rig
 from sim.phases import PHASES
 from sim.rig import MOUNTS_M
 from sim.world import World
@@ -60,3 +63,39 @@ def test_the_simulator_is_the_rig_a_sim_camera_table_names():
 def test_a_bad_value_in_the_spec_fails_when_the_rig_is_written(tmp_path):
     with pytest.raises(ConfigError, match="jpeg_quality = 0"):
         write_sim_rig(tmp_path, SimRigSpec(seed=0, cameras=1, jpeg_quality=0))
+
+
+def test_the_agents_share_the_cores_among_their_renderers():
+    """Agents on one machine run no more renderer threads together than it has cores (each at
+    least one), and one agent alone renders on every core."""
+    cores = len(os.sched_getaffinity(0))
+    assert render_threads_per_agent(1) == cores
+    for agents in range(2, 9):
+        threads = render_threads_per_agent(agents)
+        assert threads >= 1 and (agents * threads <= cores or threads == 1)
+
+
+def test_each_agent_process_gets_its_share_and_a_users_setting_wins(tmp_path, monkeypatch):
+    """The real agent processes' environment: NUMBA_NUM_THREADS is the rig's share, or the
+    user's own value when one is set (the recorder renders nothing and gets none)."""
+    monkeypatch.delenv("NUMBA_NUM_THREADS", raising=False)
+    files = write_sim_rig(tmp_path / "rig", SimRigSpec(seed=0, resolution="SVGA"))
+    assert len(files.node_configs) == 2
+
+    def threads_seen(**kwargs: int) -> dict[str, str | None]:
+        rig = SimRig(files, **kwargs).start()
+        try:
+            return {
+                name: psutil.Process(proc.pid).environ().get("NUMBA_NUM_THREADS")
+                for name, proc in rig.procs.items()
+            }
+        finally:
+            rig.close()
+
+    share = str(render_threads_per_agent(2))
+    assert threads_seen() == {"agent-orin-a": share, "agent-orin-b": share, "recorder": None}
+    assert set(threads_seen(render_threads=0).values()) == {None}  # Numba's own default
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "3")
+    assert set(threads_seen().values()) == {"3"}
+    with pytest.raises(ValueError, match="render_threads=-1"):
+        SimRig(files, render_threads=-1)
