@@ -387,7 +387,13 @@ def main_view(argv: list[str]) -> int:
     finally:
         _exit_soon(10.0)  # before the close, which is what can hang
         viewer.close()
-    return 0
+    # and leave at once: a library's threads or native teardown at interpreter exit (where the
+    # timer's thread no longer runs) must not keep a stopped viewer alive; nothing is pending
+    # (a saved viewpoint is written when it is saved)
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
 
 
 def _stop_on_signal(signum: int, frame: object) -> None:
