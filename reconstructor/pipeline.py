@@ -403,12 +403,12 @@ def _refinement_stage(
     eyes = list(refinement.eye_views)
     if refinement.weights is not None and share > 0:
         inputs, extra = views[: len(train_views)], views[len(train_views) :]
-        rest = 1.0 - (cfg.auxiliary.eye.share if eyes else 0.0)
+        to_inputs, to_extra, to_eyes = cfg.auxiliary.refinement_shares(bool(eyes))
         trainer.run_mixed(
             [
-                ViewGroup(inputs, share * rest),
-                ViewGroup(extra, (1.0 - share) * rest, cfg.auxiliary.aux_weight),
-                ViewGroup(eyes, 1.0 - rest, cfg.auxiliary.aux_weight),
+                ViewGroup(inputs, to_inputs),
+                ViewGroup(extra, to_extra, cfg.auxiliary.aux_weight),
+                ViewGroup(eyes, to_eyes, cfg.auxiliary.aux_weight),
             ],
             cfg.train.refine_steps,
             stage="refinement",

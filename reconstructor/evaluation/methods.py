@@ -43,7 +43,7 @@ from reconstructor.evaluation.baselines import reproject_depth_maps
 from reconstructor.raster.config import RasterConfig
 from reconstructor.raster.device import for_device
 from reconstructor.splats.gaussians import Gaussians
-from reconstructor.splats.train import render
+from reconstructor.splats.train import mixed_schedule, render
 
 
 @dataclass(frozen=True)
@@ -157,6 +157,48 @@ class EvalSettings:
             if m in METHODS
         )
 
+    def _refinement_shares(self, key: str) -> tuple[list[float], list[int]] | None:
+        """The refinement's groups for method ``key`` as ``Trainer.run_mixed`` gets them: their
+        shares, and which of them are the refiner's views (index > 0); None without them."""
+        overrides = METHODS[key].overrides
+        if not (overrides or {}).get("auxiliary", {}).get("enabled", False):
+            return None
+        cfg = ReconstructConfig.read(self.config) if self.config else ReconstructConfig()
+        aux = cfg.overridden(overrides or {}, f"method {key}").auxiliary
+        if aux.input_share <= 0:  # every step draws from all views alike: no fixed count
+            return None
+        shares = aux.refinement_shares(aux.eye.num_views > 0)
+        groups = [k for k, share in enumerate(shares) if share > 0]
+        return [shares[k] for k in groups], groups
+
+    def auxiliary_steps(self, key: str) -> int | None:
+        """How many of method ``key``'s refinement steps train on the refiner's views (its
+        auxiliary and eye-height views); None for a method without them, or where every step
+        draws from all views alike (``auxiliary.input_share`` 0). The recorded views keep
+        ``input_share`` of the steps (0.95), so a short schedule may give the refiner none."""
+        found = self._refinement_shares(key)
+        if found is None:
+            return None
+        shares, groups = found
+        return sum(groups[j] > 0 for j in mixed_schedule(shares, self.refine_steps))
+
+    def steps_for_auxiliary(self, key: str) -> int:
+        """The fewest ``--steps`` at which method ``key`` trains on one of the refiner's views
+        (the schedule's steps come in the same order however long it is)."""
+        found = self._refinement_shares(key)
+        if found is None:
+            return self.steps
+        shares, groups = found
+        first = next(
+            (k for k, j in enumerate(mixed_schedule(shares, 100_000)) if groups[j] > 0), None
+        )
+        if first is None:
+            return self.steps
+        steps = 1
+        while dataclasses.replace(self, steps=steps).refine_steps < first + 1:
+            steps += 1
+        return steps
+
     @property
     def has_warm(self) -> bool:
         return any(METHODS[m].warm for m in self.methods if m in METHODS)
@@ -171,6 +213,17 @@ class EvalSettings:
     def describe(self) -> str:
         """One line with every setting a reader needs to interpret the numbers."""
         refiner = self.refiner if self.uses_refiner else "n/a (EgoSurg not run)"
+        on_aux = {
+            m: n
+            for m in self.methods
+            if m in METHODS and (n := self.auxiliary_steps(m)) is not None
+        }
+        if on_aux:
+            counts = sorted(set(on_aux.values()))
+            refiner += (
+                f" ({'/'.join(map(str, counts))} of the {self.refine_steps} refinement steps on "
+                "its views)"
+            )
         lpips = self.lpips_weights or "n/a (no --lpips-weights)"
         chosen = [
             f"scenes {', '.join(self.scenes)}" if self.scenes else "",

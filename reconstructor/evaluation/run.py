@@ -69,6 +69,17 @@ def run_evaluation(
         ", ".join(settings.protocols),
         settings.describe(),
     )
+    for key in settings.methods:
+        if key in METHODS and settings.auxiliary_steps(key) == 0:
+            log.warning(
+                "%s trains on none of its refiner's views at --steps %d: the recorded views keep "
+                "their share of the %d refinement steps, so its numbers are those of training on "
+                "the recorded views alone; give --steps %d or more for the refiner to count",
+                settings.label(key),
+                settings.steps,
+                settings.refine_steps,
+                settings.steps_for_auxiliary(key),
+            )
     results = EvalResults(settings=settings)
     runner = JobRunner(
         settings,

@@ -113,6 +113,12 @@ class AuxiliaryConfig:
         if not isinstance(self.refiner_weights, str):
             raise bad("refiner_weights", "must be a path (a string)")
 
+    def refinement_shares(self, with_eye_views: bool) -> tuple[float, float, float]:
+        """The refinement steps' shares (``Trainer.run_mixed``) of the recorded views, the
+        auxiliary views and the eye-height views (0 without them), with ``input_share`` > 0."""
+        rest = 1.0 - (self.eye.share if with_eye_views else 0.0)
+        return self.input_share * rest, (1.0 - self.input_share) * rest, 1.0 - rest
+
 
 Bounds = tuple[np.ndarray, np.ndarray]  # (lo (3,), hi (3,)) in world metres; ±inf: unbounded
 

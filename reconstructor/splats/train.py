@@ -385,18 +385,31 @@ class Trainer:
         groups = [g for g in groups if g.views and g.share > 0]
         if not groups:
             raise ReconstructConfigError(f"{stage}: no views to train on")
-        total = sum(g.share for g in groups)
-        done = [0] * len(groups)
         orders: list[list[int]] = [[] for _ in groups]
-        for k in range(steps):
-            j = max(range(len(groups)), key=lambda i: groups[i].share / total * (k + 1) - done[i])
-            done[j] += 1
+        for k, j in enumerate(mixed_schedule([g.share for g in groups], steps)):
             if not orders[j]:
                 orders[j] = list(self._rng.permutation(len(groups[j].views)))
             stats = self.step(groups[j].views[orders[j].pop()], groups[j].weight)
             if progress is not None:
                 progress(stage, k + 1, steps, stats)
             self._log_step(stage, k + 1, steps, stats)
+
+
+def mixed_schedule(shares: Sequence[float], steps: int) -> list[int]:
+    """The group each of ``steps`` steps goes to (``Trainer.run_mixed``): the group furthest
+    behind its share (``shares``, positive, in any units) after the steps before it, the first
+    on a tie. Deterministic, so a run's steps per group are known before it starts: with shares
+    0.95 / 0.05 the second group gets its first step at the 11th."""
+    if not shares or any(not share > 0 for share in shares):
+        raise ValueError(f"shares {list(shares)}: give one positive share per group")
+    total = float(sum(shares))
+    done = [0] * len(shares)
+    out = []
+    for k in range(steps):
+        j = max(range(len(shares)), key=lambda i: shares[i] / total * (k + 1) - done[i])
+        done[j] += 1
+        out.append(j)
+    return out
 
 
 def anisotropy_penalty(log_scales: torch.Tensor, max_ratio: float) -> torch.Tensor:

@@ -32,7 +32,14 @@ from reconstructor.refine.base import Refined, Refiner, RefineRequest
 from reconstructor.refine.eye_views import EyeViewConfig
 from reconstructor.refine.refiners import load_refiner
 from reconstructor.splats.gaussians import init_random, random_init_box
-from reconstructor.splats.train import TrainConfig, Trainer, ViewGroup, render, scene_extent_m
+from reconstructor.splats.train import (
+    TrainConfig,
+    Trainer,
+    ViewGroup,
+    mixed_schedule,
+    render,
+    scene_extent_m,
+)
 from tests.helpers import run_egosurg
 from tests.reconstructor.small_scene import ROOM, T_S, TruthRefiner, mean_psnr, true_depth_scene
 
@@ -254,6 +261,8 @@ def test_mixed_groups_keep_their_share_of_the_steps(scene):
     t = Trainer(g0.detach_clone(), cfg, raster, 3.0)
     t.run_mixed([ViewGroup(inputs, 0.5), ViewGroup(aux, 0.5, 0.0)], 40)
     names = [s.view for s in t.log.steps]
+    # the order is the schedule's, known before the run (what an evaluation reports)
+    assert [int(n.startswith("aux")) for n in names] == mixed_schedule([0.5, 0.5], 40)
     assert sum(n.startswith("in") for n in names) == 20
     assert all(names.count(f"in{i}") == 10 for i in range(2))
     assert all(names.count(f"aux{i}") == 2 for i in range(10))

@@ -58,6 +58,23 @@ def _texture(h: int = 64, w: int = 96, seed: int = 0) -> np.ndarray:
 # ---- temporal metrics ------------------------------------------------------------------------
 
 
+def test_a_schedule_too_short_for_the_refiner_says_so():
+    """The recorded views keep 95 % of the refinement steps: at 10 steps (7 of refinement) the
+    refiner's views get none, so "EgoSurg" is "EgoSurg w/o refinement" under another name. The
+    table's settings line says how many steps the refiner got, and the fewest --steps that
+    give it one are known."""
+    short = EvalSettings(steps=10, methods=("no-refinement", "egosurg"))
+    assert short.auxiliary_steps("no-refinement") is None
+    assert short.auxiliary_steps("egosurg") == 0
+    assert "0 of the 7 refinement steps on its views" in short.describe()
+    enough = short.steps_for_auxiliary("egosurg")
+    assert 10 < enough <= 40  # 5 % of the refinement steps: one within the first 20 or so
+    assert dataclasses.replace(short, steps=enough).auxiliary_steps("egosurg") == 1
+    assert dataclasses.replace(short, steps=enough - 1).auxiliary_steps("egosurg") == 0
+    paper = dataclasses.replace(short, steps=2000)  # 1500 refinement steps, 5 % of them
+    assert abs(paper.auxiliary_steps("egosurg") - 75) <= 1  # type: ignore[operator]
+
+
 def test_identical_frames_are_perfectly_stable():
     img = _texture()
     assert pair_psnr(img, img) == math.inf
