@@ -44,6 +44,7 @@ from protocol.formats.security_config import NodeSecurityConfig, RigSecurityConf
 from protocol.sealing import IDENTITY_ENV, generate_identity, write_identity
 from protocol.toml_config import dumps
 from sim.errors import SimRigError
+from sim.timing import SIM_RIG_SOURCE
 from sim.world import World
 
 if TYPE_CHECKING:
@@ -116,6 +117,25 @@ class SimRigFiles:
     @property
     def keys_dir(self) -> Path:
         return self.directory / "keys"
+
+    def sim_metadata(self) -> dict[str, str]:
+        """The case metadata every recording of this rig carries (``SimRig.control("start")``):
+        the world and the sim clock its pictures come from. The rig's sim time 0 is its epoch,
+        and its prerendered content loops (``sim.truth.content_time_s``), so ``egosurg sim
+        roles`` and ``sim contact`` need both to line the truth up with its pictures. A rig of
+        more than 4 cameras mixes the worlds of several seeds: no single seed is written."""
+        spec = self.spec
+        meta = {
+            "source": SIM_RIG_SOURCE,
+            "phase": spec.phase,
+            "sim_epoch_unix_ns": str(self.epoch_unix_ns),
+            "sim_fps": repr(float(spec.fps)),
+            "sim_content_fps": repr(float(spec.content_fps)),
+            "sim_prerender_s": repr(float(spec.prerender_s)),
+        }
+        if spec.cameras <= 4:
+            meta["seed"] = str(spec.seed)
+        return meta
 
     def control_socket(self, ctx: Any) -> Any:
         """A REQ socket that may talk to the recorder: a CURVE client with the operator's key."""
@@ -399,6 +419,8 @@ class SimRig:
         sock.setsockopt(zmq.RCVTIMEO, int(timeout_s * 1000))
         # a REQ socket's send waits for a connection; one whose handshake fails never comes
         sock.setsockopt(zmq.SNDTIMEO, int(timeout_s * 1000))
+        if verb == "start":  # the recording says which world and sim clock it shows
+            args = {**args, "meta": {**dict(args.get("meta") or {}), **self.files.sim_metadata()}}
         try:
             sock.connect(self.files.recorder_url)
             sock.send(ControlRequest(verb=verb, args=args).to_bytes())

@@ -5,7 +5,10 @@ them for another session's case.
 
 Case time (seconds since the session started) maps to sim time through the session's start:
 ``t_sim = (started_unix_ns - SIM_EPOCH_UNIX_NS) / 1e9 + t_case``; ``egosurg sim eval-set``
-sessions start at the sim epoch, so there the two are equal.
+sessions start at the sim epoch, so there the two are equal. A sim rig's recording (``egosurg
+sim demo``, ``sim.deploy``) says in its case metadata that its sim time 0 is the rig's own epoch
+and that it loops its prerendered content (``SimRigFiles.sim_metadata``): its roles are the eyes
+of the moment each picture shows (``SessionClock.sim_time_s``).
 
 Examples::
 
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -41,12 +45,20 @@ _SCREENS = {"monitor_screen": "monitor", "anaesthesia_screen": "anaesthesia-scre
 
 
 def role_trajectories(
-    world: World, case_times_s: np.ndarray, *, sim_offset_s: float = 0.0, fov_deg: float = 90.0
+    world: World,
+    case_times_s: np.ndarray,
+    *,
+    sim_offset_s: float = 0.0,
+    fov_deg: float = 90.0,
+    sim_time: Callable[[float], float] | None = None,
 ) -> list[Trajectory]:
-    """One trajectory per person: their egocentric eye (``World.head_poses``) at each time."""
+    """One trajectory per person: their egocentric eye (``World.head_poses``) at each time.
+    The sim time of case time ``t`` is ``sim_time(t)`` (a session's clock,
+    ``SessionClock.sim_time_s``: a sim rig loops its content) or ``t + sim_offset_s``."""
     keys: dict[str, list[Keyframe]] = {}
     for t in case_times_s:
-        for name, pose in world.head_poses(float(t) + sim_offset_s).items():
+        t_sim = sim_time(float(t)) if sim_time is not None else float(t) + sim_offset_s
+        for name, pose in world.head_poses(t_sim).items():
             keys.setdefault(name, []).append(Keyframe.from_pose(float(t), pose, fov_deg))
     return [Trajectory(name=n, keyframes=tuple(k)) for n, k in keys.items()]
 
@@ -122,6 +134,7 @@ def _times(args: argparse.Namespace, first_s: float, last_s: float) -> np.ndarra
 
 def cmd_roles(args: argparse.Namespace) -> int:
     offset_s, seed, phase = 0.0, args.seed, args.phase
+    sim_time: Callable[[float], float] | None = None  # a session's clock, where one is given
     session: SessionId | None = None  # without a session file: none to record
     first_s = last_s = float("nan")
     if args.session:
@@ -133,7 +146,7 @@ def cmd_roles(args: argparse.Namespace) -> int:
         # a live rig's first set can be stamped a fraction of a millisecond before the
         # session's start: the keyframes then start at 0
         first_s, last_s = max(float(set_s[0]), 0.0), float(set_s[-1])
-        offset_s, session = clock.sim_offset_s, clock.session
+        offset_s, session, sim_time = clock.sim_offset_s, clock.session, clock.sim_time_s
         if seed is None:
             if "seed" not in meta:
                 raise clock.metadata_needed(path, "sim seed", "--seed and --phase")
@@ -144,7 +157,9 @@ def cmd_roles(args: argparse.Namespace) -> int:
         if clock.sealed_for:
             log.warning(
                 "%s is sealed and read without an identity: the world is --seed %s --phase %s "
-                "without the session's scripted drape contact, if it had one (pass --identity)",
+                "on an eval-set session's clock, without the session's scripted drape contact, "
+                "if it had one, and without a sim rig's looping content, if it came from one "
+                "(pass --identity)",
                 path,
                 seed,
                 phase,
@@ -158,7 +173,9 @@ def cmd_roles(args: argparse.Namespace) -> int:
     times = _times(args, first_s, last_s)
     if times[0] + offset_s < 0:
         raise CommandArgumentError(f"--from {times[0]} lies before the simulation starts")
-    roles = role_trajectories(world, times, sim_offset_s=offset_s, fov_deg=args.fov)
+    roles = role_trajectories(
+        world, times, sim_offset_s=offset_s, fov_deg=args.fov, sim_time=sim_time
+    )
     if not roles:
         raise CommandArgumentError(f"the {phase} phase has no people: no roles to write")
     write_trajectories(args.out, roles, session)

@@ -29,6 +29,7 @@ if TYPE_CHECKING:
     from protocol.sealing import Identity
 
 SIM_EPOCH_UNIX_NS = 1_767_225_600_000_000_000  # 2026-01-01T00:00:00Z: sim time 0
+SIM_RIG_SOURCE = "egosurg sim rig"  # the case metadata's source of a sim rig's recordings
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -41,6 +42,21 @@ class SessionClock:
     session: SessionId  # what a roles or field file written for it records (its [session])
     # a sealed session read without an identity: its recipients (its metadata is then empty)
     sealed_for: str = ""
+    # a sim rig's looping content (``SimRigFiles.sim_metadata``): fps, content fps and the
+    # prerendered seconds; None for a session whose pictures are the sim time's own (eval-set)
+    content: tuple[float, float, float] | None = None
+
+    def sim_time_s(self, t_case_s: float) -> float:
+        """The sim time whose scene the session's pictures show at case time ``t_case_s``: the
+        session's start on the sim clock plus ``t_case_s``, and, for a sim rig that loops its
+        prerendered content, the content time the cameras showed then."""
+        t = self.sim_offset_s + float(t_case_s)
+        if self.content is None:
+            return t
+        from sim.truth import content_time_s
+
+        fps, content_fps, prerender_s = self.content
+        return content_time_s(t, fps=fps, content_fps=content_fps, prerender_s=prerender_s)
 
     def metadata_needed(self, path: Path, what: str, instead: str = "") -> CommandArgumentError:
         """The one-line error for metadata the session does not give: sealed and read without
@@ -72,12 +88,28 @@ def read_session_clock(path: Path, identity: Identity | None = None) -> SessionC
         sealed_for = "" if opened else ", ".join(r.label() for r in reader.recipients)
         meta = dict(reader.info.case_metadata) if opened else {}
         set_ns = reader.sets().set_unix_ns
+    epoch, content = SIM_EPOCH_UNIX_NS, None
+    if meta.get("source") == SIM_RIG_SOURCE:  # a live sim rig: its own epoch, looping content
+        try:
+            epoch = int(meta["sim_epoch_unix_ns"])
+            content = (
+                float(meta["sim_fps"]),
+                float(meta["sim_content_fps"]),
+                float(meta["sim_prerender_s"]),
+            )
+        except (KeyError, ValueError):
+            raise CommandArgumentError(
+                f"{path} was recorded from a sim rig but does not say its sim clock "
+                "(sim_epoch_unix_ns, sim_fps, sim_content_fps, sim_prerender_s): record it "
+                "again with this version"
+            ) from None
     return SessionClock(
         session=SessionId(name=name, started_unix_ns=int(start)),
         case_metadata=meta,
         sealed_for=sealed_for,
-        sim_offset_s=(start - SIM_EPOCH_UNIX_NS) / 1e9,
+        sim_offset_s=(start - epoch) / 1e9,
         set_times_s=(set_ns - start) / 1e9,
+        content=content,
     )
 
 

@@ -471,7 +471,8 @@ def test_a_recorder_killed_mid_take_resumes_into_a_linked_file(tmp_path):
     assert second != first and not (files.session_dir / "take-journal.json").exists()
     with SessionReader(second) as r:
         assert r.info.previous_session_file == first.name and r.info.take_part == 2
-        assert r.info.case_metadata == {"room": "OR 3"} and r.info.session_name == "resume-me"
+        assert r.info.case_metadata == {"room": "OR 3", **files.sim_metadata()}
+        assert r.info.session_name == "resume-me"
         assert len(r.sets().set_unix_ns) > 0 and r.verify() == []
     with SessionReader(first) as r:  # the killed part: every flushed set intact
         assert not r.info.closed_cleanly
