@@ -55,8 +55,8 @@ from sim import pictures
 from sim.cli import write_pictures
 from sim.demo_names import TrueEyes
 from sim.deploy import SimRig, SimRigFiles, SimRigSpec, write_sim_rig
-from sim.timing import ClockSpec
-from sim.truth import align_to_truth, calibration_errors, content_time_s, true_rig_calibration
+from sim.timing import ClockSpec, content_time_s
+from sim.truth import align_to_truth, calibration_errors, true_rig_calibration
 from sim.world import World
 
 STAGES = 8

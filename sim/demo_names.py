@@ -4,7 +4,7 @@ demo only.
 On a real case a reviewer names the tracks (``egosurg people name FILE --list --suggest``, or
 ``egosurg view --people``). The demo has no reviewer, so it gives each track the name of the
 person whose true eye (``World.head_poses``, at the sim time whose picture the cameras showed:
-the sim rig's content loops and changes once a second, ``sim.truth.content_time_s``) is nearest
+the sim rig's content loops and changes once a second, ``sim.timing.content_time_s``) is nearest
 the track's eye, median over the track's keyframes, nearest pairs first and only within
 ``MAX_NAMING_M`` (the distance bench/bench_people.py matches within). Each track takes one
 person; a person may take several tracks (someone lost behind the table comes back as a new

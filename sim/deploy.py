@@ -121,7 +121,7 @@ class SimRigFiles:
     def sim_metadata(self) -> dict[str, str]:
         """The case metadata every recording of this rig carries (``SimRig.control("start")``):
         the world and the sim clock its pictures come from. The rig's sim time 0 is its epoch,
-        and its prerendered content loops (``sim.truth.content_time_s``), so ``egosurg sim
+        and its prerendered content loops (``sim.timing.content_time_s``), so ``egosurg sim
         roles`` and ``sim contact`` need both to line the truth up with its pictures. A rig of
         more than 4 cameras mixes the worlds of several seeds: no single seed is written."""
         spec = self.spec

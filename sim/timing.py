@@ -53,8 +53,6 @@ class SessionClock:
         t = self.sim_offset_s + float(t_case_s)
         if self.content is None:
             return t
-        from sim.truth import content_time_s
-
         fps, content_fps, prerender_s = self.content
         return content_time_s(t, fps=fps, content_fps=content_fps, prerender_s=prerender_s)
 
@@ -71,6 +69,21 @@ class SessionClock:
                 f"{IDENTITY_ENV}){other}"
             )
         return CommandArgumentError(f"{path} does not say its {what}: pass {instead}")
+
+
+def content_time_s(t_sim_s: float, *, fps: float, content_fps: float, prerender_s: float) -> float:
+    """The sim time whose scene a simulated camera shows at sim time ``t_sim_s``.
+
+    Mirrors ``capture_agent.sources.sim_source``: prerendered content loops over sim time
+    ``[0, N)``; with ``content_fps < fps`` it is quantised to ``1 / content_fps``.
+    """
+    if prerender_s <= 0:
+        return t_sim_s
+    if content_fps >= fps:
+        loop_s = np.ceil(prerender_s * fps) / fps
+        return float(t_sim_s % loop_s)
+    count = int(np.ceil(prerender_s * content_fps))
+    return float((int(np.floor(t_sim_s * content_fps)) % count) / content_fps)
 
 
 def read_session_clock(path: Path, identity: Identity | None = None) -> SessionClock:

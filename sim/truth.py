@@ -108,21 +108,6 @@ def align_to_truth(estimate: RigCalibration, truth: RigCalibration) -> RigCalibr
     return dataclasses.replace(estimate, sensors=sensors)
 
 
-def content_time_s(t_sim_s: float, *, fps: float, content_fps: float, prerender_s: float) -> float:
-    """The sim time whose scene a simulated camera shows at sim time ``t_sim_s``.
-
-    Mirrors ``capture_agent.sources.sim_source``: prerendered content loops over sim time
-    ``[0, N)``; with ``content_fps < fps`` it is quantised to ``1 / content_fps``.
-    """
-    if prerender_s <= 0:
-        return t_sim_s
-    if content_fps >= fps:
-        loop_s = np.ceil(prerender_s * fps) / fps
-        return float(t_sim_s % loop_s)
-    count = int(np.ceil(prerender_s * content_fps))
-    return float((int(np.floor(t_sim_s * content_fps)) % count) / content_fps)
-
-
 SPHERE_CLEARANCE_PX = 8.0  # image gap to any other sphere for a sphere to count as whole
 
 
