@@ -17,7 +17,6 @@ The case is written by hand, as test_view.py's: a wall of Gaussians at four time
 from __future__ import annotations
 
 import csv
-import time
 from pathlib import Path
 
 import av
@@ -27,40 +26,20 @@ import pytest
 from protocol.formats.site import SiteBox, site_toml
 from protocol.formats.trajectory import Keyframe, Trajectory, read_trajectory_file
 from protocol.formats.trajectory import write_trajectories as write_file
-from reconstructor.case.index import CaseIndex, Entry, checksum_file
 from reconstructor.replay.names import NamingError, name_tracks, names_in
 from reconstructor.replay.path import CameraPath
-from reconstructor.splats import ply
 from tests.helpers import egosurg_in_process as egosurg
 
 pytest.importorskip("viser", reason="test_view.py's wall needs viser's test module to import")
-from tests.reconstructor.test_view import wall
+from tests.reconstructor.test_view import make_case
 
 CASE_TIMES_S = (2.0, 2.5, 2.75, 3.0)
 LOOK_AT_M = (0.0, 0.0, 1.0)  # the wall's middle: every eye looks at it
 
 
-def make_case(folder: Path) -> Path:
-    (folder / "models").mkdir(parents=True)
-    entries = []
-    for k, t in enumerate(CASE_TIMES_S):
-        name = f"t{t:09.3f}"
-        path = ply.write_ply(folder / "models" / f"{name}.ply", wall(seed=k), unit_quats=True)
-        digest, size = checksum_file(path)
-        entries.append(Entry(
-            name=name, t_s=t, set_index=k, model=f"models/{name}.ply", xxh3_64=digest,
-            bytes=size, status="done", gaussians=wall(seed=k).num,
-        ))  # fmt: skip
-    CaseIndex(
-        session="hand-made", session_started_unix_ns=0, config_hash="test", warm_start=False,
-        created_unix_ns=time.time_ns(), timestamps=tuple(entries),
-    ).write(folder)  # fmt: skip
-    return folder
-
-
 @pytest.fixture(scope="module")
 def case(tmp_path_factory) -> Path:
-    return make_case(tmp_path_factory.mktemp("role_join") / "case")
+    return make_case(tmp_path_factory.mktemp("role_join") / "case", CASE_TIMES_S)
 
 
 def _track(name: str, times: tuple[float, ...], eye, gaps=()) -> Trajectory:

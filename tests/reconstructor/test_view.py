@@ -80,10 +80,11 @@ def wall(seed: int) -> Gaussians:
     )
 
 
-def make_case(folder: Path) -> Path:
+def make_case(folder: Path, times_s: tuple[float, ...] = TIMES_S) -> Path:
+    """A hand-made case of ``wall`` models, one done timestamp at each of ``times_s``."""
     (folder / "models").mkdir(parents=True)
     entries = []
-    for k, t in enumerate(TIMES_S):
+    for k, t in enumerate(times_s):
         name = f"t{t:09.3f}"
         path = ply.write_ply(folder / "models" / f"{name}.ply", wall(seed=k), unit_quats=True)
         digest, size = checksum_file(path)
