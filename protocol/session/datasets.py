@@ -6,6 +6,7 @@ tables and blobs and append a flush's rows with low-level calls (``docs/session.
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import h5py
@@ -191,3 +192,19 @@ def append_rows(ds: h5py.Dataset, start: int, end: int, values: np.ndarray) -> N
     fspace = dsid.get_space()
     fspace.select_hyperslab((start,) + (0,) * (values.ndim - 1), values.shape)
     dsid.write(h5py.h5s.create_simple(values.shape), fspace, np.ascontiguousarray(values))
+
+
+def append_table_rows(
+    tables: Mapping[str, h5py.Dataset],
+    columns: Mapping[str, Any],
+    start: int,
+    rows: Sequence[Sequence[Any]],
+) -> None:
+    """Write ``rows`` (tuples in ``columns``' order) column by column into ``tables`` from row
+    ``start``, each column as its dtype in ``columns``; then flush every table."""
+    if rows:
+        end = start + len(rows)
+        for (name, dtype), col in zip(columns.items(), zip(*rows, strict=True), strict=True):
+            append_rows(tables[name], start, end, np.asarray(col, dtype=dtype))
+    for ds in tables.values():
+        ds.flush()

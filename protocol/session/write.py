@@ -36,6 +36,7 @@ from protocol.session.chunk_sink import ChunkSink
 from protocol.session.datasets import (
     CameraWriter,
     append_rows,
+    append_table_rows,
     create_table,
 )
 from protocol.session.format import (
@@ -478,15 +479,9 @@ class SessionWriter:
             for blob in (cam.left, cam.right):
                 blob.flush_partial()
         for cam in cams:
-            if cam.pending:
-                columns = list(zip(*cam.pending, strict=True))
-                start, end = cam.rows_in_file, cam.rows_in_file + len(cam.pending)
-                for (name, dtype), col in zip(cam.columns.items(), columns, strict=True):
-                    append_rows(cam.tables[name], start, end, np.asarray(col, dtype=dtype))
-                cam.pending.clear()
-                cam.rows_in_file = end
-            for ds in cam.tables.values():
-                ds.flush()
+            append_table_rows(cam.tables, cam.columns, cam.rows_in_file, cam.pending)
+            cam.rows_in_file += len(cam.pending)
+            cam.pending.clear()
         if self._sets_pending:
             start = self._sets_rows - len(self._sets_pending)
             end = start + len(self._sets_pending)
@@ -497,24 +492,12 @@ class SessionWriter:
             self._sets_pending.clear()
         for ds in (self._set_members, self._set_spread, self._set_time):
             ds.flush()
-        if self._gaps_pending:
-            start = self._gaps_rows - len(self._gaps_pending)
-            end = start + len(self._gaps_pending)
-            columns = list(zip(*self._gaps_pending, strict=True))
-            for (name, dtype), col in zip(GAP_COLUMNS.items(), columns, strict=True):
-                append_rows(self._gap_tables[name], start, end, np.asarray(col, dtype=dtype))
-            self._gaps_pending.clear()
-        for ds in self._gap_tables.values():
-            ds.flush()
-        if self._events_pending:
-            start = self._events_rows - len(self._events_pending)
-            end = start + len(self._events_pending)
-            columns = list(zip(*self._events_pending, strict=True))
-            for (name, etype), col in zip(EVENT_COLUMNS.items(), columns, strict=True):
-                append_rows(self._event_tables[name], start, end, np.asarray(col, dtype=etype))
-            self._events_pending.clear()
-        for ds in self._event_tables.values():
-            ds.flush()
+        for tables, columns, rows, pending in (
+            (self._gap_tables, GAP_COLUMNS, self._gaps_rows, self._gaps_pending),
+            (self._event_tables, EVENT_COLUMNS, self._events_rows, self._events_pending),
+        ):
+            append_table_rows(tables, columns, rows - len(pending), pending)
+            pending.clear()
 
     def close(self, stopped_unix_ns: int, summary: Mapping[str, Any] | None = None) -> None:
         """Flush, write ``/summary`` (plus ``summary`` as JSON) and mark the file closed cleanly."""
