@@ -38,16 +38,19 @@ class PeopleConfig:
     # two heads closer than this are one
     min_head_separation_m: float = 0.3
     # tracking: a detection joins a track within this distance of where the track's velocity
-    # puts it, plus gate_growth_m_s per second unseen (staff stand 0.5-1 m apart: a wide gate
-    # hands one person's track to a neighbour)
-    gate_m: float = 0.3
+    # (at most max_speed_m_s) puts it, plus gate_growth_m_s per second unseen (staff stand
+    # 0.5-1 m apart: a wide gate hands one person's track to a neighbour; 0.4 rather than 0.3
+    # and 0.8 m/s rather than 1.5 since tracks coast for 1 s only: EVALUATION.md, changes 17, 19)
+    gate_m: float = 0.4
     gate_growth_m_s: float = 0.4
-    max_speed_m_s: float = 1.5
+    max_speed_m_s: float = 0.8
     # ... and whose head top is within height_gate_m of the track's usual height (people differ
     # by 5-20 cm; a head stays within a few cm of its height unless the person bends), each
-    # metre of difference costing as much as height_weight metres of distance
+    # metre of difference costing as much as height_weight metres of distance (a head 5 cm off
+    # the track's height costs as much as one 30 cm off where it should be: within the gate,
+    # height tells neighbours apart better than place; EVALUATION.md, change 23)
     height_gate_m: float = 0.15
-    height_weight: float = 1.0
+    height_weight: float = 6.0
     # a new track is tentative (not reported, and matched only after the confirmed ones) until
     # it is seen at confirm_seen of its first confirm_timestamps timestamps: a neighbour's
     # shoulder or stereo noise makes heads that last one or two
@@ -58,15 +61,19 @@ class PeopleConfig:
     # person, and taking it bends the track's velocity towards the neighbour
     match_confidence: float = 0.5
     # a head left over this close to a confirmed track's is that person again, not a new one
-    # (heads are found at least min_head_separation_m apart; two people's, 0.5 m or more)
+    # (heads are found at least min_head_separation_m apart; two people's, 0.5 m or more),
+    # unless it is higher than that track's usual top by more than height_gate_m
     duplicate_m: float = 0.35
-    # a track with no detection for longer than this ends (the person left or is lost) ...
-    max_gap_s: float = 3.0
+    # a track with no detection for longer than this ends (the person left or is lost; a
+    # track coasting longer drifts onto a neighbour, and the linking over the whole case below
+    # joins the person's tracks across the time unseen: EVALUATION.md, change 16) ...
+    max_gap_s: float = 1.0
     # ... and a track starting within this long after, where the gate reaches, continues it
     stitch_gap_s: float = 6.0
     # ... and within this speed of where it was last seen (a walker missed for a few seconds
-    # walks on; the height and the least total cost over the case keep neighbours apart)
-    link_speed_m_s: float = 1.2
+    # walks on; the height over each track's whole life and the least total cost over the case
+    # keep neighbours apart: EVALUATION.md, changes 21 and 22)
+    link_speed_m_s: float = 1.5
     # a track that stays within static_radius_m of one place (90 % of its heads) with more than
     # static_share_max of the room's background cubes round its head (the median over its
     # detections) is equipment the background learned in part, not a person (in the sim, over
@@ -74,6 +81,10 @@ class PeopleConfig:
     # radius also takes people who stand still most of a short recording
     static_share_max: float = 0.05
     static_radius_m: float = 0.5
+    # ... and a track with more than static_share_moving of them is equipment wherever its heads
+    # wander (stereo noise on a boom or a lamp hops about; in the sim the people's tracks have
+    # at most 0.16 at the median, the false ones up to 0.36; 0: none is)
+    static_share_moving: float = 0.25
     # a track missed between two timestamps at most fill_span_s apart at which it was seen takes
     # a head no track took there, however doubtful, within fill_m of the line between them (most
     # misses are runs of 1-3 s with a doubtful head near the person: EVALUATION.md, change 14)

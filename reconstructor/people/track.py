@@ -12,16 +12,18 @@ tracks first, by the assignment of least total distance (``scipy.optimize.linear
 within a gate that widens with the time since the track was last seen and at the track's usual
 head height (within ``height_gate_m``, each metre of difference costing ``height_weight`` metres:
 people differ in height, which their scrubs do not show); a detection left over
-within ``duplicate_m`` of a confirmed track's head is that person again (a shoulder, a second
-peak of the same head) and is dropped; what is left goes to the tentative tracks the same way,
-and the rest may start new ones. A confirmed track missed by the detector coasts for at most
-``max_gap_s``, then ends; the timestamps it coasted through are its gaps, kept and never filled
+within ``duplicate_m`` of a confirmed track's head, and not above its height, is that person
+again (a shoulder, a second peak of the same head) and is dropped; what is left goes to the
+tentative tracks the same way, and the rest may start new ones. A confirmed track missed by the
+detector coasts for at most ``max_gap_s`` (a second: coasting longer, a track drifts onto a
+neighbour), then ends; the timestamps it coasted through are its gaps, kept and never filled
 in. Only confirmed tracks are reported, those seen too seldom or too doubtfully dropped, and
-those that stay in one place with their head among the room's background cubes (equipment the
-background learned in part). The recording is whole before tracking starts, so the tracks are
-then linked over the whole case: a track that starts within ``stitch_gap_s`` after another
-ended, where a walker could have gone in between and at its height, continues it, the pairs
-chosen by least total cost at once (each track with at most one predecessor and one successor).
+those with their head among the room's background cubes (equipment the background learned in
+part): staying in one place with a few of them round it, or anywhere with many. The recording
+is whole before tracking starts, so the tracks are then linked over the whole case: a track
+that starts within ``stitch_gap_s`` after another ended, where a walker could have gone in
+between, of the other's height over their whole lives, continues it, the pairs chosen by least
+total cost at once (each track with at most one predecessor and one successor).
 Last, a track missed for a while between two sightings takes the heads found on its way that no
 track took, however doubtful (``fill_m``): where the person was before and after says which
 head is theirs; the rest of the time stays a gap.
@@ -72,6 +74,12 @@ class Track:
     def top_m(self) -> float:
         """The head top's usual height: the median over the last ``TOP_WINDOW`` detections."""
         return float(np.median([d.top_m for d in self.detections[-TOP_WINDOW:]]))
+
+    def height_m(self) -> float:
+        """The head top's height over the track's whole life (the median of all its heads): the
+        person's height, which tells two tracks of one person from a neighbour's better than
+        the heads near where one ends and the other starts."""
+        return float(np.median([d.top_m for d in self.detections]))
 
     def gaps_s(self) -> list[tuple[float, float]]:
         """(last seen, seen again) around each run of missed timestamps inside the track."""
@@ -124,9 +132,9 @@ def track_people(frames: list[tuple[float, list[Detection]]], config: PeopleConf
             _see(confirmed[i], t, detections[j])
             free.remove(j)
         for tr in confirmed:
-            heads.append(np.asarray(tr.detections[-1].head_xy_m) if tr.last_s == t
-                         else tr.predict(t, config.max_speed_m_s))  # fmt: skip
-        free = [j for j in free if not _near(detections[j], heads, config.duplicate_m)]
+            heads.append((np.asarray(tr.detections[-1].head_xy_m) if tr.last_s == t
+                          else tr.predict(t, config.max_speed_m_s), tr.top_m()))  # fmt: skip
+        free = [j for j in free if not _near(detections[j], heads, config)]
         for i, j in _assign(tentative, detections, free, t, config).items():
             _see(tentative[i], t, detections[j])
             free.remove(j)
@@ -196,10 +204,14 @@ def _fill_misses(tracks: list[Track], frames: list[tuple[float, list[Detection]]
 
 def _equipment(track: Track, config: PeopleConfig) -> bool:
     """A track that stays in one place (90 % of its heads within ``static_radius_m`` of their
-    median) with its head among the room's background cubes most of the time."""
+    median) with its head among the room's background cubes most of the time
+    (``static_share_max``), or one with many of them round its head wherever it goes
+    (``static_share_moving``: stereo noise on a boom or a lamp hops about)."""
     xy = track.xy()
     spread = np.percentile(np.hypot(*(xy - np.median(xy, axis=0)).T), 90)
     share = np.median([d.static_share for d in track.detections])
+    if config.static_share_moving > 0 and share > config.static_share_moving:
+        return True
     return bool(spread <= config.static_radius_m and share > config.static_share_max)
 
 
@@ -213,15 +225,21 @@ def _see(track: Track, t: float, detection: Detection) -> None:
     track.detections.append(detection)
 
 
-def _near(detection: Detection, heads: list[np.ndarray], radius_m: float) -> bool:
+def _near(detection: Detection, heads: list[tuple[np.ndarray, float]], c: PeopleConfig) -> bool:
+    """Whether ``detection`` is within ``duplicate_m`` of one of ``heads`` ((where, usual top))
+    and not higher than that head's top by more than ``height_gate_m``: a shoulder or a second
+    peak of a head is not above it; a taller person's head beside a shorter one is."""
     xy = np.asarray(detection.head_xy_m)
-    return any(float(np.hypot(*(xy - h))) < radius_m for h in heads)
+    return any(
+        float(np.hypot(*(xy - h))) < c.duplicate_m and detection.top_m <= top + c.height_gate_m
+        for h, top in heads
+    )
 
 
 def _linked(tracks: list[Track], config: PeopleConfig) -> list[Track]:
     """Tracks joined where one ends and another starts within ``stitch_gap_s`` after, where the
-    gate reaches from where the first was last seen and at its height (a person missed for a
-    while, or lost when they bent, not a new person): the pairs of least total cost over the
+    gate reaches from where the first was last seen, the two of one height over their whole
+    lives (a person missed for a while, not a new person): the pairs of least total cost over the
     whole case (``linear_sum_assignment``: each track has at most one successor and one
     predecessor), the time between becoming a gap. The recording is whole before tracking, so
     the linking looks at every track's end and start at once, not only the ones before it."""
@@ -233,7 +251,7 @@ def _linked(tracks: list[Track], config: PeopleConfig) -> list[Track]:
             if not 0 < gap <= config.stitch_gap_s:
                 continue
             d = float(np.hypot(*(tr.xy()[0] - prev.predict(tr.times_s[0], config.max_speed_m_s))))
-            rise = abs(tr.detections[0].top_m - prev.top_m())
+            rise = abs(tr.height_m() - prev.height_m())
             if d <= config.gate_m + config.link_speed_m_s * gap and rise <= config.height_gate_m:
                 cost[a, b] = d + config.height_weight * rise
     successor: dict[int, int] = {}

@@ -1,11 +1,13 @@
 """``egosurg people``'s tracker on detections placed by hand, as a reviewer relies on it: one
 track per person, which a neighbour's shoulder seen for a moment does not take or split, and a
 doubtful head between two people does not swap; a person the detector misses for a moment keeps
-their track, the missed time marked as a gap, and so does a walker hidden for longer; a person of
-another height stepping where a hidden one stood does not take their track; a false head that
-sits in the room's background cubes all along is no track; people standing round a table face
-into the group even where the reach of their arms says otherwise; settings that cannot work are
-refused in one line."""
+their track, the missed time marked as a gap, and so does a walker hidden for longer, the two
+tracks joined by each one's height over its whole life (a noisy first head neither splits a
+person nor joins two); a person of another height stepping where a hidden one stood does not
+take their track, nor is the hidden one's head taken for the other's shoulder when they are seen
+again; a false head that sits in the room's background cubes all along, or slides about among
+many of them, is no track; people standing round a table face into the group even where the
+reach of their arms says otherwise; settings that cannot work are refused in one line."""
 
 from __future__ import annotations
 
@@ -72,7 +74,7 @@ def test_a_doubtful_head_between_a_walker_and_a_standing_person_does_not_swap_th
 
 
 def test_a_person_missed_for_a_moment_keeps_their_track_and_the_time_is_a_gap():
-    missed = (7, 8, 9)  # 1.5 s, under max_gap_s
+    missed = (7, 8, 9)  # 1.5 s: longer than a track coasts (max_gap_s), the linking joins it
     frames = [(t, [] if k in missed else [head(0.2, 1.0)]) for k, t in enumerate(TIMES_S)]
     tracks = track_people(frames, PeopleConfig())
     assert len(tracks) == 1
@@ -144,12 +146,52 @@ def test_a_walker_hidden_for_four_seconds_keeps_one_track_the_time_a_gap():
     assert tracks[0].gaps_s() == [(3.0, 8.0)]
 
 
+def test_tracks_are_linked_by_each_ones_height_over_its_whole_life_not_its_first_head():
+    times = tuple(0.5 * k for k in range(30))
+    # A (head top 1.72 m) walks at 1 m/s along y = 1, hidden 3.5-6 s (longer than a track
+    # coasts); seen again, A's first two heads are found 18 and 8 cm high (stereo noise on a
+    # raised hand)
+    frames = []
+    for t in times:
+        if 3.5 <= t <= 6.0:
+            frames.append((t, []))
+            continue
+        top = {6.5: 1.90, 7.0: 1.80}.get(t, 1.72)
+        frames.append((t, [head(-4.0 + t, 1.0, top_m=top)]))
+    tracks = track_people(frames, PeopleConfig())
+    assert len(tracks) == 1 and tracks[0].gaps_s() == [(3.0, 6.5)]
+    # C (1.60 m) walks off and is lost at 3 s; D (1.82 m), whose first head is found 12 cm low,
+    # appears 2 s later where C could have walked: D is not C
+    frames = []
+    for t in times:
+        found = [head(-4.0 + t, -1.0, top_m=1.60)] if t <= 3.0 else []
+        if t >= 5.0:
+            found.append(head(1.5 + 0.2 * (t - 5.0), -1.0, top_m=1.70 if t == 5.0 else 1.82))
+        frames.append((t, found))
+    tracks = track_people(frames, PeopleConfig())
+    assert len(tracks) == 2
+    assert max(d.top_m for d in tracks[0].detections) == 1.60
+
+
 def test_a_false_head_in_the_rooms_background_all_along_is_no_track_and_a_still_person_is():
     # a monitor's edge found as a head at every timestamp, among the background's cubes
     # (static_share 0.2), beside a person standing still (no background round their head)
     frames = [(t, [head(2.0, 2.0, static_share=0.2), head(0.0, 0.0)]) for t in TIMES_S]
     tracks = track_people(frames, PeopleConfig())
     assert len(tracks) == 1 and _near(tracks[0], (0.0, 0.0))
+
+
+def test_a_false_head_hopping_about_among_the_rooms_cubes_is_no_track_and_a_walker_is():
+    # stereo noise on a boom: a head found at every timestamp, sliding 0.2 m a timestamp to and
+    # fro along 1.6 m of it (too far about for one place), among many of the background's cubes
+    # (static_share 0.3, more than any person's in the sim); a person walks past with none
+    along = [0.2 * (k % 8 if k % 16 < 8 else 8 - k % 8) for k in range(len(TIMES_S))]
+    frames = [(t, [head(2.0 + along[k], 2.0, static_share=0.3), head(-3.0 + 0.3 * k, 0.0)])
+              for k, t in enumerate(TIMES_S)]  # fmt: skip
+    tracks = track_people(frames, PeopleConfig())
+    assert len(tracks) == 1 and tracks[0].xy()[0][0] == -3.0
+    # without the rule, the hopping head is reported as a person
+    assert len(track_people(frames, PeopleConfig(static_share_moving=0.0))) == 2
 
 
 def test_people_round_a_table_face_into_the_group_where_their_arms_say_the_other_way():
