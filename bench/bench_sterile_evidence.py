@@ -10,6 +10,12 @@ the two stages a sterile review does not need (fusion was 44 s of a 90 s timesta
 back. It also measures the matcher's disparity noise where the truth is known: the sim's floor
 (z = 0), over every timestamp.
 
+Each timestamp's evidence keeps which cameras saw each cell and where those cameras are, for
+the seen-empty tests (``reconstructor/replay/sterile_seen.py``); ``--show-events`` lists each
+contact with the share of its peak part's in-box points in air (seen through at 30 % or more of
+the other timestamps) and seen through now. Evidence made before the masks is refused: make it
+again.
+
 Each ``--variant`` is ``SterileConfig`` keyword arguments (``"margin_sigmas=0"``); the first row
 is the defaults. Scored against the sim's truth as ``bench_sterile.py`` does (recall on the
 scripted person's touches, false events of anyone non-sterile, start errors).
@@ -56,8 +62,10 @@ def _evidence_one(job: tuple[str, str, str, float, str]) -> str:
     poses = {f"SN{left.camera_serial}": left.camera.pose for left, _ in ts.stereo_pairs()}
     floor = np.concatenate([floor_disparity_errors(d, poses[n]) for n, d in depths.items()])
     tmp = Path(out).with_suffix(".tmp.npz")
+    centres = np.stack([poses[n].centre_m for n in seen.cameras]) if seen.cameras else None
     np.savez(tmp, points_m=seen.points_m, m_per_px=seen.m_per_px, t_s=ts.t_s,
-             floor_err_px=floor[::25].astype(np.float32))  # fmt: skip
+             floor_err_px=floor[::25].astype(np.float32), seen_by=seen.seen_by,
+             cameras=np.array(seen.cameras), camera_centres_m=centres)  # fmt: skip
     tmp.replace(out)
     return out
 
@@ -95,6 +103,18 @@ def make_evidence(args: argparse.Namespace, times_s: list[float]) -> list[Path]:
     return paths
 
 
+def sights(paths: list[Path]):
+    """Each timestamp's whole evidence with its cameras (``sterile_seen.Sight``), read one at
+    a time (a timestamp holds ~400 000 cells); evidence made before the masks: an error."""
+    from reconstructor.replay.sterile_seen import Sight
+
+    for p in paths:
+        with np.load(p) as z:
+            if "seen_by" not in z:
+                raise SystemExit(f"{p} has no camera masks: make the evidence again")
+            yield Sight(z["points_m"], z["m_per_px"], z["seen_by"], z["camera_centres_m"])
+
+
 def load_fields(args: argparse.Namespace, paths: list[Path]) -> list[tuple]:
     """Per field box: (box, [(t, name, points in its region, their m_per_px)]), read once."""
     from protocol.formats.site import read_site
@@ -113,10 +133,15 @@ def load_fields(args: argparse.Namespace, paths: list[Path]) -> list[tuple]:
     return out
 
 
-def judge(fields: list[tuple], roles_path: str, variant: dict) -> list[dict]:
-    """The contact events of one detector setting, as rows like ``events.csv``'s."""
+_FREE: dict[tuple, object] = {}  # freespace per (field, voxel, reach, seen margin)
+
+
+def judge(fields: list[tuple], roles_path: str, variant: dict, paths: list[Path]) -> list[dict]:
+    """The contact events of one detector setting, as rows like ``events.csv``'s, each with
+    its peak part's share of in-box points in air and seen through now (``seen``, ``now``)."""
     from reconstructor.replay.sterile import Region, SterileConfig, judge_field
     from reconstructor.replay.sterile_run import _eyes, read_roles
+    from reconstructor.replay.sterile_seen import freespace
 
     cfg = SterileConfig(sterile_roles=STERILE, **variant)
     roles = read_roles(roles_path, STERILE)
@@ -127,11 +152,22 @@ def judge(fields: list[tuple], roles_path: str, variant: dict) -> list[dict]:
         margins = [cfg.margin_m(nz[reg.holds(pts)]) if cfg.margin_sigmas > 0 else None
                    for _, _, pts, nz in stamps]  # fmt: skip
         eyes = [_eyes(roles, t) for t, _, _, _ in stamps]
-        _, events = judge_field(reg, frames, margins, [(t, n) for t, n, _, _ in stamps], eyes)
+        times = [t for t, _, _, _ in stamps]
+        key = (box.name, cfg.voxel_m, cfg.reach_m, cfg.seen_margin_sigmas)
+        if key not in _FREE:  # ~0.3 s a timestamp: once per setting that changes it
+            _FREE[key] = freespace(reg, sights(paths), times)
+        free = _FREE[key]
+        _, events = judge_field(reg, frames, margins, [(t, n) for t, n, _, _ in stamps], eyes,
+                                free)  # fmt: skip
         for e in events:
             kind = "sterile-role" if e.sterile_role else "contact"
+            b, t = e.blobs[e.peak], e.instants[e.peak].t_s
+            vox = reg.voxels(b.points_m[b.in_field])
+            share = free.seen_empty(vox, t, cfg.seen_window_s)
+            seen = float("nan") if share is None else float((share >= cfg.air_seen_empty).mean())
             rows.append({"kind": kind, "role": e.role, "start_s": f"{e.start_s:.3f}",
-                         "end_s": f"{e.end_s:.3f}", "peak": e.blobs[e.peak].count})  # fmt: skip
+                         "end_s": f"{e.end_s:.3f}", "peak": b.count, "seen": f"{seen:.2f}",
+                         "now": f"{free.now(vox, t).mean():.2f}"})  # fmt: skip
     return rows
 
 
@@ -175,14 +211,15 @@ def main(argv: list[str] | None = None) -> int:
     fields = load_fields(args, paths)
     for text in ["", *args.variant]:
         variant = eval(f"dict({text})", {"None": None})  # the bench's own flags
-        events = judge(fields, args.roles, variant)
+        events = judge(fields, args.roles, variant, paths)
         s = score(events, truth, set(STERILE), times[0], times[-1], 0.5, "radiographer")
         errs = ", ".join(f"{e:.2f}" for e in s.start_errors_s)
         print(f"| {text or 'defaults'} | {s.found}/{s.touches} | {s.false_events} | "
               f"{s.false_per_10_min:.0f} | {errs} |", flush=True)  # fmt: skip
         if args.events_out and not text:
             with args.events_out.open("w", newline="") as fh:
-                w = csv.DictWriter(fh, ["kind", "role", "start_s", "end_s", "peak"])
+                w = csv.DictWriter(fh, ["kind", "role", "start_s", "end_s", "peak", "seen",
+                                        "now"])  # fmt: skip
                 w.writeheader()
                 w.writerows(events)
             span = args.events_out.with_name(args.events_out.stem + "_instants.csv")
@@ -190,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.show_events:
             for e in events:
                 if e["kind"] == "contact":
-                    print(f"    {e['role']} {e['start_s']}-{e['end_s']} peak {e['peak']}")
+                    print(f"    {e['role']} {e['start_s']}-{e['end_s']} peak {e['peak']} "
+                          f"in air {e['seen']} seen through now {e['now']}")  # fmt: skip
     return 0
 
 

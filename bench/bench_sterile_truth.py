@@ -184,8 +184,8 @@ def main(argv: list[str] | None = None) -> int:
             kinds, counts = np.unique(names, return_counts=True)
             ranked = sorted(zip(counts, kinds, strict=True), reverse=True)
             who = ", ".join(f"{n} {c}" for c, n in ranked)
-            body = sim.people(inst.t_s)[e.role]
-            deepest = float(region.depth_inside(body).max())
+            body = sim.people(inst.t_s).get(e.role)  # none for "a person not followed"
+            deepest = float(region.depth_inside(body).max()) if body is not None else np.nan
             print(f"| {verdict} | {e.role} | {inst.t_s:.2f} | {len(pin)} | {who} | "
                   f"{100 * np.median(gap):.1f} | {100 * np.median(region.depth_inside(pin)):.1f} "
                   f"| {np.median(pin[:, 2]):.2f} | {100 * deepest:.0f} |")  # fmt: skip

@@ -281,6 +281,13 @@ def main_sterile(argv: list[str]) -> int:
                    default=SterileConfig.disparity_noise_px,
                    help="the stereo matcher's disparity noise, pixels "
                    f"({SterileConfig.disparity_noise_px:g})")  # fmt: skip
+    p.add_argument("--min-air-share", type=float, default=SterileConfig.min_air_share,
+                   help="share of a contact's points in the box that must lie where a camera "
+                   "saw through at other times (0: off; "
+                   f"{SterileConfig.min_air_share:g})")  # fmt: skip
+    p.add_argument("--min-cameras", type=int, default=SterileConfig.min_cameras,
+                   help="cameras that must have seen a contact's points in the box (1: off; "
+                   f"{SterileConfig.min_cameras})")  # fmt: skip
     p.add_argument("--allow-gaps", action="store_true", help="skip pending or failed timestamps")
     add_identity_argument(p)  # a sealed session's case
     add_timezone_argument(p)
@@ -302,6 +309,7 @@ def main_sterile(argv: list[str]) -> int:
             min_points=args.min_points, static_fraction=args.static_fraction,
             min_timestamps=args.min_timestamps, margin_sigmas=args.margin_sigmas,
             disparity_noise_px=args.disparity_noise_px, sterile_roles=sterile_roles,
+            min_air_share=args.min_air_share, min_cameras=args.min_cameras,
         )  # fmt: skip
     except ValueError as exc:
         raise CommandArgumentError(str(exc)) from None

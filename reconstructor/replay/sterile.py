@@ -15,8 +15,8 @@ This needs no empty-room recording; its price: something that stays in the field
 
 **Contacts.** At each timestamp the other occupied voxels are the moving things. They are
 split into 26-connected blobs over the whole region, so that a hand in the field stays joined
-to its arm and body outside it. A blob that reaches into the box is judged on three pieces of
-evidence, each against a kind of false event measured on a 60 s sim case (docs/replay.md):
+to its arm and body outside it. A blob that reaches into the box is judged on five pieces of
+evidence, each against a kind of false event measured on the sim's cases (docs/replay.md):
 
 1. *Flicker.* A voxel's fill share at the case's other timestamps (more than
    ``flicker_window_s`` away, so a touch's own timestamps do not count against it) says how
@@ -42,8 +42,24 @@ evidence, each against a kind of false event measured on a 60 s sim case (docs/r
    to within ``max_shoulder_drop_m`` below its role's eye. A low heap of noise beside the drape
    does not.
 
+4. *Seen empty* (``sterile_seen.py``, with the cameras that saw each stored cell): a voxel a
+   camera saw through (a cell farther along its ray) at ``air_seen_empty`` of the other
+   timestamps is air; a part needs ``min_air_share`` of its in-box points in air. The room's
+   surfaces that stereo finds only sometimes (the drape's hanging side, the table's padding) are
+   too rare to be static or flicker, but no camera ever sees through them.
+5. *Two cameras.* A wrong stereo match lies along one camera's rays; a part's in-box points
+   must have been seen by ``min_cameras`` cameras (the smear in the air beside a resting hand
+   was seen by one).
+
+*Not followed.* Inside a gap of a role's track (nobody followed that person then: hidden
+from every camera, or between two tracks joined as one role) or outside its keyframes, the
+role has no eye: it seeds no body and takes no contact (its held eye is where it was, not where
+it is). A part that no followed role's arm holds is then reported as ``NOT_FOLLOWED``, judged on
+the tests that need no eye (the counts, flicker, seen empty, two cameras), rather than dropped:
+the touch is kept, and given to nobody we did not follow.
+
 Parts of ``sterile_roles`` (the gowned team, whose work in the field is not a contact) are
-kept apart. Without roles, only the flicker test and the counts apply.
+kept apart. Without roles, only the tests that need no eye apply.
 
 **Margin** (off by default: measured, it removed no false event; docs/replay.md). With
 ``margin_sigmas`` above 0, a point counts as inside the box only where it lies deeper inside
@@ -70,6 +86,7 @@ from scipy.sparse import csgraph
 
 from protocol.formats.site import SiteBox
 from reconstructor.errors import SterileError
+from reconstructor.replay.sterile_seen import Freespace
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -100,6 +117,21 @@ class SterileConfig:
     # touch most of its points and a timestamp of its start; docs/replay.md)
     margin_sigmas: float = 0.0
     margin_on_top: bool = False  # the top face too (a hand on the drape lies just under it)
+    # seen empty (sterile_seen.py; needs each point's cameras): a voxel some camera saw through
+    # at this share or more of the other timestamps is air (no camera sees through a surface)
+    air_seen_empty: float = 0.3
+    # ... and a part needs this share of its in-box points in air: one against a surface that
+    # stereo finds only sometimes is that surface, not a hand (0: off; measured on three seeds
+    # it removed every room-surface false event, docs/replay.md)
+    min_air_share: float = 0.2
+    # ... and one whose in-box points lie, at this share or more, in voxels a camera sees
+    # through at the same timestamp is a smear in front of what that camera saw (1: off)
+    max_seen_through_now: float = 1.0
+    seen_margin_sigmas: float = 2.0  # seen through: farther than the voxel by this much noise
+    seen_window_s: float = 1.0  # seen empty at timestamps this far from now (a touch's own)
+    # a part's in-box points seen by fewer cameras: a wrong match along one camera's rays (1:
+    # off; measured, it removed the smears in the air beside a resting hand, docs/replay.md)
+    min_cameras: int = 2
 
     def margin_m(self, m_per_px: np.ndarray) -> np.ndarray:
         """(N,) how deep inside a box each point must lie to count, from its metres of depth
@@ -123,8 +155,24 @@ class SterileConfig:
             raise ValueError(f"body_radius_m {self.body_radius_m}: give (0, 1]")
         if self.max_shoulder_drop_m is not None and not self.max_shoulder_drop_m > 0:
             raise ValueError(f"max_shoulder_drop_m {self.max_shoulder_drop_m}: give > 0 or None")
-        if not (self.disparity_noise_px >= 0 and self.margin_sigmas >= 0):
-            raise ValueError("disparity_noise_px and margin_sigmas: give >= 0")
+        shares = (self.air_seen_empty, self.min_air_share)
+        if not (all(0 <= v <= 1 for v in shares) and 0 < self.max_seen_through_now <= 1):
+            raise ValueError("air_seen_empty and min_air_share in [0, 1], max_seen_through_now "
+                             "in (0, 1], please")  # fmt: skip
+        if not 1 <= self.min_cameras <= 31:
+            raise ValueError(f"min_cameras {self.min_cameras}: give 1 (off) to 31")
+        if not self.seen_window_s >= 0:
+            raise ValueError(f"seen_window_s {self.seen_window_s}: give >= 0")
+        if not (
+            self.disparity_noise_px >= 0 and min(self.margin_sigmas, self.seen_margin_sigmas) >= 0
+        ):
+            raise ValueError("disparity_noise_px and the margins' sigmas: give >= 0")
+
+
+# The role of a contact made where some role's track was not followed (inside a gap of its
+# trajectory, or outside its keyframes) and no followed role's arm holds it: a touch is never
+# dropped for want of an eye, nor given to a stale one. Spaces: no role name has them.
+NOT_FOLLOWED = "a person not followed"
 
 
 @dataclass(frozen=True)
@@ -262,14 +310,18 @@ def static_scene(region: Region, frames: list[np.ndarray]) -> np.ndarray:
 
 def moving_blobs(
     region: Region, bg: Background | np.ndarray, points_m: np.ndarray,
-    eyes_m: dict[str, np.ndarray], t_s: float = 0.0, margin_m: np.ndarray | None = None,
+    eyes_m: dict[str, np.ndarray | None], t_s: float = 0.0, margin_m: np.ndarray | None = None,
+    free: Freespace | None = None,
 ) -> tuple[int, list[Blob]]:  # fmt: skip
     """(moving points inside the box, the moving blobs that touch the box) at ``t_s``.
     ``bg``: the case's background (or a bare static grid: no flicker test); ``eyes_m``: each
-    role's eye then (empty: no roles); ``margin_m``: (N,) how deep inside the box each point
-    must lie to count as inside (its depth uncertainty, ``SterileConfig.margin_m``; None: on
-    the faces counts)."""
+    role's eye then (empty: no roles; None: the role is not followed then, see
+    ``NOT_FOLLOWED``); ``margin_m``: (N,) how deep inside the box each point must lie to count
+    as inside (its depth uncertainty, ``SterileConfig.margin_m``; None: on the faces counts);
+    ``free``: which voxels the cameras saw through (``sterile_seen.py``; None: not known)."""
     cfg = region.config
+    unfollowed = any(e is None for e in eyes_m.values())
+    followed = {r: e for r, e in eyes_m.items() if e is not None}
     static = bg.static if isinstance(bg, Background) else bg
     v = region.voxels(points_m)
     moving = ~static[v[:, 0], v[:, 1], v[:, 2]]
@@ -290,19 +342,47 @@ def moving_blobs(
             if np.median(flicker) >= cfg.max_flicker:
                 continue  # in-field voxels the case often fills: a ragged edge, not a hand
         for role, sel in _parts(
-            pts, v, whole, inside, eyes_m, cfg.split_by_role, cfg.voxel_m, cfg.body_radius_m
+            pts, v, whole, inside, followed, cfg.split_by_role, cfg.voxel_m, cfg.body_radius_m
         ):
             n_in = int((sel & inside).sum())
             if n_in < cfg.min_points or int(sel.sum()) - n_in < cfg.min_outside:
                 continue
-            dist = _distance(pts[sel], eyes_m.get(role))
-            if eyes_m and dist > cfg.max_role_distance_m:
-                continue  # a body is within ~0.3 m of its eye's vertical, a reach adds an arm
-            drop = cfg.max_shoulder_drop_m
-            if eyes_m and drop is not None and pts[sel, 2].max() < eyes_m[role][2] - drop:
-                continue  # nothing rises to the elbow: no arm, a heap of noise
+            if free is not None and not _air_entered(free, v[sel & inside], t_s, cfg):
+                continue
+            dist = _distance(pts[sel], followed.get(role))
+            if followed and not _an_arm_of(pts[sel], followed[role], dist, cfg):
+                if not unfollowed:
+                    continue  # no one's arm: noise beside the field
+                role = NOT_FOLLOWED  # maybe the arm of someone whose eye we do not know now
+            if unfollowed and not followed:
+                role = NOT_FOLLOWED
             blobs.append(Blob(pts[sel], inside[sel], role, dist))
     return int(inside.sum()), blobs
+
+
+def _air_entered(free: Freespace, voxels: np.ndarray, t_s: float, cfg: SterileConfig) -> bool:
+    """Whether a part's in-box voxels (one row per point) are air that something entered:
+    seen through at other times (a surface never is), and not now (a smear is)."""
+    if cfg.min_air_share > 0:
+        share = free.seen_empty(voxels, t_s, cfg.seen_window_s)
+        if share is not None and (share >= cfg.air_seen_empty).mean() < cfg.min_air_share:
+            return False  # never seen through: a surface that stereo finds only sometimes
+    if cfg.min_cameras > 1:
+        seen_by = free.cameras_of(voxels, t_s)
+        if seen_by is not None and seen_by < cfg.min_cameras:
+            return False  # no second camera saw it: a smear along one camera's rays
+    return not (cfg.max_seen_through_now < 1
+                and free.now(voxels, t_s).mean() >= cfg.max_seen_through_now)  # fmt: skip
+
+
+def _an_arm_of(points_m: np.ndarray, eye_m: np.ndarray, dist_m: float, cfg) -> bool:
+    """Whether a part can be the arm of the role whose eye is ``eye_m``: near enough its eye's
+    vertical (a body is within ~0.3 m of it, a reach adds an arm) and rising toward its
+    shoulder (a heap of noise beside the field does not)."""
+    if dist_m > cfg.max_role_distance_m:
+        return False
+    drop = cfg.max_shoulder_drop_m
+    return drop is None or points_m[:, 2].max() >= eye_m[2] - drop
 
 
 def _parts(
@@ -389,15 +469,18 @@ def _distance(points_m: np.ndarray, eye_m: np.ndarray | None) -> float:
 
 def judge_field(
     region: Region, frames: list[np.ndarray], margins: list[np.ndarray | None],
-    stamps: list[tuple[float, str]], eyes: list[dict[str, np.ndarray]],
+    stamps: list[tuple[float, str]], eyes: list[dict[str, np.ndarray | None]],
+    free: Freespace | None = None,
 ) -> tuple[list[Instant], list[Event]]:  # fmt: skip
     """One field over a case: ``frames`` each timestamp's points in ``region`` (``holds``),
     ``margins`` their margins (``SterileConfig.margin_m``; None: none), ``stamps`` each one's
-    (case time, model name), ``eyes`` each one's role eyes -> (instants, events)."""
+    (case time, model name), ``eyes`` each one's role eyes (None: not followed then) ->
+    (instants, events); ``free``: the voxels the cameras saw through at each timestamp
+    (``sterile_seen.freespace``; None: not known, the seen-empty tests do not apply)."""
     bg = background(region, frames, [t for t, _ in stamps])
     rows = []
     for (t, name), pts, margin, eye in zip(stamps, frames, margins, eyes, strict=True):
-        rows.append(Instant(t, name, *moving_blobs(region, bg, pts, eye, t, margin)))
+        rows.append(Instant(t, name, *moving_blobs(region, bg, pts, eye, t, margin, free)))
     return rows, group_events(region.box, rows, region.config)
 
 

@@ -32,6 +32,7 @@ from protocol.camera import Camera, Intrinsics, Pose
 from protocol.formats.rig_calibration import RigCalibration
 from protocol.formats.site import SiteBox
 from protocol.sealing import Identity, IdentityRequiredError
+from reconstructor.case.storage import load_observation
 from reconstructor.data.views import EYE_NEAR_M
 from reconstructor.errors import CaseReplayError, SightlineError, SterileError
 from reconstructor.replay.clock import CaseClock, add_time_of_day_axis, pick_zone
@@ -45,6 +46,7 @@ from reconstructor.replay.sightline_pictures import outline_box
 from reconstructor.replay.sterile import Event, Instant, Region, SterileConfig, judge_field
 from reconstructor.replay.sterile_evidence import CameraEvidence, camera_evidence
 from reconstructor.replay.sterile_pictures import event_plan, event_span
+from reconstructor.replay.sterile_seen import Sight, freespace
 from reconstructor.replay.video import burn_text, timecode
 
 log = logging.getLogger(__name__)
@@ -72,9 +74,18 @@ class SterileResult:
         return [p for p in named if p.is_file()]
 
 
-def _eyes(paths: list[CameraPath], t_s: float) -> dict[str, np.ndarray]:
-    """Each role's eye at ``t_s`` (held at its first or last keyframe outside them)."""
-    return {p.name: p.pose(float(np.clip(t_s, *p.span_s))).centre_m for p in paths}
+def _eyes(paths: list[CameraPath], t_s: float) -> dict[str, np.ndarray | None]:
+    """Each role's eye at ``t_s``; None where the role was not followed then (inside a gap of
+    its track, or outside its keyframes): a path's eye there is a guess, no one's
+    (``sterile.NOT_FOLLOWED``)."""
+    return {p.name: _eye(p, t_s) for p in paths}
+
+
+def _eye(path: CameraPath, t_s: float) -> np.ndarray | None:
+    t0, t1 = path.span_s
+    if path.gap_at(t_s) is not None or not t0 - 1e-6 <= t_s <= t1 + 1e-6:
+        return None
+    return path.pose(float(np.clip(t_s, t0, t1))).centre_m
 
 
 def sterile(
@@ -98,7 +109,8 @@ def sterile(
     regions = [Region(b, config) for b in boxes]
     frames: list[list[np.ndarray]] = [[] for _ in boxes]
     margins: list[list[np.ndarray | None]] = [[] for _ in boxes]
-    stored = [models.load_evidence(e) for e in entries]
+    observed = [load_observation(folder, e, models.seal) for e in entries]
+    stored = [None if s is None else (s.points_m, s.m_per_px) for s in observed]
     evidence = "points" if all(s is not None for s in stored) else "gaussians"
     if evidence == "gaussians" and any(s is not None for s in stored):
         log.warning("%s: some timestamps were stored without their points; judging every "
@@ -127,8 +139,10 @@ def sterile(
     events: list[Event] = []
     stamps = [(e.t_s, e.name) for e in entries]
     eyes = [_eyes(paths, e.t_s) for e in entries]
+    sights = _sights(folder, observed, config)
     for reg, pts_t, margin_t in zip(regions, frames, margins, strict=True):
-        rows, found = judge_field(reg, pts_t, margin_t, stamps, eyes)
+        free = None if sights is None else freespace(reg, sights, [t for t, _ in stamps])
+        rows, found = judge_field(reg, pts_t, margin_t, stamps, eyes, free)
         instants[reg.box.name] = rows
         events += found
     events.sort(key=lambda ev: (ev.start_s, ev.field, ev.role))
@@ -143,6 +157,35 @@ def sterile(
     # egosurg report checks the folder's session
     write_made_for(out, folder, "sterile", "fields " + ", ".join(b.name for b in boxes))
     return result
+
+
+def _sights(folder: Path, seen: list, config: SterileConfig) -> list[Sight] | None:
+    """Each timestamp's points with the cameras that saw them, for the seen-empty tests; None
+    (said in one warning) where they are off or the case cannot give them."""
+    if config.min_air_share <= 0 and config.max_seen_through_now >= 1 and config.min_cameras < 2:
+        return None
+    why = ""
+    if any(s is None or s.seen_by is None for s in seen):
+        why = "its points were stored without the cameras that saw them (before 2026-11-29)"
+    elif not (folder / "calibration.toml").is_file():
+        why = "it has no calibration.toml to place its cameras"
+    else:
+        left = {f"SN{c.camera_serial}": c.pose.centre_m
+                for c in RigCalibration.read(folder / "calibration.toml").sensors
+                if c.side == "left"}  # fmt: skip
+        out = []
+        for s in seen:
+            missing = [n for n in s.cameras if n not in left]
+            if missing:
+                why = f"its calibration.toml has no camera {missing[0]}"
+                break
+            centres = np.stack([left[n] for n in s.cameras])
+            out.append(Sight(s.points_m, s.m_per_px, s.seen_by, centres))
+        else:
+            return out
+    log.warning("%s: the seen-empty tests do not apply: %s; reconstruct the case again for "
+                "them", folder, why)  # fmt: skip
+    return None
 
 
 STANDING_EYE = "a standing eye 1.6 m from the touch"  # the ring's viewpoints, in words
@@ -256,7 +299,7 @@ def _real_evidence(
             role = roles.get(ev.role)
             if ev.sterile_role:
                 continue
-            eye = (lambda t, p=role: _eyes([p], t)[p.name]) if role is not None else None
+            eye = (lambda t, p=role: _eye(p, t)) if role is not None else None
             made = camera_evidence(out, k, ev, by_name[ev.field], real, clock, seen.get(k, {}), eye)
             if made is not None:
                 found[k] = made
