@@ -2,7 +2,7 @@
 
 Reads the job records (``OUT/jobs/*.json``, or any folders of them: a run spread over parts
 leaves one per part) of a base run and of one or more variant runs made with one setting
-changed, pairs the image scores by (scene, method) on the views every run scored, and prints
+changed, pairs the image scores by (view, method) on the views every run scored, and prints
 EVALUATION.md's table: each row's mean ± SD over those views, the paired difference (variant -
 base, mean ± SD) and how many views the variant scored higher, then the refinement stage's
 worth (EgoSurg - "w/o refinement") in each run. Scores not in every run are left out, and
@@ -28,8 +28,15 @@ from reconstructor.evaluation.tables import stat
 PSNR = "psnr_db"
 
 
+def view_key(score: dict) -> str:
+    """One view's name across runs: its scene, and its view where a scene has several (the
+    near-field protocol scores each held-out camera of a timestamp under one scene)."""
+    scene, view = score["scene"], score.get("view", score["scene"])
+    return scene if view == scene else f"{scene}/{view}"
+
+
 def read_scores(folders: list[Path], protocol: str) -> dict[tuple[str, str], dict]:
-    """(scene, method) -> image score, from every ``*.json`` job record under ``folders``."""
+    """(view, method) -> image score, from every ``*.json`` job record under ``folders``."""
     scores: dict[tuple[str, str], dict] = {}
     for folder in folders:
         paths = sorted(folder.rglob("*.json"))
@@ -40,12 +47,12 @@ def read_scores(folders: list[Path], protocol: str) -> dict[tuple[str, str], dic
             data = json.loads(path.read_text())
             for s in data.get("image_scores", []):
                 if s["protocol"] == protocol:
-                    scores[(s["scene"], s["method"])] = s
+                    scores[(view_key(s), s["method"])] = s
     return scores
 
 
 def common_keys(runs: list[dict], methods: list[str]) -> tuple[list[tuple[str, str]], int]:
-    """The (scene, method) scores every run has, for ``methods``; and how many are left out."""
+    """The (view, method) scores every run has, for ``methods``; and how many are left out."""
     wanted = [{k for k in run if k[1] in methods} for run in runs]
     common = set.intersection(*wanted)
     return sorted(common), len(set.union(*wanted) - common)

@@ -41,3 +41,26 @@ def test_pairs_only_the_views_every_run_scored(tmp_path: Path) -> None:
     assert "| EgoSurg, variant | 21.00 ± 0.00 | 0.500 ± 0.000 | 0.00 ± 1.41 | 1 / 2 |" in text
     assert "| EgoSurg w/o refinement, variant | 20.50 ± 2.12 |" in text
     assert "| refinement's worth, variant | | | 0.50 ± 2.12 | 1 / 2 |" in text
+
+
+def test_near_field_views_of_one_timestamp_are_paired_each_with_its_own(tmp_path: Path) -> None:
+    """The near-field protocol scores each held-out camera of a timestamp under one scene: a
+    comparison over the timestamp's views must keep all four, not the last one read."""
+
+    def record(folder: Path, psnr_db: dict[str, float]) -> None:
+        folder.mkdir(parents=True)
+        scores = [
+            {"protocol": "near-field", "method": "egosurg", "phase": "setup", "scene": "setup@set0",
+             "view": view, "psnr_db": db, "ssim": 0.9, "lpips": None}
+            for view, db in psnr_db.items()
+        ]  # fmt: skip
+        (folder / "job.json").write_text(json.dumps({"image_scores": scores}))
+
+    record(tmp_path / "base", {"camA-right": 30.0, "camB-right": 20.0})
+    record(tmp_path / "var", {"camA-right": 31.0, "camB-right": 17.0})
+    runs = [read_scores([tmp_path / p], "near-field") for p in ("base", "var")]
+    keys, left_out = common_keys(runs, ["egosurg"])
+    assert len(keys) == 2 and left_out == 0
+    text = table([("base", runs[0]), ("var", runs[1])], keys, ["egosurg"])
+    # camA +1, camB -3: -1.00 ± 2.83, one view of two better
+    assert "| EgoSurg, var | 24.00 ± 9.90 | 0.900 ± 0.000 | -1.00 ± 2.83 | 1 / 2 |" in text
