@@ -85,6 +85,13 @@ class PeopleConfig:
     # wander (stereo noise on a boom or a lamp hops about; in the sim the people's tracks have
     # at most 0.16 at the median, the false ones up to 0.36; 0: none is)
     static_share_moving: float = 0.25
+    # two tracks whose heads stay within merge_m of each other through all the time they share
+    # (where one is missed, the line between its sightings), of one height over their whole
+    # lives (within merge_height_m), follow one person and are joined (two people's heads are
+    # 0.5 m or more apart: 0.6 joined neighbours walking 0.55 m apart; EVALUATION.md, change
+    # 24; 0: never)
+    merge_m: float = 0.5
+    merge_height_m: float = 0.15
     # a track missed between two timestamps at most fill_span_s apart at which it was seen takes
     # a head no track took there, however doubtful, within fill_m of the line between them (most
     # misses are runs of 1-3 s with a doubtful head near the person: EVALUATION.md, change 14)

@@ -23,7 +23,8 @@ part): staying in one place with a few of them round it, or anywhere with many. 
 is whole before tracking starts, so the tracks are then linked over the whole case: a track
 that starts within ``stitch_gap_s`` after another ended, where a walker could have gone in
 between, of the other's height over their whole lives, continues it, the pairs chosen by least
-total cost at once (each track with at most one predecessor and one successor).
+total cost at once (each track with at most one predecessor and one successor), and two
+tracks that follow one person at the same time are joined (``reconstructor.people.merge``).
 Last, a track missed for a while between two sightings takes the heads found on its way that no
 track took, however doubtful (``fill_m``): where the person was before and after says which
 head is theirs; the rest of the time stays a gap.
@@ -38,6 +39,7 @@ from scipy.optimize import linear_sum_assignment
 
 from reconstructor.people.config import PeopleConfig
 from reconstructor.people.detect import Detection
+from reconstructor.people.merge import merge_duplicates
 
 START_CONFIDENCE = 0.6  # a detection must be this sure of itself to start a track
 NO_MATCH = 1e6
@@ -159,7 +161,7 @@ def track_people(frames: list[tuple[float, list[Detection]]], config: PeopleConf
     )
     kept = [
         tr
-        for tr in _linked(confirmed, config)
+        for tr in merge_duplicates(_linked(confirmed, config), config)
         if len(tr.times_s) >= config.min_detections
         and np.mean([d.confidence for d in tr.detections]) >= config.min_track_confidence
     ]

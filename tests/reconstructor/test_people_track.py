@@ -5,9 +5,11 @@ their track, the missed time marked as a gap, and so does a walker hidden for lo
 tracks joined by each one's height over its whole life (a noisy first head neither splits a
 person nor joins two); a person of another height stepping where a hidden one stood does not
 take their track, nor is the hidden one's head taken for the other's shoulder when they are seen
-again; a false head that sits in the room's background cubes all along, or slides about among
-many of them, is no track; people standing round a table face into the group even where the
-reach of their arms says otherwise; settings that cannot work are refused in one line."""
+again; a second peak of one person's head that the tracker follows beside their own is joined
+to it, two people standing side by side are not; a false head that sits in the room's
+background cubes all along, or slides about among many of them, is no track; people standing
+round a table face into the group even where the reach of their arms says otherwise; settings
+that cannot work are refused in one line."""
 
 from __future__ import annotations
 
@@ -110,6 +112,37 @@ def test_a_person_missed_for_a_while_takes_the_doubtful_heads_on_their_way_and_n
     assert mine.gaps_s() == [(TIMES_S[7], TIMES_S[10])]  # the rest still a gap
     off = next(tr for tr in track_people(frames, PeopleConfig(fill_m=0.0)) if tr.xy()[0][1] > 0.9)
     assert off.gaps_s() == [(TIMES_S[6], TIMES_S[10])]
+
+
+def test_a_person_whose_head_is_found_at_two_places_at_once_is_one_track():
+    # one person stands at the origin; from 2 s to 5.5 s the detector also finds a second peak
+    # of their head 0.45 m away (beyond a shoulder's 0.35 m, so the tracker starts a track on
+    # it), and at 3, 4 and 5 s only that peak: two tracks live side by side on one person
+    second = (4, 5, 6, 7, 8, 9, 10, 11)
+    only_second = (6, 8, 10)
+    frames = []
+    for k, t in enumerate(TIMES_S):
+        found = [] if k in only_second else [head(0.0, 0.0)]
+        if k in second:
+            found.append(head(0.45, 0.05, confidence=0.8))
+        frames.append((t, found))
+    assert len(track_people(frames, PeopleConfig(merge_m=0))) == 2  # the tracker alone: two
+    tracks = track_people(frames, PeopleConfig())
+    assert len(tracks) == 1  # joined: every timestamp, the surer head where both were found
+    assert tracks[0].times_s == list(TIMES_S) and tracks[0].gaps_s() == []
+    assert [d.head_xy_m for d in tracks[0].detections] == [
+        (0.45, 0.05) if k in only_second else (0.0, 0.0) for k in range(len(TIMES_S))
+    ]
+
+
+def test_two_people_standing_side_by_side_stay_two_tracks():
+    # shoulder to shoulder at one height 0.55 m apart, and 0.45 m apart at heights 20 cm apart
+    for apart_m, tops in ((0.55, (1.75, 1.75)), (0.45, (1.75, 1.55))):
+        frames = [(t, [head(0.0, 0.0, top_m=tops[0]), head(apart_m, 0.0, top_m=tops[1])])
+                  for t in TIMES_S]  # fmt: skip
+        tracks = track_people(frames, PeopleConfig())
+        assert len(tracks) == 2 and all(tr.times_s == list(TIMES_S) for tr in tracks)
+        assert {round(tr.xy()[0, 0], 2) for tr in tracks} == {0.0, apart_m}
 
 
 def test_confirming_on_more_timestamps_than_the_window_is_refused_in_one_line():
