@@ -19,7 +19,9 @@ detector coasts for at most ``max_gap_s`` (a second: coasting longer, a track dr
 neighbour), then ends; the timestamps it coasted through are its gaps, kept and never filled
 in. Only confirmed tracks are reported, those seen too seldom or too doubtfully dropped, and
 those with their head among the room's background cubes (equipment the background learned in
-part): staying in one place with a few of them round it, or anywhere with many. The recording
+part): staying in one place with a few of them round it, or anywhere with many; after the
+linking, also a track whose head sits, over its whole life, at the lowest or highest head
+tops the detector allows (``edge_head_m``). The recording
 is whole before tracking starts, so the tracks are then linked over the whole case: a track
 that starts within ``stitch_gap_s`` after another ended, where a walker could have gone in
 between, of the other's height over their whole lives, continues it, the pairs chosen by least
@@ -164,6 +166,7 @@ def track_people(frames: list[tuple[float, list[Detection]]], config: PeopleConf
         for tr in merge_duplicates(_linked(confirmed, config), config)
         if len(tr.times_s) >= config.min_detections
         and np.mean([d.confidence for d in tr.detections]) >= config.min_track_confidence
+        and not _at_height_edge(tr, config)
     ]
     if config.fill_m > 0:
         _fill_misses(kept, frames, config)
@@ -215,6 +218,21 @@ def _equipment(track: Track, config: PeopleConfig) -> bool:
     if config.static_share_moving > 0 and share > config.static_share_moving:
         return True
     return bool(spread <= config.static_radius_m and share > config.static_share_max)
+
+
+def _at_height_edge(track: Track, config: PeopleConfig) -> bool:
+    """A track whose head over its whole life (the median of its tops) sits within
+    ``edge_head_m`` of the lowest or the highest head top the detector allows: something found
+    at an end of the heads' height range for as long as it lasts, not a person (a standing
+    adult's head top is well inside it over a track's life)."""
+    if config.edge_head_m <= 0:
+        return False
+    height = track.height_m()
+    return not (
+        config.head_top_min_m + config.edge_head_m
+        <= height
+        <= config.head_top_max_m - config.edge_head_m
+    )
 
 
 def _can_confirm(track: Track, config: PeopleConfig) -> bool:

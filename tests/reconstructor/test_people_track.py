@@ -7,9 +7,10 @@ person nor joins two); a person of another height stepping where a hidden one st
 take their track, nor is the hidden one's head taken for the other's shoulder when they are seen
 again; a second peak of one person's head that the tracker follows beside their own is joined
 to it, two people standing side by side are not; a false head that sits in the room's
-background cubes all along, or slides about among many of them, is no track; people standing
-round a table face into the group even where the reach of their arms says otherwise; settings
-that cannot work are refused in one line."""
+background cubes all along, or slides about among many of them, is no track, nor is one at the
+lowest or highest head height the detector allows all its life (a short or a tall person is);
+people standing round a table face into the group even where the reach of their arms says
+otherwise; settings that cannot work are refused in one line."""
 
 from __future__ import annotations
 
@@ -225,6 +226,21 @@ def test_a_false_head_hopping_about_among_the_rooms_cubes_is_no_track_and_a_walk
     assert len(tracks) == 1 and tracks[0].xy()[0][0] == -3.0
     # without the rule, the hopping head is reported as a person
     assert len(track_people(frames, PeopleConfig(static_share_moving=0.0))) == 2
+
+
+def test_false_heads_at_the_ends_of_the_head_heights_all_along_are_no_tracks_and_people_are():
+    # two confident heads with no background cubes round them, each wandering a few cm, found
+    # all along at 1.37 m and at 2.03 m (the detector allows head tops from 1.35 to 2.05 m), the
+    # low one 0.6 m from a short person standing with their head top at 1.46 m; a tall person
+    # (1.95 m) walks past
+    frames = [(t, [head(0.6 + 0.03 * (k % 3), 0.0, top_m=1.37), head(0.0, 0.0, top_m=1.46),
+                   head(2.0, -2.0 + 0.03 * (k % 3), top_m=2.03),
+                   head(-3.0 + 0.3 * k, 1.5, top_m=1.95)])
+              for k, t in enumerate(TIMES_S)]  # fmt: skip
+    tracks = track_people(frames, PeopleConfig())
+    assert sorted(round(tr.height_m(), 2) for tr in tracks) == [1.46, 1.95]
+    # without the rule, both false heads are reported as people
+    assert len(track_people(frames, PeopleConfig(edge_head_m=0.0))) == 4
 
 
 def test_people_round_a_table_face_into_the_group_where_their_arms_say_the_other_way():
