@@ -116,17 +116,28 @@ def _assign(
     return {int(i): free[k] for i, k in zip(rows, cols, strict=True) if cost[i, k] < NO_MATCH}
 
 
+def coast_limit_s(times_s: list[float], max_gap_s: float) -> float:
+    """How long after its last sighting a track may still take a head: ``max_gap_s``, but never
+    less than one sampling interval (a track seen at the timestamp before is always live), plus
+    half an interval, so that a session's timestamps, which are its sets' times and not an
+    exact grid, end a track at the same timestamp as an exact grid would."""
+    steps = np.diff(np.asarray(times_s, dtype=np.float64))
+    step_s = float(np.median(steps)) if len(steps) else 0.0
+    return max(max_gap_s, step_s) + step_s / 2
+
+
 def track_people(frames: list[tuple[float, list[Detection]]], config: PeopleConfig) -> list[Track]:
     """``frames``: (time, detections) in time order; the confirmed tracks seen at least
     ``min_detections`` times, numbered 1.. by when they start."""
     live: list[Track] = []
     done: list[Track] = []
     next_id = 1
+    max_gap_s = coast_limit_s([t for t, _ in frames], config.max_gap_s)
     for t, found in frames:
         detections = [d for d in found if d.confidence >= config.match_confidence]
         still: list[Track] = []
         for tr in live:
-            (still if t - tr.last_s <= config.max_gap_s else done).append(tr)
+            (still if t - tr.last_s <= max_gap_s else done).append(tr)
         live = still
         free = list(range(len(detections)))
         confirmed = [tr for tr in live if tr.confirmed]

@@ -261,3 +261,20 @@ def test_people_round_a_table_face_into_the_group_where_their_arms_say_the_other
         towards = np.arctan2(-xy[1], -xy[0])  # the table's middle
         for p in poses[tr.id]:
             assert abs((p.yaw_rad - towards + np.pi) % (2 * np.pi) - np.pi) < 0.1
+
+
+def test_a_session_sampled_once_a_second_keeps_each_person_on_one_track():
+    """A session's timestamps are its sets' times, not an exact grid: once a second they lie a
+    few microseconds more or less than 1 s apart. A person seen at every one of them, and one
+    missed at a single timestamp, are each one track (a track seen at the timestamp before is
+    never ended for being unseen too long)."""
+    jitter_s = (3e-6, -2e-6, 4e-6, 1e-6, -3e-6, 2e-6, 5e-6, -1e-6, 3e-6, 0.0, 2e-6, -4e-6)
+    times_s = [0.975 + k + j for k, j in enumerate(jitter_s)]
+    frames = [(t, [head(-1.5, -1.0)] + ([] if k == 5 else [head(1.4, 0.3, top_m=1.65)]))
+              for k, t in enumerate(times_s)]  # fmt: skip
+    tracks = track_people(frames, PeopleConfig())
+    assert len(tracks) == 2
+    still = next(tr for tr in tracks if _near(tr, (-1.5, -1.0)))
+    assert still.times_s == times_s and still.gaps_s() == []
+    missed = next(tr for tr in tracks if _near(tr, (1.4, 0.3)))
+    assert missed.times_s == [t for k, t in enumerate(times_s) if k != 5]
