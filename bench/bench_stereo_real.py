@@ -39,6 +39,7 @@ _ROOT = Path(__file__).resolve().parents[1]
 if str(_ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(_ROOT))
 
+from bench import stereo_fill_rules as rules  # noqa: E402
 from bench.bench_stereo import Row, TextbookSgbmWls, sim_results  # noqa: E402  (after the path)
 from bench.stereo_pairs import PAIR_NAMES, PairMissingError, RealPair, load_pair  # noqa: E402
 from protocol.camera import Intrinsics, Pose  # noqa: E402
@@ -92,6 +93,7 @@ GUIDED = "+ WLS agreeing with the image-guided spread of kept pixels"
 LEFT_BORDER = SGBM_OWN_ON_BEST + " + left border's band filled"
 SMOOTH_SGBM = SGBM_OWN_ON_BEST + " + SGBM's own where smooth and WLS differs by 1.5-2.5 px"
 SMOOTH_SGBM_BORDER = SMOOTH_SGBM + " + left border's band filled"
+DENSEST = "densest"
 
 
 def variants() -> dict[str, Variant]:
@@ -122,6 +124,16 @@ def variants() -> dict[str, Variant]:
         SMOOTH_SGBM: Variant(replace(own, keep_smooth_sgbm_within_px=2.5)),
         SMOOTH_SGBM_BORDER: Variant(
             replace(own, keep_smooth_sgbm_within_px=2.5, fill_left_border=True)
+        ),
+        # densest + one rule on the answers its options add (bench/stereo_fill_rules.py)
+        DENSEST + " + SGBM's own only within 3 % of d": Variant(
+            rules.densest(), lambda c: rules.RelativeAgreement(c, rel=0.03)
+        ),
+        DENSEST + " + extras only where textured (std 2)": Variant(
+            rules.densest(), lambda c: rules.TextureGate(c, min_std=2.0)
+        ),
+        DENSEST + " + extras only where SGBM is smooth": Variant(
+            rules.densest(), rules.SmoothGuard
         ),
         TEXTBOOK: Variant(None),
     }
