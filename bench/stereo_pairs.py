@@ -15,6 +15,11 @@
 - ``aloe-half``: the same at half size (area-averaged images, disparity halved), the size at
   which the pipeline matches an HD1200 pair (``StereoConfig.for_resolution``).
 
+``at_rig_scale`` shrinks any of them until its median true disparity is the rig's
+(``RIG_MEDIAN_DISPARITY_PX``): the rig matches 960 px wide images whose answers lie at a median
+16 px (``bench/bench_stereo_extras.py``), the pairs' at 29-59 px, and the matcher's checks are
+in pixels, so only at the rig's disparities do they act on a pair as they act on the rig.
+
 Nothing is fetched at run time: a pair whose package is missing raises ``PairMissingError`` with
 the command that installs it.
 """
@@ -29,6 +34,9 @@ import numpy as np
 
 OPENCV_DOC_DATA = Path("/usr/share/doc/opencv-doc/examples/data")
 PAIR_NAMES = ("motorcycle", "aloe", "aloe-half")
+# the median disparity of the rig's answers on the sim (960 px wide images; EVALUATION.md, "Why
+# the densest config loses egocentric PSNR": 15.6 px the default's, 15.9 px the densest's extras)
+RIG_MEDIAN_DISPARITY_PX = 16.0
 
 
 class PairMissingError(FileNotFoundError):
@@ -120,3 +128,45 @@ def _half(pair: RealPair, name: str) -> RealPair:
         disparity_px=disp.astype(np.float32),
         source=pair.source.replace("full size", "half size"),
     )
+
+
+def downscaled(pair: RealPair, factor: float, name: str | None = None) -> RealPair:
+    """``pair`` shrunk by ``factor`` (< 1) in each direction: the images area-averaged, the
+    truth the full-size truth at each new pixel's centre, times the new width over the old
+    (disparity is horizontal), NaN where that is NaN. Not averaged: a mean across a depth edge
+    is a disparity no surface has, and one across a hole would invent a truth."""
+    h, w = pair.disparity_px.shape
+    if not 0.0 < factor < 1.0:
+        raise ValueError(f"a downscale factor must lie in (0, 1), not {factor}")
+    size = (max(1, round(w * factor)), max(1, round(h * factor)))
+    sx, sy = size[0] / w, size[1] / h  # the factors the rounded size gives
+
+    def centres(n: int, s: float, limit: int) -> np.ndarray:
+        # the full-size pixel under each new pixel's centre ((j + 0.5) / s - 0.5 in full-size px)
+        return np.clip(np.rint((np.arange(n) + 0.5) / s - 0.5), 0, limit - 1).astype(np.intp)
+
+    rows, cols = centres(size[1], sy, h), centres(size[0], sx, w)
+    disp = pair.disparity_px[np.ix_(rows, cols)] * np.float32(sx)
+
+    def shrink(img: np.ndarray) -> np.ndarray:
+        return cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+
+    return RealPair(
+        name=name or f"{pair.name} x{sx:.2f}",
+        left_rgb=shrink(pair.left_rgb),
+        right_rgb=shrink(pair.right_rgb),
+        disparity_px=disp.astype(np.float32),
+        source=f"{pair.source}, downscaled x{sx:.3f}",
+    )
+
+
+def at_rig_scale(pair: RealPair, median_px: float = RIG_MEDIAN_DISPARITY_PX) -> RealPair:
+    """``pair`` downscaled so that its median true disparity is about ``median_px`` (the rig's);
+    named ``<name>@rig``. A pair already at or below it is refused (it would need upscaling)."""
+    median = float(np.nanmedian(pair.disparity_px))
+    if median <= median_px:
+        raise ValueError(
+            f"{pair.name}'s median true disparity is {median:.1f} px, not above {median_px} px: "
+            "it is already at the rig's scale; judge it as it is"
+        )
+    return downscaled(pair, median_px / median, name=f"{pair.name}@rig")
