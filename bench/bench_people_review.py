@@ -129,7 +129,8 @@ def estimated_pose(roles: dict[str, CameraPath], name: str, t_s: float, gaps: bo
     if path is None or (path.gap_at(t_s) is not None and not gaps):
         return None
     t0, t1 = path.span_s
-    return path.pose(t_s) if t0 - 1e-6 <= t_s <= t1 + 1e-6 else None
+    # a case's times sit within nanoseconds of the session's (49.99999998 s for 50 s)
+    return path.pose(min(max(t_s, t0), t1)) if t0 - 1e-6 <= t_s <= t1 + 1e-6 else None
 
 
 def review(world, model_at, times_s, roles: list[Trajectory], raster, offset_text: str,

@@ -35,6 +35,11 @@ class PeopleConfig:
     background_min_frames: int = 10
     # a body under the head: points in this share of the 10 cm slices from the knees to the neck
     min_column_share: float = 0.7
+    # ... or, as a doubtful head (below match_confidence) that only fills a track's gap between
+    # two sightings, in this share of them: legs hidden behind the table or a neighbour fail the
+    # check above most; taken as sure heads they start false tracks and swap people
+    # (EVALUATION.md, changes 26-26e; 0: none)
+    column_fill_share: float = 0.4
     # two heads closer than this are one
     min_head_separation_m: float = 0.3
     # tracking: a detection joins a track within this distance of where the track's velocity
@@ -147,6 +152,11 @@ class PeopleConfig:
         if not 0 < self.head_isolation_min <= 1:
             raise ReconstructConfigError(
                 f"PeopleConfig.head_isolation_min={self.head_isolation_min!r}: give 0-1"
+            )
+        if self.column_fill_share > self.min_column_share:
+            raise ReconstructConfigError(
+                f"PeopleConfig.column_fill_share={self.column_fill_share!r} must be at most "
+                f"min_column_share={self.min_column_share!r}"
             )
         if not 1 <= self.confirm_seen <= self.confirm_timestamps:
             raise ReconstructConfigError(

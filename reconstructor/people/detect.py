@@ -29,6 +29,7 @@ REACH_MIN_Z_M = 0.98
 COLUMN_RADIUS_M = 0.3  # below this lie the table's top and the patient, not arms
 STATIC_RADIUS_M = 0.16
 STATIC_BELOW_M = 0.32
+DOUBTFUL = 0.9  # a partly hidden body's head: this share of the confidence a track takes
 
 
 @dataclass(frozen=True)
@@ -139,7 +140,10 @@ def _person_at(frame: Frame, xy: np.ndarray, top: float, config: PeopleConfig) -
     column = near[r < COLUMN_RADIUS_M, 2]
     counts, _ = np.histogram(column, bins=np.arange(0.4, top - 0.25, 0.1))
     column_share = float(np.mean(counts >= 3)) if len(counts) else 0.0
-    if column_share < config.min_column_share:
+    # a body partly hidden (legs behind the table or a neighbour): a doubtful head, which only
+    # fills a track's gap between two sightings (``track``), never starts or continues one
+    partly = column_share < config.min_column_share
+    if partly and (config.column_fill_share <= 0 or column_share < config.column_fill_share):
         return None
     near = near[near[:, 2] > REACH_MIN_Z_M]
     r = np.hypot(near[:, 0] - head_xy[0], near[:, 1] - head_xy[1])
@@ -164,6 +168,8 @@ def _person_at(frame: Frame, xy: np.ndarray, top: float, config: PeopleConfig) -
     front, back = (_gaze(frame, head_xy, normal, centre_z, config),
                    _gaze(frame, head_xy, -normal, centre_z, config))  # fmt: skip
     confidence = float(isolation * column_share * min(1.0, len(head) / 60.0))
+    if partly:
+        confidence = min(confidence, DOUBTFUL * config.match_confidence)
     return Detection(
         static_share=_static_share(frame, head_xy, top),
         head_xy_m=(float(head_xy[0]), float(head_xy[1])),

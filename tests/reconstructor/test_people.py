@@ -18,7 +18,7 @@ from reconstructor.people.output import write_people
 from reconstructor.people.reference import top_heights_reference
 from reconstructor.people.run import find_people
 from reconstructor.people.sources import PeopleInputError, Source
-from tests.reconstructor.people_bodies import room, scene
+from tests.reconstructor.people_bodies import body, room, scene
 
 TIMES_S = tuple(0.5 * k for k in range(14))
 SESSION = SessionId(name="bodies", started_unix_ns=1_767_225_600_000_000_000)
@@ -218,3 +218,33 @@ def test_a_cases_camera_masks_keep_what_a_second_camera_saw_as_the_clouds_do():
     assert len(kept) >= len(surface)  # the surface stays, every cell of it
     assert not np.any(np.isclose(kept[:, 0], 1.2 + cell / 2))  # none of the streak
     assert not np.any(np.all(np.isclose(kept, [-1.5 + cell / 2, -1.5 + cell / 2, 0.31]), 1))
+
+
+def _legs_hidden(points: np.ndarray, xy: tuple[float, float], below_m: float) -> np.ndarray:
+    """``points`` without those of the body at ``xy`` (within 0.35 m) lower than ``below_m``:
+    legs behind the table's drapes or a neighbour, as the rig sees them."""
+    near = np.hypot(points[:, 0] - xy[0], points[:, 1] - xy[1]) < 0.35
+    return points[~(near & (points[:, 2] > 0.02) & (points[:, 2] < below_m))]
+
+
+def test_a_person_whose_legs_are_hidden_for_a_while_is_followed_and_a_legless_column_is_no_one():
+    """A worker at the table whose legs are hidden below 0.8 m for a second (two timestamps:
+    about half the slices from the knees to the neck show no body there) is followed through
+    it, the track taking their head there rather than leaving a gap; a body whose legs are
+    hidden all along (a head and shoulders on a stand) starts no track."""
+    rng = np.random.default_rng(8)
+    worker_xy, stand_xy = (0.3, 0.75), (-1.5, -1.5)
+    hidden = {6, 7}
+    clouds = []
+    for k, t in enumerate(TIMES_S):
+        points, _ = scene(t, rng)
+        stand = body(rng, stand_xy, 0.0, 1.75)
+        points = np.concatenate([points, _legs_hidden(stand, stand_xy, 0.8)])
+        clouds.append(_legs_hidden(points, worker_xy, 0.8) if k in hidden else points)
+    empty = _source([room(rng) for _ in range(3)], "empty")
+    people = find_people(_source(clouds, "hidden legs"), PeopleConfig(), background=empty)
+    workers = [tr for tr in people.tracks if np.hypot(*(tr.xy()[0] - worker_xy)) < 0.2]
+    assert len(workers) == 1, [tr.xy()[0] for tr in people.tracks]
+    seen = {round(t / 0.5) for t in workers[0].times_s}
+    assert hidden <= seen, sorted(seen)  # its head taken where the legs were hidden
+    assert not [tr for tr in people.tracks if np.hypot(*(tr.xy()[0] - stand_xy)) < 0.5]
