@@ -53,6 +53,10 @@ from protocol.toml_config import load_toml, read_table
 
 TRAJECTORY_FORMAT = "egosurg-trajectories"
 TRAJECTORY_FORMAT_VERSION = 1
+# Times are written to the microsecond (six decimals, below), so a keyframe made at a case
+# timestamp (a set time in nanoseconds) reads back up to half of this away from it: a time
+# within this of a trajectory's first or last keyframe is at that keyframe, not outside it.
+TIME_RESOLUTION_S = 1e-6
 
 
 class TrajectoryFileError(UserError, ValueError):

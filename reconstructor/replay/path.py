@@ -17,7 +17,7 @@ from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, Slerp
 
 from protocol.camera import Camera, Intrinsics, Pose
-from protocol.formats.trajectory import Trajectory
+from protocol.formats.trajectory import TIME_RESOLUTION_S, Trajectory
 from reconstructor.errors import TrajectoryTimeError
 
 
@@ -47,7 +47,7 @@ class CameraPath:
 
     def require_inside(self, t_s: float, what: str = "time") -> None:
         t0, t1 = self.span_s
-        if not (t0 - 1e-9 <= t_s <= t1 + 1e-9):
+        if not (t0 - TIME_RESOLUTION_S <= t_s <= t1 + TIME_RESOLUTION_S):
             raise TrajectoryTimeError(
                 f"{what} {t_s:.3f} s is outside trajectory {self.name!r}'s keyframes "
                 f"({t0:.3f} s to {t1:.3f} s)"

@@ -19,6 +19,7 @@ import numpy as np
 
 from protocol.camera import Camera
 from protocol.formats.site import SiteBox, surface_points
+from protocol.formats.trajectory import TIME_RESOLUTION_S
 from protocol.sealing import Identity
 from reconstructor.data.views import EYE_NEAR_M
 from reconstructor.errors import CaseReplayError
@@ -68,7 +69,8 @@ def sightline(
     scene = SightScene.for_case(folder, site_boxes, others, CaseClock.for_case(folder,
                                 pick_zone(timezone)))  # fmt: skip
     p0, p1 = path.span_s
-    entries = [e for e in models.entries if p0 - 1e-6 <= e.t_s <= p1 + 1e-6]
+    tol = TIME_RESOLUTION_S
+    entries = [e for e in models.entries if p0 - tol <= e.t_s <= p1 + tol]
     if not entries:
         c0, c1 = models.span_s
         raise CaseReplayError(

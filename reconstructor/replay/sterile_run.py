@@ -31,6 +31,7 @@ import numpy as np
 from protocol.camera import Camera, Intrinsics, Pose
 from protocol.formats.rig_calibration import RigCalibration
 from protocol.formats.site import SiteBox
+from protocol.formats.trajectory import TIME_RESOLUTION_S
 from protocol.sealing import Identity, IdentityRequiredError
 from reconstructor.case.storage import load_observation
 from reconstructor.data.views import EYE_NEAR_M
@@ -83,7 +84,7 @@ def _eyes(paths: list[CameraPath], t_s: float) -> dict[str, np.ndarray | None]:
 
 def _eye(path: CameraPath, t_s: float) -> np.ndarray | None:
     t0, t1 = path.span_s
-    if path.gap_at(t_s) is not None or not t0 - 1e-6 <= t_s <= t1 + 1e-6:
+    if path.gap_at(t_s) is not None or not t0 - TIME_RESOLUTION_S <= t_s <= t1 + TIME_RESOLUTION_S:
         return None
     return path.pose(float(np.clip(t_s, t0, t1))).centre_m
 

@@ -15,6 +15,7 @@ import pytest
 from protocol.camera import Pose
 from protocol.formats.site import read_site
 from protocol.formats.trajectory import Keyframe, Trajectory, read_trajectories, write_trajectories
+from reconstructor.errors import TrajectoryTimeError
 from reconstructor.replay.models import CaseModels, ModelSource
 from reconstructor.replay.path import CameraPath
 from tests.helpers import egosurg_in_process, one_camera_session, run_egosurg
@@ -72,6 +73,22 @@ def test_a_path_passes_through_its_keyframes_and_turns_smoothly_between(tmp_path
     # halfway through a 90 degree turn about +z: looking along (1, 1, 0) / sqrt 2
     assert np.allclose(mid.R[2], [np.sqrt(0.5), np.sqrt(0.5), 0.0], atol=1e-6)
     assert path.fov_deg(1.0) == pytest.approx(90.0)
+
+
+def test_a_keyframe_made_at_a_case_timestamp_covers_it_after_the_file_round_trip(tmp_path):
+    # case timestamps are set times in nanoseconds (15 fps: 2.0666666667 s); the file keeps
+    # microseconds, so the role read back starts 3e-7 s after the timestamp it was made at
+    t0_s, t1_s = 2.0 + 1 / 15, 2.0 + 4 / 15
+    a = Pose.look_at(np.array([0.0, 0.0, 1.6]), np.array([1.0, 0.0, 1.6]))
+    keys = (Keyframe.from_pose(t0_s, a, 80), Keyframe.from_pose(t1_s, a, 80))
+    path_file = write_trajectories(tmp_path / "t.toml", [Trajectory(name="eye", keyframes=keys)])
+    path = CameraPath(read_trajectories(path_file)[0])
+    assert path.span_s[0] != t0_s  # the round trip really moved it
+    for t_s in (t0_s, t1_s):
+        assert np.allclose(path.pose(t_s).centre_m, [0.0, 0.0, 1.6])
+    for t_s in (t0_s - 0.001, t1_s + 0.001):  # a millisecond outside is outside
+        with pytest.raises(TrajectoryTimeError, match="outside trajectory 'eye'"):
+            path.pose(t_s)
 
 
 def test_replay_writes_an_h264_mp4_with_the_model_of_each_instant(case, capsys, tmp_path):
