@@ -12,9 +12,9 @@ back. It also measures the matcher's disparity noise where the truth is known: t
 
 Each timestamp's evidence keeps which cameras saw each cell and where those cameras are, for
 the seen-empty tests (``reconstructor/replay/sterile_seen.py``); ``--show-events`` lists each
-contact with the share of its peak part's in-box points in air (seen through at 30 % or more of
-the other timestamps) and seen through now. Evidence made before the masks is refused: make it
-again.
+contact with its peak part's points in and out of the box, the share of its in-box points in
+air (seen through at 30 % or more of the other timestamps) and seen through now. Evidence made
+before the masks is refused: make it again.
 
 Each ``--variant`` is ``SterileConfig`` keyword arguments (``"margin_sigmas=0"``); the first row
 is the defaults. Scored against the sim's truth as ``bench_sterile.py`` does (recall on the
@@ -166,7 +166,8 @@ def judge(fields: list[tuple], roles_path: str, variant: dict, paths: list[Path]
             share = free.seen_empty(vox, t, cfg.seen_window_s)
             seen = float("nan") if share is None else float((share >= cfg.air_seen_empty).mean())
             rows.append({"kind": kind, "role": e.role, "start_s": f"{e.start_s:.3f}",
-                         "end_s": f"{e.end_s:.3f}", "peak": b.count, "seen": f"{seen:.2f}",
+                         "end_s": f"{e.end_s:.3f}", "peak": b.count,
+                         "out": len(b.points_m) - b.count, "seen": f"{seen:.2f}",
                          "now": f"{free.now(vox, t).mean():.2f}"})  # fmt: skip
     return rows
 
@@ -218,8 +219,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{s.false_per_10_min:.0f} | {errs} |", flush=True)  # fmt: skip
         if args.events_out and not text:
             with args.events_out.open("w", newline="") as fh:
-                w = csv.DictWriter(fh, ["kind", "role", "start_s", "end_s", "peak", "seen",
-                                        "now"])  # fmt: skip
+                w = csv.DictWriter(fh, ["kind", "role", "start_s", "end_s", "peak", "out",
+                                        "seen", "now"])  # fmt: skip
                 w.writeheader()
                 w.writerows(events)
             span = args.events_out.with_name(args.events_out.stem + "_instants.csv")
@@ -228,7 +229,8 @@ def main(argv: list[str] | None = None) -> int:
             for e in events:
                 if e["kind"] == "contact":
                     print(f"    {e['role']} {e['start_s']}-{e['end_s']} peak {e['peak']} "
-                          f"in air {e['seen']} seen through now {e['now']}")  # fmt: skip
+                          f"in the box, {e['out']} out, in air {e['seen']} seen through now "
+                          f"{e['now']}")  # fmt: skip
     return 0
 
 

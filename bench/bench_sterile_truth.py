@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script from anywhere
 
 from bench.bench_sterile import score
-from bench.bench_sterile_evidence import STERILE
+from bench.bench_sterile_evidence import STERILE, sights
 
 SAMPLE_M = 0.01  # true surfaces sampled this densely (people); the room at twice it
 
@@ -90,13 +90,14 @@ def load(args: argparse.Namespace, cfg):
     box = next(iter(read_site(args.field).values()))
     region = Region(box, cfg)
     n = round((args.t_to - args.t_from) / args.every) + 1
-    stamps = []
+    stamps, paths = [], []
     for k in range(n):
         t = round(args.t_from + k * args.every, 6)
-        with np.load(Path(args.evidence) / f"t{t:09.3f}.npz") as z:
+        paths.append(Path(args.evidence) / f"t{t:09.3f}.npz")
+        with np.load(paths[-1]) as z:
             pts = z["points_m"]
         stamps.append((t, pts[region.holds(pts)]))
-    return box, region, stamps
+    return box, region, stamps, paths
 
 
 def trace_missed(region, bg, pts, eyes, t_s, near_true, cfg) -> list[str]:
@@ -140,6 +141,7 @@ def main(argv: list[str] | None = None) -> int:
         moving_blobs,
     )
     from reconstructor.replay.sterile_run import _eyes, read_roles
+    from reconstructor.replay.sterile_seen import freespace
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--seed", type=int, required=True, help="the sim seed of the session")
@@ -154,14 +156,15 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     cfg = SterileConfig(sterile_roles=STERILE, **eval(f"dict({args.variant})", {"None": None}))
-    box, region, stamps = load(args, cfg)
+    box, region, stamps, files = load(args, cfg)
     paths = read_roles(args.roles, STERILE)
     times = [t for t, _ in stamps]
     eyes = [_eyes(paths, t) for t in times]
     bg = background(region, [pts for _, pts in stamps], times)
-    instants = [Instant(t, f"t{t:09.3f}", *moving_blobs(region, bg, pts, e, t))
+    free = freespace(region, sights(files), times)  # the seen-empty tests, as the tool runs them
+    instants = [Instant(t, f"t{t:09.3f}", *moving_blobs(region, bg, pts, e, t, None, free))
                 for (t, pts), e in zip(stamps, eyes, strict=True)]  # fmt: skip
-    events = [e for e in group_events(box, instants, cfg) if not e.sterile_role]
+    events = [e for e in group_events(box, instants, cfg, eyes) if not e.sterile_role]
     rows = [{"kind": "contact", "role": e.role, "start_s": f"{e.start_s:.3f}",
              "end_s": f"{e.end_s:.3f}"} for e in events]  # fmt: skip
     truth = [(r["person"], float(r["start_s"]), float(r["end_s"]))

@@ -73,6 +73,16 @@ construction of the box.
 **Events.** A role's consecutive contact timestamps form one event (``max_gap`` missed
 timestamps inside it are bridged); its start is its first contact timestamp, so it is late by
 at most the case's sampling interval.
+
+**One touch, one person** (``one_event_per_touch``). The split above is made at each timestamp
+alone, and at some timestamps it gives part or all of a touch to a neighbour: a body that stands
+beside the toucher merges with the arm and wins the hand's far voxels, or the toucher's still
+body is static and the blob holds no body, so the hand goes to the nearest eye, a neighbour's.
+Two roles' events are the same touch when, at timestamps at most ``max_gap`` + 1 apart, their
+in-box voxels touch (26-neighbours or the same voxel); such events (of the same kind: a gowned
+role's work never absorbs a contact, nor the reverse) become one event, named for the role that
+holds the touch at the most timestamps (then the most points); at a timestamp only the other
+held, that part is counted as the named role's.
 """
 
 from __future__ import annotations
@@ -98,7 +108,10 @@ class SterileConfig:
     # points of one blob inside the box for a contact: a case's stored points are one per
     # occupied 2 cm cell of what stereo saw (depth/evidence.py), so 8 is ~32 cm^2 of hand
     min_points: int = 8
-    min_outside: int = 3  # and outside it: the arm that reaches in (a lone blob is a floater)
+    # and outside it: the forearm that reaches in, 64 cm^2 of it (a lone blob is a floater, a
+    # smear in the air with a few points over the box's face no arm: docs/replay.md measured
+    # 21 or more on every gowned hand at the drape, 309 or more on the scripted touches)
+    min_outside: int = 16
     max_gap: int = 1  # missed timestamps bridged inside one event
     # a part's median distance from its role's eye, farther: no one's arm (a still body's full
     # reach, 0.66 m to the drape, gave 0.45-0.49 m: its moving part is the forearm and hand)
@@ -132,6 +145,9 @@ class SterileConfig:
     # a part's in-box points seen by fewer cameras: a wrong match along one camera's rays (1:
     # off; measured, it removed the smears in the air beside a resting hand, docs/replay.md)
     min_cameras: int = 2
+    # two roles' events of one touch (their in-box voxels touching at timestamps at most
+    # max_gap + 1 apart) are one event, named for who holds it most (False: one per role)
+    one_event_per_touch: bool = True
 
     def margin_m(self, m_per_px: np.ndarray) -> np.ndarray:
         """(N,) how deep inside a box each point must lie to count, from its metres of depth
@@ -481,11 +497,16 @@ def judge_field(
     rows = []
     for (t, name), pts, margin, eye in zip(stamps, frames, margins, eyes, strict=True):
         rows.append(Instant(t, name, *moving_blobs(region, bg, pts, eye, t, margin, free)))
-    return rows, group_events(region.box, rows, region.config)
+    return rows, group_events(region.box, rows, region.config, eyes)
 
 
-def group_events(box: SiteBox, instants: list[Instant], config: SterileConfig) -> list[Event]:
-    """Each role's contact timestamps, consecutive (up to ``max_gap`` missed) -> events."""
+def group_events(
+    box: SiteBox, instants: list[Instant], config: SterileConfig,
+    eyes: list[dict[str, np.ndarray | None]] | None = None,
+) -> list[Event]:  # fmt: skip
+    """Each role's contact timestamps, consecutive (up to ``max_gap`` missed) -> events; with
+    ``one_event_per_touch``, the events of one touch -> one event (``eyes``: each instant's
+    role eyes, to measure a part taken over from another role against its new role's eye)."""
     roles = dict.fromkeys(b.role for i in instants for b in i.blobs)
     events = []
     for role in roles:
@@ -500,9 +521,80 @@ def group_events(box: SiteBox, instants: list[Instant], config: SterileConfig) -
                 runs[-1].append(row)
             else:
                 runs.append([row])
-        for run in (r for r in runs if len(r) >= config.min_timestamps):
+        for run in runs:
             events.append(
                 Event(box.name, role, role in config.sterile_roles,
                       tuple(r[1] for r in run), tuple(r[2] for r in run))
             )  # fmt: skip
+    if config.one_event_per_touch:
+        events = _one_event_per_touch(events, instants, config, eyes)
+    events = [e for e in events if len(e.instants) >= config.min_timestamps]
     return sorted(events, key=lambda e: (e.start_s, e.role))
+
+
+def _one_event_per_touch(
+    events: list[Event], instants: list[Instant], config: SterileConfig,
+    eyes: list[dict[str, np.ndarray | None]] | None,
+) -> list[Event]:  # fmt: skip
+    """Events of different roles that are one touch (their in-box voxels touch at timestamps
+    at most ``max_gap`` + 1 apart; the same kind: sterile or not) -> one event, named for the
+    role holding the touch at the most timestamps, then the most points."""
+    at = {id(inst): k for k, inst in enumerate(instants)}
+    cells = [[(at[id(i)], _in_box_cells(b, config.voxel_m))
+              for i, b in zip(e.instants, e.blobs, strict=True)] for e in events]  # fmt: skip
+    group = list(range(len(events)))  # union-find over the events
+
+    def root(k: int) -> int:
+        while group[k] != k:
+            group[k] = group[group[k]]
+            k = group[k]
+        return k
+
+    for a in range(len(events)):
+        for b in range(a + 1, len(events)):
+            same_kind = events[a].sterile_role == events[b].sterile_role
+            if (
+                same_kind
+                and events[a].role != events[b].role
+                and _touching(cells[a], cells[b], config.max_gap + 1)
+            ):
+                group[root(b)] = root(a)
+    out = []
+    for r in dict.fromkeys(root(k) for k in range(len(events))):
+        members = [e for k, e in enumerate(events) if root(k) == r]
+        if len(members) == 1:
+            out.append(members[0])
+            continue
+        keeper = max(members, key=lambda e: (len(e.instants), sum(b.count for b in e.blobs)))
+        held: dict[int, Blob] = {}
+        for e in sorted(members, key=lambda e: e is not keeper):  # the keeper's parts first
+            for inst, blob in zip(e.instants, e.blobs, strict=True):
+                k = at[id(inst)]
+                if k not in held:
+                    eye = eyes[k].get(keeper.role) if eyes is not None else None
+                    held[k] = blob if e is keeper else Blob(
+                        blob.points_m, blob.in_field, keeper.role, _distance(blob.points_m, eye)
+                    )  # fmt: skip
+        order = sorted(held)
+        out.append(Event(keeper.field, keeper.role, keeper.sterile_role,
+                         tuple(instants[k] for k in order),
+                         tuple(held[k] for k in order)))  # fmt: skip
+    return out
+
+
+def _in_box_cells(blob: Blob, voxel_m: float) -> set[tuple[int, int, int]]:
+    """The world-grid voxels of a blob's in-box points."""
+    idx = np.floor(blob.points_m[blob.in_field] / voxel_m).astype(int)
+    return {tuple(v) for v in np.unique(idx, axis=0).tolist()}
+
+
+def _touching(a: list[tuple[int, set]], b: list[tuple[int, set]], within: int) -> bool:
+    """Whether two events' in-box voxels touch (26-neighbours) at timestamps ``within`` apart."""
+    for ka, ca in a:
+        grown = {(x + i, y + j, z + k) for x, y, z in ca for i, j, k in _NEIGHBOURHOOD}
+        if any(abs(ka - kb) <= within and not grown.isdisjoint(cb) for kb, cb in b):
+            return True
+    return False
+
+
+_NEIGHBOURHOOD = [(0, 0, 0), *map(tuple, _OFFSETS.tolist())]

@@ -420,6 +420,86 @@ def test_a_full_reach_from_a_still_body_is_a_contact_but_a_sprawl_farther_out_is
     assert _contacts(frames(sprawl), {"p": eye}) == []
 
 
+def _reach(eyes: list, reaches: dict, n: int = 16) -> list[np.ndarray]:
+    """``n`` frames of still bodies at ``eyes`` (static scene) over the slab; ``reaches`` maps a
+    frame to the point lines added then (arms, a body that moves)."""
+    rng = np.random.default_rng(5)
+    still = [_body(e, rng) for e in eyes]
+    return [np.concatenate([_slab(), *still, *reaches.get(k, [])]) for k in range(n)]
+
+
+def test_one_touch_is_one_event_for_the_person_whose_arm_it_is():
+    """The sim's two false events of a real touch: a person standing still (their body and
+    upper arm static scene, so the blob holds no body of theirs) reaches onto the drape at four
+    timestamps; at one of them a neighbour steps in beside them, and the neighbour's arm joins
+    the toucher's forearm outside the box, so that timestamp's split gives the whole reach to
+    the only body in the blob, the neighbour's. A reviewer relies on one touch making one
+    event, the toucher's, over all four timestamps; the neighbour, whose body never reaches
+    into the box, gets none."""
+    rng = np.random.default_rng(6)
+    eyes = {"toucher": np.array([0.0, -0.95, 1.6]), "neighbour": np.array([0.6, -0.9, 1.6])}
+    forearm = [_line((0.0, -0.65, 1.1), (0.0, -0.35, 0.95), rng=rng) for _ in range(4)]
+    nudge = _line((0.6, -0.9, 1.35), (0.05, -0.6, 1.08), rng=rng)  # outside the box
+    assert not BOX.contains(nudge).any()
+    stepped_in = _body(eyes["neighbour"], rng)
+    frames = _reach([eyes["toucher"]], {8: [forearm[0]], 9: [forearm[1], stepped_in, nudge],
+                                        10: [forearm[2]], 11: [forearm[3]]})  # fmt: skip
+    split = _contacts(frames, eyes, SterileConfig(one_event_per_touch=False))
+    assert [(e.role, e.start_s) for e in split] == [("toucher", 4.0), ("neighbour", 4.5)]
+    events = _contacts(frames, eyes)
+    assert [(e.role, e.start_s, e.end_s, len(e.instants)) for e in events] == [
+        ("toucher", 4.0, 5.5, 4)
+    ]
+    assert all(b.role == "toucher" for b in events[0].blobs)
+
+
+def test_two_touches_at_once_stay_two_events_and_a_gowned_hands_work_hides_no_contact():
+    """Two people touching the drape 0.6 m apart at the same timestamps are two contacts; a
+    non-sterile hand that touches the drape beside a gowned person's hand working there (one
+    blob, one spot) is still a contact, not folded into the gowned person's work."""
+    rng = np.random.default_rng(7)
+    eyes = {"a": np.array([-0.3, -0.95, 1.6]), "b": np.array([0.3, -0.95, 1.6])}
+    reach = {k: [_line((-0.3, -0.65, 1.1), (-0.3, -0.35, 0.95), rng=rng),
+                 _line((0.3, -0.65, 1.1), (0.3, -0.35, 0.95), rng=rng)]
+             for k in (8, 9, 10)}  # fmt: skip
+    events = _contacts(_reach(list(eyes.values()), reach), eyes)
+    assert [(e.role, e.start_s, e.end_s) for e in events] == [("a", 4.0, 5.0), ("b", 4.0, 5.0)]
+
+    eyes = {"surgeon": np.array([0.3, -0.95, 1.6]), "visitor": np.array([-0.3, -0.95, 1.6])}
+    work = {k: [_line((0.3, -0.65, 1.1), (0.04, -0.35, 0.95), rng=rng)] for k in range(6, 12)}
+    for k in (8, 9):  # the visitor's hand meets the surgeon's on the drape
+        work[k].append(_line((-0.3, -0.65, 1.1), (-0.04, -0.35, 0.95), rng=rng))
+    frames = _reach(list(eyes.values()), work)
+    events = _contacts(frames, eyes, SterileConfig(sterile_roles=("surgeon",)))
+    assert [(e.role, e.sterile_role, e.start_s) for e in events] == [
+        ("surgeon", True, 3.0), ("visitor", False, 4.0)
+    ]  # fmt: skip
+    # the two hands are one spot: were both non-sterile, they would be one touch
+    assert [(e.role, e.start_s) for e in _contacts(frames, eyes)] == [("surgeon", 3.0)]
+
+
+def test_a_smear_over_the_boxs_face_is_no_arm_but_a_forearm_reaching_in_is():
+    """The sim's smears: a dozen points of free air beside a still person's resting hand,
+    just inside the drape's box with a few just outside it, rising nowhere, pass the counts
+    in the box; they are no contact, since no forearm (16 points, 64 cm^2 of what stereo saw)
+    reaches in from outside. The same spot touched by a hand on its forearm is a contact."""
+    rng = np.random.default_rng(8)
+    eye = np.array([0.0, -0.9, 1.56])
+    smear = np.concatenate([
+        rng.uniform((-0.05, -0.5, 0.93), (0.05, -0.42, 0.99), (12, 3)),
+        rng.uniform((-0.05, -0.5, 1.01), (0.05, -0.42, 1.03), (4, 3)),  # over the top face
+    ])  # fmt: skip
+    assert BOX.contains(smear).sum() == 12 and smear[:, 2].max() > eye[2] - 0.55  # "an arm"
+    forearm = _line((0.0, -0.7, 1.05), (0.0, -0.45, 0.97), rng=rng)
+    assert 16 <= (~BOX.contains(forearm)).sum() < 300  # fewer than any scripted touch had
+    for extra, expected in (([smear], []), ([forearm], [3.0])):
+        frames = _reach([eye], {6: extra})
+        assert [e.start_s for e in _contacts(frames, {"p": eye})] == expected
+    # the forearm's count drops the smear, not the arm test or the counts in the box
+    loose = SterileConfig(min_outside=3)
+    assert [e.start_s for e in _contacts(_reach([eye], {6: [smear]}), {"p": eye}, loose)] == [3.0]
+
+
 # ---- each contact with what the real cameras saw: a still and a clip from the best camera ----
 OLD_EVENT_COLUMNS = ["event", "field", "kind", "role", "role_distance_m", "start_s", "end_s",
                      "timestamps", "peak_t_s", "peak_points", "contact_x_m", "contact_y_m",
