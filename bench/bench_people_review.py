@@ -47,7 +47,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.bench_sightline import VISIBLE_ENOUGH, _case_source, _times
-from protocol.formats.trajectory import Trajectory, read_trajectory_file
+from protocol.formats.trajectory import TIME_RESOLUTION_S, Trajectory, read_trajectory_file
 from reconstructor.data.views import EYE_NEAR_M, novel_view
 from reconstructor.evaluation.methods import render_splats
 from reconstructor.evaluation.metrics import psnr
@@ -129,8 +129,8 @@ def estimated_pose(roles: dict[str, CameraPath], name: str, t_s: float, gaps: bo
     if path is None or (path.gap_at(t_s) is not None and not gaps):
         return None
     t0, t1 = path.span_s
-    # a case's times sit within nanoseconds of the session's (49.99999998 s for 50 s)
-    return path.pose(min(max(t_s, t0), t1)) if t0 - 1e-6 <= t_s <= t1 + 1e-6 else None
+    tol = TIME_RESOLUTION_S  # a keyframe's time, read back from the file, is this close
+    return path.pose(t_s) if t0 - tol <= t_s <= t1 + tol else None
 
 
 def review(world, model_at, times_s, roles: list[Trajectory], raster, offset_text: str,
