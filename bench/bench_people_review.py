@@ -49,6 +49,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.bench_sightline import VISIBLE_ENOUGH, _case_source, _times
 from protocol.formats.trajectory import TIME_RESOLUTION_S, Trajectory, read_trajectory_file
 from reconstructor.data.views import EYE_NEAR_M, novel_view
+from reconstructor.errors import SightlineError
 from reconstructor.evaluation.methods import render_splats
 from reconstructor.evaluation.metrics import psnr
 from reconstructor.replay.names import role_lines, write_roles
@@ -71,6 +72,7 @@ class Sight:
     from_est: float  # from the estimated eye (nan: the roles give none at t_s)
     eye_err_m: float = float("nan")  # the estimated eye's distance from the true one
     in_gap: bool = False  # from_est is the spline through one of the role's gaps: no answer
+    refused: bool = False  # the estimated eye lies in the target's box: from_est 0, none seen
 
 
 @dataclass(frozen=True)
@@ -161,12 +163,17 @@ def review(world, model_at, times_s, roles: list[Trajectory], raster, offset_tex
                         world, t, eye, box, near_m=config.head_clearance_m
                     )
                     ours = visible_fraction(g, eye, box, raster, config=config)[0]
-                    theirs, err = float("nan"), float("nan")
+                    theirs, err, refused = float("nan"), float("nan"), False
                     if est is not None:
                         err = float(np.linalg.norm(est.centre_m - pose.centre_m))
                         est_eye = est.centre_m + est_shift
-                        theirs = visible_fraction(g, est_eye, box, raster, config=config)[0]
-                    sights.append(Sight(t, name, box.name, label, truth, ours, theirs, err, gap))
+                        try:
+                            theirs = visible_fraction(g, est_eye, box, raster, config=config)[0]
+                        except SightlineError:  # the tool refuses: the reviewer sees none of it
+                            theirs, refused = 0.0, True
+                    sights.append(
+                        Sight(t, name, box.name, label, truth, ours, theirs, err, gap, refused)
+                    )
             if est is not None:
                 ego = _ego(world, g, raster, t, name, pose, est, size_px)
                 egos.append(dataclasses.replace(ego, in_gap=gap))
@@ -322,6 +329,13 @@ def main(argv: list[str] | None = None) -> int:
     print(f"case {args.case}, {len(times)} timestamps ({times[0]:g}-{times[-1]:g} s), "
           f"{time.perf_counter() - t0:.0f} s")  # fmt: skip
     print(los_table(sights, args.offset))
+    refused = [s for s in sights if s.refused]
+    if refused:
+        print(
+            f"the estimated eye inside a screen's box, where the sightline tool refuses (counted "
+            f"as none of it seen): {len(refused)} instants "
+            f"({', '.join(sorted({f'{s.viewer} at {s.t_s:g} s' for s in refused}))})"
+        )
     print(ego_table(egos))
     if args.csv is not None:
         write_csv(args.csv, sights, egos)

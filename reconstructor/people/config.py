@@ -117,16 +117,30 @@ class PeopleConfig:
     eye_forward_m: float = 0.13
     eye_up_m: float = 0.03
     # the gaze: staff who face a raised surface (the table, the back table) look at its middle
-    # along their facing; with nothing there they look slightly down, like walkers do
+    # along their facing; walkers look slightly down
     work_surface_min_m: float = 0.6
     work_surface_max_m: float = 1.45
     gaze_reach_m: float = 2.2
     default_pitch_deg: float = 9.0
+    # ... and one standing still with no raised surface seen in front (hidden from the cameras
+    # by their own arms, the drapes or a neighbour, who stand over it) looks at their hands:
+    # work height (an OR table is set near the elbow, about 1 m for adult staff) at a forearm
+    # and hand's reach in front (EVALUATION.md, "People from the recording", facing changes)
+    work_height_m: float = 1.0
+    work_reach_m: float = 0.7
     # a standing person faces into the group: the middle of the others standing within
     # group_radius_m says which side is the front as strongly as arms reaching group_weight_m
     # further out on that side
     group_radius_m: float = 2.0
     group_weight_m: float = 0.3
+    # ... and at least ospace_min_people of a group, whose shoulder lines' normals (pooled over
+    # ospace_window_s: a team's shared point stays put for seconds) pass within
+    # ospace_angle_deg of one point ospace_reach_m or nearer, face that point and look at it
+    # down to work_height_m (pose.ospace_points; EVALUATION.md, facing changes)
+    ospace_min_people: int = 3
+    ospace_window_s: float = 4.0
+    ospace_angle_deg: float = 60.0
+    ospace_reach_m: float = 1.6
     # facing is smoothed over this many seconds (heads turn, but not between two stereo sets)
     facing_smooth_s: float = 1.0
     # a track moving faster than this faces where it goes
@@ -162,6 +176,10 @@ class PeopleConfig:
             raise ReconstructConfigError(
                 f"PeopleConfig.confirm_seen={self.confirm_seen!r} must be 1.."
                 f"confirm_timestamps={self.confirm_timestamps!r}"
+            )
+        if not 0 < self.ospace_angle_deg <= 90:
+            raise ReconstructConfigError(
+                f"PeopleConfig.ospace_angle_deg={self.ospace_angle_deg!r}: give 0-90"
             )
         if not 1 < self.fov_deg < 179:
             raise ReconstructConfigError(f"PeopleConfig.fov_deg={self.fov_deg!r}: give 1-179")

@@ -19,7 +19,7 @@ from reconstructor.people.background import Background
 from reconstructor.people.config import PeopleConfig
 from reconstructor.people.detect import Detection, detect, make_frame
 from reconstructor.people.heightmap import Grid
-from reconstructor.people.pose import HeadPose, group_sides, head_poses
+from reconstructor.people.pose import HeadPose, group_sides, head_poses, ospace_points
 from reconstructor.people.sources import PeopleInputError, Source
 from reconstructor.people.track import Track, track_people
 
@@ -117,6 +117,8 @@ def people_from_detections(
         for t, d in zip(tr.times_s, tr.detections, strict=True):
             heads.setdefault(round(t, 6), []).append(d.head_xy_m)
     heads_at = {t: np.array(xy) for t, xy in heads.items()}
+    shared = ospace_points(tracks, config)
     return tracks, {
-        tr.id: head_poses(tr, config, group_sides(tr, heads_at, config)) for tr in tracks
+        tr.id: head_poses(tr, config, group_sides(tr, heads_at, config), shared[tr.id])
+        for tr in tracks
     }
