@@ -12,13 +12,14 @@ camera renders the static room once and then only the moving objects over it
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 import open3d as o3d
 
-from protocol.camera import Camera
+from protocol.camera import Camera, Intrinsics
 from sim import kernels
 from sim.lighting import AMBIENT, irradiance
 from sim.rays import ray_directions
@@ -305,9 +306,15 @@ def render_over_background(
 
 
 def moving_region(camera: Camera, meshes: list, margin_px: int = 3) -> np.ndarray | None:
-    """Flat indices of the pixels that the given meshes can cover, as a union of the
-    projected bounding boxes of their vertices (plus a margin for the lens' curvature of
-    straight edges); None when a mesh reaches behind or beside the camera (render everything)."""
+    """Flat indices of the pixels whose rays can meet the given meshes; None: every pixel.
+
+    A mesh in front of the camera lies inside the box that its vertices span in normalized
+    image coordinates (x/z, y/z), and a pixel's ray is a point there (``ray_directions``): the
+    pixels of its projected bounding box (plus ``margin_px`` for the lens' curvature of straight
+    edges) whose rays fall in that box. Where the lens folds the projection of points far
+    outside the view to odd places, every pixel is tested against the box instead. A mesh that
+    reaches beside or behind the camera (no such box) gets the pixels whose rays pass within its
+    bounding sphere; None only when the camera is inside that sphere."""
     intr = camera.intrinsics
     H, W = intr.height_px, intr.width_px
     mask = np.zeros((H, W), bool)
@@ -315,18 +322,55 @@ def moving_region(camera: Camera, meshes: list, margin_px: int = 3) -> np.ndarra
         v = mesh.vertices.astype(np.float64)
         if len(v) == 0:
             continue
-        z = v @ camera.pose.R[2] + camera.pose.t_m[2]
+        v_cam = v @ camera.pose.R.T + camera.pose.t_m
+        z = v_cam[:, 2]
+        if z.max() <= 0.0:
+            continue  # wholly behind the camera: no ray (z > 0 along it) reaches it
         if z.min() < 0.05:
-            if z.max() < 0.05:
-                continue  # wholly behind the camera
-            return None
+            if not _add_sphere_cone(mask, camera, v):
+                return None
+            continue
         px, _ = camera.project(v)
         u0, v0 = np.floor(px.min(axis=0)).astype(int) - margin_px
         u1, v1 = np.ceil(px.max(axis=0)).astype(int) + margin_px
         if u1 < 0 or v1 < 0 or u0 >= W or v0 >= H:
             continue
-        # a wide lens maps points far outside the view to odd places: be safe, render it all
         if u0 < -W or v0 < -H or u1 > 2 * W or v1 > 2 * H:
-            return None
-        mask[max(v0, 0) : min(v1, H - 1) + 1, max(u0, 0) : min(u1, W - 1) + 1] = True
+            u0, v0, u1, v1 = 0, 0, W - 1, H - 1  # folded by the lens: test every pixel
+        u0, v0, u1, v1 = max(u0, 0), max(v0, 0), min(u1, W - 1), min(v1, H - 1)
+        xy = v_cam[:, :2] / z[:, None]
+        lo, hi = xy.min(axis=0) - RAY_BOX_MARGIN, xy.max(axis=0) + RAY_BOX_MARGIN
+        rays = ray_directions(intr)[v0 : v1 + 1, u0 : u1 + 1]
+        x, y = rays[..., 0], rays[..., 1]
+        mask[v0 : v1 + 1, u0 : u1 + 1] |= (x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1])
     return np.flatnonzero(mask)
+
+
+RAY_BOX_MARGIN = 5e-4  # normalized units (about half a pixel): far above float32 rounding
+CONE_MARGIN_RAD = 1e-3  # about a pixel: far above float32 rounding of the cone test
+
+
+def _add_sphere_cone(mask: np.ndarray, camera: Camera, vertices_m: np.ndarray) -> bool:
+    """Mark in ``mask`` (H, W) every pixel whose centre ray passes within the bounding sphere of
+    ``vertices_m`` (N, 3, world): a ray meets the mesh only inside that sphere, and the render
+    casts one ray per pixel centre. False, marking nothing, when the camera is in the sphere."""
+    lo, hi = vertices_m.min(axis=0), vertices_m.max(axis=0)
+    centre = (lo + hi) / 2
+    radius_m = float(np.linalg.norm(vertices_m - centre, axis=1).max()) * 1.001 + 1e-6
+    c_cam = camera.pose.R @ centre + camera.pose.t_m
+    dist_m = float(np.linalg.norm(c_cam))
+    if dist_m <= radius_m * 1.01:
+        return False
+    half_angle = np.arcsin(radius_m / dist_m) + CONE_MARGIN_RAD
+    dirs = ray_directions(camera.intrinsics).reshape(-1, 3)
+    cos = dirs @ (c_cam / dist_m).astype(np.float32)
+    cos *= _inverse_ray_lengths(camera.intrinsics)
+    mask |= (cos >= np.float32(np.cos(min(half_angle, np.pi)))).reshape(mask.shape)
+    return True
+
+
+@functools.lru_cache(maxsize=24)
+def _inverse_ray_lengths(intr: Intrinsics) -> np.ndarray:
+    """(H * W,) float32: 1 / |d| of each pixel's ray direction (``ray_directions``, z = 1)."""
+    d = ray_directions(intr).reshape(-1, 3).astype(np.float64)
+    return (1.0 / np.sqrt(np.einsum("ij,ij->i", d, d))).astype(np.float32)

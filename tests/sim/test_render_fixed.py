@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 
 from sim import kernels
-from sim.render import SPHERE_OBJECT_BASE, moving_region, ray_directions, render_view
+from sim.geometry import box
+from sim.render import (
+    SPHERE_OBJECT_BASE,
+    FrameScene,
+    moving_region,
+    ray_directions,
+    render_view,
+)
+from sim.room import SceneObject
 from sim.spheres import composite_spheres, composite_spheres_reference
 
 # wand phase, seed 5: the operator and the wand in view of these sensors at these times
@@ -33,12 +41,17 @@ def test_a_rig_camera_renders_the_moving_operator_and_wand_as_the_full_render(
     two a BVH reports depends on the BVH; there the fast path keeps the room render's choice."""
     world = wand_world
     cam = world.sensor(unit, side, "SVGA")
-    full = render_view(world.scene_at(t), cam)
-    fast = world._render_view(cam, t)
-    room = world._background(cam)
+    fast = _assert_fast_path_is_the_full_render(world, cam, t)
     # not a vacuous comparison: the operator and a wand sphere are in this view
     assert {"wand_operator", "wand_rod"} <= _names(world, fast.object_index)
     assert (fast.object_index >= SPHERE_OBJECT_BASE).sum() > 10
+
+
+def _assert_fast_path_is_the_full_render(world, cam, t):
+    """The fast path's render of ``cam`` at ``t`` (returned) against the one-scene render."""
+    full = render_view(world.scene_at(t), cam)
+    fast = world._render_view(cam, t)
+    room = world._background(cam)
     np.testing.assert_array_equal(fast.depth_m, full.depth_m)
     differs = (fast.radiance != full.radiance).any(axis=-1) | (
         fast.object_index != full.object_index
@@ -48,6 +61,7 @@ def test_a_rig_camera_renders_the_moving_operator_and_wand_as_the_full_render(
     )
     assert not (differs & ~room_tie).any(), np.argwhere(differs & ~room_tie)[:5]
     assert differs.sum() <= 4
+    return fast
 
 
 @pytest.mark.parametrize("phase", ["wand", "intraoperative"])
@@ -60,8 +74,7 @@ def test_the_region_cast_holds_every_pixel_a_moving_object_covers(phase, wand_wo
         for unit in range(len(w.rig)):
             cam = w.sensor(unit, "left", "SVGA")
             region = moving_region(cam, [o.mesh for o in moving.objects])
-            if region is None:
-                continue
+            assert region is not None, (t, cam.name)  # no mesh holds a rig camera
             dirs = ray_directions(cam.intrinsics).reshape(-1, 3)
             rays = kernels.make_rays(
                 dirs, cam.pose.R.astype(np.float32), cam.pose.centre_m.astype(np.float32)
@@ -73,6 +86,58 @@ def test_the_region_cast_holds_every_pixel_a_moving_object_covers(phase, wand_wo
             assert not (hits & ~inside).any(), (t, cam.name)
             checked += int(hits.any())
     assert checked >= 4
+
+
+# seed 5: views where the lens folds the projection of a part of the operator far outside the
+# view into odd places (the region was every pixel before: a sixth of a wand view's cost)
+FOLDED = ((1, 5.5), (2, 1.0))
+
+
+@pytest.mark.parametrize(("unit", "t"), FOLDED)
+def test_a_mesh_the_lens_folds_is_cast_only_where_its_rays_are(wand_world, unit, t):
+    """Bounded in normalized image coordinates, such a mesh costs a small region, and the fast
+    path still gives the full render's pixels."""
+    world = wand_world
+    cam = world.sensor(unit, "left", "SVGA")
+    moving = world._moving_cache(t)
+    region = moving_region(cam, [o.mesh for o in moving.objects])
+    n_pixels = cam.intrinsics.width_px * cam.intrinsics.height_px
+    assert region is not None and len(region) < n_pixels / 4
+    assert _assert_region_holds_every_hit(cam, moving, region) > 0  # the operator is in view
+    _assert_fast_path_is_the_full_render(world, cam, t)
+
+
+def test_a_mesh_beside_the_camera_is_cast_where_its_bounding_sphere_is(wand_world):
+    """A box reaching behind the camera's plane at its side: the pixels whose rays pass within
+    its bounding sphere, which hold every pixel it covers; around the camera, every pixel."""
+    world = wand_world
+    cam = world.sensor(0, "left", "SVGA")
+    side, forward = cam.pose.R[0], cam.pose.R[2]
+    beside = box(cam.pose.centre_m + 0.4 * side + 0.12 * forward, (0.3, 0.3, 0.3))
+    z = (beside.vertices @ cam.pose.R[2] + cam.pose.t_m[2]).astype(np.float64)
+    assert z.min() < 0.0 < z.max()  # it reaches behind the camera's plane
+    scene = FrameScene([SceneObject("probe", beside, "wall")], world.lights, world.textures)
+    region = moving_region(cam, [beside])
+    n_pixels = cam.intrinsics.width_px * cam.intrinsics.height_px
+    assert region is not None and 0 < len(region) < n_pixels / 2
+    hits = _assert_region_holds_every_hit(cam, scene, region)
+    assert hits > 1000  # not a vacuous check: the box covers part of the view
+    around = box(cam.pose.centre_m, (0.3, 0.3, 0.3))
+    assert moving_region(cam, [around]) is None
+
+
+def _assert_region_holds_every_hit(cam, scene, region) -> int:
+    """Every pixel whose ray hits ``scene`` is in ``region``; the number of such pixels."""
+    dirs = ray_directions(cam.intrinsics).reshape(-1, 3)
+    rays = kernels.make_rays(
+        dirs, cam.pose.R.astype(np.float32), cam.pose.centre_m.astype(np.float32)
+    )
+    _, obj, _ = scene.cast_rays(rays)
+    inside = np.zeros(len(dirs), bool)
+    inside[region] = True
+    hits = obj >= 0
+    assert not (hits & ~inside).any(), np.flatnonzero(hits & ~inside)[:5]
+    return int(hits.sum())
 
 
 def test_spheres_drawn_only_where_they_reach_equal_the_whole_box_supersampled(wand_world):
