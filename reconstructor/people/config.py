@@ -103,10 +103,12 @@ class PeopleConfig:
     merge_m: float = 0.5
     merge_height_m: float = 0.15
     # a track missed between two timestamps at most fill_span_s apart at which it was seen takes
-    # a head no track took there, however doubtful, within fill_m of the line between them (most
-    # misses are runs of 1-3 s with a doubtful head near the person: EVALUATION.md, change 14)
+    # a head no track took there, however doubtful, within fill_m of the line between them and
+    # within height_gate_m of their height (most misses are runs of 1-3 s with a doubtful head
+    # near the person: EVALUATION.md, change 14; across the time between two linked tracks too,
+    # up to stitch_gap_s: change 27; the height gate rather than 10 cm: change 28)
     fill_m: float = 0.35
-    fill_span_s: float = 3.5
+    fill_span_s: float = 6.0
     # a track must be seen this many times, this surely on average, to be reported (stereo
     # noise makes short-lived or doubtful heads)
     min_detections: int = 5

@@ -27,9 +27,10 @@ that starts within ``stitch_gap_s`` after another ended, where a walker could ha
 between, of the other's height over their whole lives, continues it, the pairs chosen by least
 total cost at once (each track with at most one predecessor and one successor), and two
 tracks that follow one person at the same time are joined (``reconstructor.people.merge``).
-Last, a track missed for a while between two sightings takes the heads found on its way that no
-track took, however doubtful (``fill_m``): where the person was before and after says which
-head is theirs; the rest of the time stays a gap.
+Last, a track missed for a while between two sightings (coasting, or between two tracks the
+linking joined) takes the heads found on its way that no track took, however doubtful
+(``fill_m``): where the person was before and after says which head is theirs; the rest of the
+time stays a gap.
 """
 
 from __future__ import annotations
@@ -179,6 +180,9 @@ def track_people(frames: list[tuple[float, list[Detection]]], config: PeopleConf
         and np.mean([d.confidence for d in tr.detections]) >= config.min_track_confidence
         and not _at_height_edge(tr, config)
     ]
+    times_s = [t for t, _ in frames]
+    for tr in kept:
+        tr.missed_s = _unseen_s(tr, times_s)
     if config.fill_m > 0:
         _fill_misses(kept, frames, config)
     for k, tr in enumerate(kept, start=1):
@@ -186,14 +190,27 @@ def track_people(frames: list[tuple[float, list[Detection]]], config: PeopleConf
     return kept
 
 
+def _unseen_s(track: Track, times_s: list[float]) -> list[float]:
+    """The timestamps between the track's first and last sighting at which it was not seen:
+    those it coasted through and, where the linking joined two tracks, all of the time between
+    them (the track's gaps)."""
+    seen = {round(t, 6) for t in track.times_s}
+    first, last = track.times_s[0], track.last_s
+    return [t for t in times_s if first < t < last and round(t, 6) not in seen]
+
+
 def _fill_misses(tracks: list[Track], frames: list[tuple[float, list[Detection]]],
                  config: PeopleConfig) -> None:  # fmt: skip
     """A track missed at a timestamp between two at which it was seen (at most
-    ``fill_span_s`` apart) takes a head found there that no track took, however doubtful, within
-    ``fill_m`` of the line between them and at the track's height: the recording is whole, so
-    where the person was before and after says which head is theirs."""
+    ``fill_span_s`` apart: a moment it coasted through, or the time between two tracks the
+    linking joined) takes a head found there that no track took, however doubtful, within
+    ``fill_m`` of the line between them and within ``height_gate_m`` of their heads' height (the
+    tracker's own gate): the recording is whole, so where the person was before and after says
+    which head is theirs. The timestamps are taken
+    in time order, so each head taken is where the line to the next starts."""
     used = {id(d) for tr in tracks for d in tr.detections}
     found = {round(t, 6): dets for t, dets in frames}
+    height_m = config.height_gate_m
     for tr in tracks:
         times = list(tr.times_s)
         for t in sorted(set(tr.missed_s)):
@@ -207,7 +224,7 @@ def _fill_misses(tracks: list[Track], frames: list[tuple[float, list[Detection]]
             best, best_d = None, config.fill_m
             for d in found.get(round(t, 6), []):
                 dist = float(np.hypot(*(np.asarray(d.head_xy_m) - where)))
-                if id(d) not in used and dist <= best_d and abs(d.top_m - top) <= 0.1:
+                if id(d) not in used and dist <= best_d and abs(d.top_m - top) <= height_m:
                     best, best_d = d, dist
             if best is None:
                 continue

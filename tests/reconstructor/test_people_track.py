@@ -180,6 +180,34 @@ def test_a_walker_hidden_for_four_seconds_keeps_one_track_the_time_a_gap():
     assert tracks[0].gaps_s() == [(3.0, 8.0)]
 
 
+def test_a_worker_hidden_behind_a_neighbour_for_three_seconds_takes_their_doubtful_heads():
+    """A worker stepping along the table at 0.2 m/s, found only as doubtful heads (legs and
+    shoulders hidden by a neighbour) from 3 s to 5.5 s: longer than a track coasts, so their
+    track ends and a new one starts, which the linking joins; the joined track takes the
+    doubtful heads on its way across that time (one found 12 cm low, its crown half hidden:
+    within the tracker's height gate), not one 0.6 m aside (the neighbour's shoulder), and the
+    timestamps with no head of theirs stay gaps."""
+    frames = []
+    for k, t in enumerate(TIMES_S):
+        me = head(0.1 * k, 1.0)
+        if k in (7, 9, 10):
+            top_m = 1.63 if k == 9 else 1.75
+            found = [head(0.1 * k + 0.03, 1.02, 0.3, top_m=top_m), head(0.1 * k, 0.4, 0.3)]
+        elif k in (6, 8, 11):
+            found = [head(0.1 * k, 0.4, confidence=0.3)]  # only the neighbour's shoulder
+        else:
+            found = [me]
+        frames.append((t, found))
+    tracks = track_people(frames, PeopleConfig())
+    assert len(tracks) == 1
+    mine = tracks[0]
+    assert mine.times_s == [t for k, t in enumerate(TIMES_S) if k not in (6, 8, 11)]
+    assert np.all(mine.xy()[:, 1] > 0.9)  # never the shoulder beside them
+    assert [d.confidence for d in mine.detections[6:9]] == [0.3, 0.3, 0.3]
+    assert mine.gaps_s() == [(TIMES_S[5], TIMES_S[7]), (TIMES_S[7], TIMES_S[9]),
+                             (TIMES_S[10], TIMES_S[12])]  # fmt: skip
+
+
 def test_tracks_are_linked_by_each_ones_height_over_its_whole_life_not_its_first_head():
     times = tuple(0.5 * k for k in range(30))
     # A (head top 1.72 m) walks at 1 m/s along y = 1, hidden 3.5-6 s (longer than a track
