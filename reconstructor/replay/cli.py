@@ -288,6 +288,10 @@ def main_sterile(argv: list[str]) -> int:
     p.add_argument("--min-cameras", type=int, default=SterileConfig.min_cameras,
                    help="cameras that must have seen a contact's points in the box (1: off; "
                    f"{SterileConfig.min_cameras})")  # fmt: skip
+    p.add_argument("--max-filled-before", type=float, default=SterileConfig.max_filled_before,
+                   help="where a contact crosses into the box, the share of the 0.5-2 s before at "
+                   "which it was filled, at most, at one of its timestamps (1: off; "
+                   f"{SterileConfig.max_filled_before:g})")  # fmt: skip
     p.add_argument("--allow-gaps", action="store_true", help="skip pending or failed timestamps")
     add_identity_argument(p)  # a sealed session's case
     add_timezone_argument(p)
@@ -310,6 +314,7 @@ def main_sterile(argv: list[str]) -> int:
             min_timestamps=args.min_timestamps, margin_sigmas=args.margin_sigmas,
             disparity_noise_px=args.disparity_noise_px, sterile_roles=sterile_roles,
             min_air_share=args.min_air_share, min_cameras=args.min_cameras,
+            max_filled_before=args.max_filled_before,
         )  # fmt: skip
     except ValueError as exc:
         raise CommandArgumentError(str(exc)) from None

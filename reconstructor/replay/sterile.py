@@ -51,6 +51,15 @@ evidence, each against a kind of false event measured on the sim's cases (docs/r
    must have been seen by ``min_cameras`` cameras (the smear in the air beside a resting hand
    was seen by one).
 
+6. *Moved there* (an event, not a timestamp): a hand that reaches in crosses the box's face
+   where nothing was a moment before, while a smear just inside the face beside someone
+   standing at it hangs off a body that was there all along. Where a part crosses into the box
+   is its points outside the box within ``crossing_radius_m`` of its in-box points; their voxels'
+   mean fill share over the timestamps ``moved_window_s`` before now is the part's
+   ``filled_before``. An event none of whose timestamps has ``filled_before`` of at most
+   ``max_filled_before`` is dropped (a timestamp with no earlier ones in the window says
+   nothing, and keeps its event).
+
 *Not followed.* Inside a gap of a role's track (nobody followed that person then: hidden
 from every camera, or between two tracks joined as one role) or outside its keyframes, the
 role has no eye: it seeds no body and takes no contact (its held eye is where it was, not where
@@ -93,6 +102,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
+from scipy.spatial import cKDTree
 
 from protocol.formats.site import SiteBox
 from reconstructor.errors import SterileError
@@ -148,6 +158,16 @@ class SterileConfig:
     # two roles' events of one touch (their in-box voxels touching at timestamps at most
     # max_gap + 1 apart) are one event, named for who holds it most (False: one per role)
     one_event_per_touch: bool = True
+    # an event's part must have crossed into the box, at one of its timestamps at least, where
+    # the case was empty just before (sterile.py, test 6): its points outside the box within
+    # this of its in-box points ...
+    crossing_radius_m: float = 0.15
+    # ... filled at the timestamps this long before now (a hand reaches in within 0.5 s) ...
+    moved_window_s: tuple[float, float] = (0.5, 2.0)
+    # ... at this mean share or less (1: off; measured on three seeds, the scripted touches'
+    # events 0-0.09 at their emptiest timestamp, the smears beside a person standing at the
+    # face 0.18-0.40 at every one: docs/replay.md)
+    max_filled_before: float = 0.125
 
     def margin_m(self, m_per_px: np.ndarray) -> np.ndarray:
         """(N,) how deep inside a box each point must lie to count, from its metres of depth
@@ -177,6 +197,12 @@ class SterileConfig:
                              "in (0, 1], please")  # fmt: skip
         if not 1 <= self.min_cameras <= 31:
             raise ValueError(f"min_cameras {self.min_cameras}: give 1 (off) to 31")
+        lo, hi = self.moved_window_s
+        if not (
+            0 < self.crossing_radius_m <= 1 and 0 <= lo < hi and 0 <= self.max_filled_before <= 1
+        ):
+            raise ValueError("crossing_radius_m in (0, 1], moved_window_s (lo, hi) with 0 <= lo "
+                             "< hi, max_filled_before in [0, 1], please")  # fmt: skip
         if not self.seen_window_s >= 0:
             raise ValueError(f"seen_window_s {self.seen_window_s}: give >= 0")
         if not (
@@ -199,6 +225,9 @@ class Blob:
     in_field: np.ndarray  # (N,) bool: inside the box
     role: str  # "" without roles
     role_distance_m: float  # median horizontal distance of its points to the role's eye
+    # mean fill share, just before, of the voxels where it crosses into the box (test 6; NaN:
+    # not known, no earlier timestamp in the window or no point outside near the box)
+    filled_before: float = float("nan")
 
     @property
     def count(self) -> int:
@@ -292,6 +321,17 @@ class Background:
     times_s: np.ndarray  # (T,) the timestamps
     filled: list[np.ndarray]  # per timestamp, the flat indices of the voxels it fills
 
+    def filled_before(self, voxels: np.ndarray, t_s: float, window_s: tuple[float, float]) -> float:
+        """Mean share of the timestamps ``window_s`` (lo, hi) seconds before ``t_s`` at which each
+        of ``voxels`` ((N, 3) indices) was filled; NaN when none is that far back or no voxel."""
+        lo, hi = window_s
+        ago = t_s - self.times_s
+        before = np.nonzero((ago >= lo - 1e-6) & (ago <= hi + 1e-6))[0]
+        if not len(before) or not len(voxels):
+            return float("nan")
+        flat = np.unique(np.ravel_multi_index(voxels.T, self.counts.shape))
+        return float(np.mean([np.isin(flat, self.filled[k]).mean() for k in before]))
+
     def flicker(self, voxels: np.ndarray, t_s: float, window_s: float) -> np.ndarray:
         """(N,) share of the timestamps more than ``window_s`` from ``t_s`` that fill each of
         ``voxels`` ((N, 3) indices): how often something is there apart from now (0 when no
@@ -349,7 +389,8 @@ def moving_blobs(
     grid[v[:, 0], v[:, 1], v[:, 2]] = True
     labels, n = ndimage.label(grid, structure=np.ones((3, 3, 3), bool))
     point_label = labels[v[:, 0], v[:, 1], v[:, 2]]
-    full = bg if isinstance(bg, Background) and cfg.max_flicker < 1 else None
+    full_bg = bg if isinstance(bg, Background) else None
+    full = full_bg if cfg.max_flicker < 1 else None
     blobs = []
     for k in np.unique(point_label[inside]) if n else []:
         whole = point_label == k
@@ -372,8 +413,24 @@ def moving_blobs(
                 role = NOT_FOLLOWED  # maybe the arm of someone whose eye we do not know now
             if unfollowed and not followed:
                 role = NOT_FOLLOWED
-            blobs.append(Blob(pts[sel], inside[sel], role, dist))
+            before = _filled_before(full_bg, pts, v, sel, inside, t_s, cfg)
+            blobs.append(Blob(pts[sel], inside[sel], role, dist, before))
     return int(inside.sum()), blobs
+
+
+def _filled_before(
+    bg: Background | None, pts: np.ndarray, vox: np.ndarray, sel: np.ndarray,
+    inside: np.ndarray, t_s: float, cfg: SterileConfig,
+) -> float:  # fmt: skip
+    """A part's ``Blob.filled_before``: where it crosses into the box (its points outside within
+    ``crossing_radius_m`` of its in-box points), how often the case filled it just before."""
+    if bg is None:
+        return float("nan")
+    out = sel & ~inside
+    if not out.any():
+        return float("nan")
+    near, _ = cKDTree(pts[sel & inside]).query(pts[out], distance_upper_bound=cfg.crossing_radius_m)
+    return bg.filled_before(vox[out][np.isfinite(near)], t_s, cfg.moved_window_s)
 
 
 def _air_entered(free: Freespace, voxels: np.ndarray, t_s: float, cfg: SterileConfig) -> bool:
@@ -528,8 +585,16 @@ def group_events(
             )  # fmt: skip
     if config.one_event_per_touch:
         events = _one_event_per_touch(events, instants, config, eyes)
-    events = [e for e in events if len(e.instants) >= config.min_timestamps]
+    events = [
+        e for e in events if len(e.instants) >= config.min_timestamps and _moved_in(e, config)
+    ]
     return sorted(events, key=lambda e: (e.start_s, e.role))
+
+
+def _moved_in(event: Event, config: SterileConfig) -> bool:
+    """Whether at one of an event's timestamps at least its part crossed into the box where the
+    case was empty just before (test 6), or no timestamp can say."""
+    return any(not b.filled_before > config.max_filled_before for b in event.blobs)
 
 
 def _one_event_per_touch(
@@ -573,7 +638,8 @@ def _one_event_per_touch(
                 if k not in held:
                     eye = eyes[k].get(keeper.role) if eyes is not None else None
                     held[k] = blob if e is keeper else Blob(
-                        blob.points_m, blob.in_field, keeper.role, _distance(blob.points_m, eye)
+                        blob.points_m, blob.in_field, keeper.role, _distance(blob.points_m, eye),
+                        blob.filled_before,
                     )  # fmt: skip
         order = sorted(held)
         out.append(Event(keeper.field, keeper.role, keeper.sterile_role,

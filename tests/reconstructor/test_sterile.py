@@ -444,7 +444,8 @@ def test_one_touch_is_one_event_for_the_person_whose_arm_it_is():
     stepped_in = _body(eyes["neighbour"], rng)
     frames = _reach([eyes["toucher"]], {8: [forearm[0]], 9: [forearm[1], stepped_in, nudge],
                                         10: [forearm[2]], 11: [forearm[3]]})  # fmt: skip
-    split = _contacts(frames, eyes, SterileConfig(one_event_per_touch=False))
+    # (test 6 off: the neighbour's part crosses where the toucher's forearm was just before)
+    split = _contacts(frames, eyes, SterileConfig(one_event_per_touch=False, max_filled_before=1))
     assert [(e.role, e.start_s) for e in split] == [("toucher", 4.0), ("neighbour", 4.5)]
     events = _contacts(frames, eyes)
     assert [(e.role, e.start_s, e.end_s, len(e.instants)) for e in events] == [
@@ -658,3 +659,41 @@ def test_a_clip_spans_a_second_either_side_in_real_time_or_says_it_skips(rate_hz
         assert np.allclose(np.diff(times), 1 / fps)  # real time
     else:
         assert step > 1
+
+
+def test_a_smear_beside_someone_standing_at_the_face_is_no_contact_but_their_reach_in_is():
+    """The sim's last false events: a person stands at the box's face for a few seconds (their
+    body moving, so not static scene), and at one timestamp stereo puts a dozen points of smear
+    just inside the face, joined to the body: they pass every count (the body gives the part
+    hundreds of points outside), yet nothing moved there, since the body beside it was there
+    the seconds before. A reviewer relies on that being no contact, while a person who walks up
+    and reaches in, or stands back and reaches in, is: their arm crosses the face where the case
+    was empty a moment before."""
+    rng = np.random.default_rng(9)
+    eye = np.array([0.0, -0.68, 1.6])  # the body column reaches to 4 cm from the face (y -0.5)
+    body = [_body(eye, rng) for _ in range(16)]
+    assert not BOX.contains(np.concatenate(body)).any()
+    smear = np.concatenate(
+        [
+            rng.uniform((-0.05, -0.495, 0.93), (0.05, -0.46, 0.99), (12, 3)),
+            rng.uniform((-0.05, -0.54, 0.93), (0.05, -0.505, 0.99), (6, 3)),
+        ]
+    )
+    assert BOX.contains(smear).sum() == 12
+    here = {k: [body[k]] for k in range(3, 10)}  # 7 of 16 timestamps: under the static half
+    frames = _reach([], {**here, 8: [body[8], smear]})
+    assert _contacts(frames, {"p": eye}, SterileConfig(max_filled_before=1.0)) != []  # test 6 off
+    assert _contacts(frames, {"p": eye}) == []
+    # someone who walks up to the face and puts a hand just inside it (the same points): nothing
+    # was where they cross into the box a moment before
+    arrived = _reach([], {8: [body[8], smear], 9: [body[9]]})
+    assert [e.start_s for e in _contacts(arrived, {"p": eye})] == [4.0]
+    # someone standing back reaches in at the fifth timestamp they are there: their forearm
+    far = np.array([0.0, -0.95, 1.6])
+    forearm = [_line((0.0, -0.65, 1.1), (0.0, -0.3, 0.95), rng=rng) for _ in range(3)]
+    reach = _reach([], {k: [_body(far, rng)] for k in range(3, 10)})
+    for k, arm in zip((7, 8, 9), forearm, strict=True):
+        reach[k] = np.concatenate([reach[k], arm])
+    events = _contacts(reach, {"p": far})
+    assert [(e.start_s, e.end_s) for e in events] == [(3.5, 4.5)]
+    assert events[0].blobs[0].filled_before < SterileConfig().max_filled_before
