@@ -132,9 +132,12 @@ class PeopleConfig:
     work_reach_m: float = 0.7
     # a standing person faces into the group: the middle of the others standing within
     # group_radius_m says which side is the front as strongly as arms reaching group_weight_m
-    # further out on that side
+    # further out on that side, where they stand with group_min_people - 1 others or more (a
+    # pair stands side by side or back to back as often as face to face; round three or more the
+    # middle of the others is the space they share)
     group_radius_m: float = 2.0
     group_weight_m: float = 0.3
+    group_min_people: int = 3
     # ... and at least ospace_min_people of a group, whose shoulder lines' normals (pooled over
     # ospace_window_s: a team's shared point stays put for seconds) pass within
     # ospace_angle_deg of one point ospace_reach_m or nearer, face that point and look at it

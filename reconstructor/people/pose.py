@@ -69,17 +69,20 @@ def group_sides(
 ) -> np.ndarray:
     """(N,) +1 / -1 / 0 for each of ``track``'s detections: on which side of its shoulder line
     (+normal, -normal) the other people standing within ``group_radius_m`` are, on average
-    (0: nobody near). ``heads_at``: every track's head (x, y) at each time.
+    (0: fewer than ``group_min_people`` - 1 others near). ``heads_at``: every track's head (x, y)
+    at each time.
 
     A team at work stands round what it works on, each facing into the space they share (the
-    F-formation of a group): the middle of the others is in front of a person, not behind."""
+    F-formation of a group): the middle of the others is in front of a person, not behind. Two
+    people alone say nothing of it: a pair works side by side or back to back (two cleaners
+    wiping down a room) as often as face to face."""
     out = np.zeros(len(track.detections))
     for i, (t, d) in enumerate(zip(track.times_s, track.detections, strict=True)):
         own = np.asarray(d.head_xy_m)
         others = heads_at.get(round(t, 6), np.zeros((0, 2)))
         dist = np.hypot(*(others - own).T) if len(others) else np.zeros(0)
         near = others[(dist > config.min_head_separation_m) & (dist <= config.group_radius_m)]
-        if len(near):
+        if len(near) and len(near) + 1 >= config.group_min_people:
             normal = np.array([math.cos(d.normal_rad(0)), math.sin(d.normal_rad(0))])
             out[i] = float(np.sign(normal @ (near.mean(axis=0) - own)))
     return out

@@ -1,9 +1,10 @@
 """Where ``egosurg people``'s people look, on detections placed by hand, as a reviewer relies on
 it: a team standing round a table looks at its middle even where each one's shoulder line is
 found tens of degrees off, down to the work on it; one of them who faces away from the team
-(a console behind them) is not turned round; a person standing still with nothing raised seen
-in front of them (the table under their arms hidden from the cameras) looks down at their hands,
-a walker a little down ahead of them."""
+(a console behind them) is not turned round; two people working back to back are not
+turned to face each other; a person standing still with nothing raised seen in front of them (the
+table under their arms hidden from the cameras) looks down at their hands, a walker a little down
+ahead of them."""
 
 from __future__ import annotations
 
@@ -92,6 +93,20 @@ def test_one_who_faces_away_from_the_team_at_a_console_is_not_turned_round():
     facing = away.normal_rad(0)  # +normal, -x: away from the table, at the console
     assert all(off_deg(p.yaw_rad, facing) < 1 for p in poses)
     assert all(p.pitch_rad == pytest.approx(0.4) for p in poses)  # the console's, as found
+
+
+def test_two_working_back_to_back_are_not_turned_to_face_each_other():
+    # two cleaners 1.2 m apart, back to back, each wiping in front of them: arms 10 cm further
+    # out on their own front (away from the other), nothing raised seen. A pair has no shared
+    # space in front of each: the other's side is not their front
+    west = [head(-0.6, 0.0, math.pi / 2, reach_m=(0.1, 0.0))] * len(TIMES_S)  # +normal: -x
+    east = [head(0.6, 0.0, math.pi / 2, reach_m=(0.0, 0.1))] * len(TIMES_S)  # -normal: +x
+    frames = [(t, [a, b]) for t, a, b in zip(TIMES_S, west, east, strict=True)]
+    tracks, poses = people_from_detections(frames, PeopleConfig())
+    assert len(tracks) == 2
+    for tr in tracks:
+        away = 0.0 if tr.xy()[0][0] > 0 else math.pi  # away from the other, where the arms are
+        assert all(off_deg(p.yaw_rad, away) < 1 for p in poses[tr.id]), tr.xy()[0]
 
 
 def test_standing_with_nothing_raised_seen_in_front_they_look_at_their_hands_walkers_ahead():
