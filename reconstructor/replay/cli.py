@@ -332,6 +332,15 @@ def main_sterile(argv: list[str]) -> int:
         print(f"{k}: {kind} {ev.role or '?'} in {ev.field} {seconds_span(ev.start_s, ev.end_s)}")
     print(f"{len(result.contacts)} contact events ({len(result.events) - len(result.contacts)} "
           f"of sterile roles); wrote {out / 'events.csv'}, {out / 'timeline.png'}")  # fmt: skip
+    if result.set_aside:
+        spans = "; ".join(f"{ev.role or '?'} {seconds_span(ev.start_s, ev.end_s)}"
+                          for ev in result.set_aside)  # fmt: skip
+        print(
+            f"{len(result.set_aside)} candidate contact(s) set aside: where they cross into the "
+            f"box was filled the seconds before (someone standing at its face: stereo smear "
+            f"off their body, or their reach after standing there): {spans}; listed in "
+            f"{out / 'set_aside.csv'}; --max-filled-before 1 reports them as contacts"
+        )
     if result.real_note:
         print(result.real_note, file=sys.stderr)
     for path in result.files(out):

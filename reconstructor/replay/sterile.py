@@ -97,7 +97,7 @@ held, that part is counted as the named role's.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage, sparse
@@ -589,6 +589,24 @@ def group_events(
         e for e in events if len(e.instants) >= config.min_timestamps and _moved_in(e, config)
     ]
     return sorted(events, key=lambda e: (e.start_s, e.role))
+
+
+def set_aside(
+    box: SiteBox, instants: list[Instant], config: SterileConfig,
+    eyes: list[dict[str, np.ndarray | None]] | None = None,
+) -> list[Event]:  # fmt: skip
+    """The contact events test 6 (moved there) sets aside: what the same evidence gives with
+    the test off and not with it on. Its price is someone who stood at the box's face and then
+    reached in, so what it sets aside is listed for the reviewer, never dropped unseen. The
+    test only removes events after they are grouped, so the two lists differ by exactly those."""
+    if config.max_filled_before >= 1:
+        return []
+    kept = {(e.role, e.start_s, e.end_s) for e in group_events(box, instants, config, eyes)}
+    off = replace(config, max_filled_before=1.0)
+    return [
+        e for e in group_events(box, instants, off, eyes)
+        if not e.sterile_role and (e.role, e.start_s, e.end_s) not in kept
+    ]  # fmt: skip
 
 
 def _moved_in(event: Event, config: SterileConfig) -> bool:

@@ -44,7 +44,14 @@ from reconstructor.replay.run import RealCameras, case_raster, render_view
 from reconstructor.replay.session_check import MADE_FOR_NAME, CaseInputs, write_made_for
 from reconstructor.replay.sightline import visible_fraction
 from reconstructor.replay.sightline_pictures import outline_box
-from reconstructor.replay.sterile import Event, Instant, Region, SterileConfig, judge_field
+from reconstructor.replay.sterile import (
+    Event,
+    Instant,
+    Region,
+    SterileConfig,
+    judge_field,
+    set_aside,
+)
 from reconstructor.replay.sterile_evidence import CameraEvidence, camera_evidence
 from reconstructor.replay.sterile_pictures import event_plan, event_span
 from reconstructor.replay.sterile_seen import Sight, freespace
@@ -62,6 +69,7 @@ class SterileResult:
     evidence: str = "points"  # "points": the stored fused points; "gaussians": model centres
     cameras: dict[int, CameraEvidence] = field(default_factory=dict)  # event -> real camera's
     real_note: str = ""  # why there is no real-camera evidence ("" when there is, or no contact)
+    set_aside: list[Event] = field(default_factory=list)  # contacts test 6 set aside (listed)
 
     @property
     def contacts(self) -> list[Event]:
@@ -69,7 +77,8 @@ class SterileResult:
 
     def files(self, out: Path) -> list[Path]:
         """Every file the run wrote in ``out``."""
-        named = [out / n for n in ("events.csv", "instants.csv", "timeline.png", MADE_FOR_NAME)]
+        names = ("events.csv", "set_aside.csv", "instants.csv", "timeline.png", MADE_FOR_NAME)
+        named = [out / n for n in names]
         named += [png for png, _, _ in self.renders.values()]
         named += [p for c in self.cameras.values() for p in (c.still, c.clip) if p is not None]
         return [p for p in named if p.is_file()]
@@ -138,6 +147,7 @@ def sterile(
                 progress(k + 1, len(entries))
     instants: dict[str, list[Instant]] = {}
     events: list[Event] = []
+    aside: list[Event] = []
     stamps = [(e.t_s, e.name) for e in entries]
     eyes = [_eyes(paths, e.t_s) for e in entries]
     sights = _sights(folder, observed, config)
@@ -146,13 +156,16 @@ def sterile(
         rows, found = judge_field(reg, pts_t, margin_t, stamps, eyes, free)
         instants[reg.box.name] = rows
         events += found
+        aside += set_aside(reg.box, rows, reg.config, eyes)
     events.sort(key=lambda ev: (ev.start_s, ev.field, ev.role))
     out.mkdir(parents=True, exist_ok=True)
     clock = CaseClock.for_case(folder, pick_zone(timezone))
     renders, seen = _event_renders(out, folder, models, events, boxes, device, paths, clock)
     cameras, note = _real_evidence(out, models, events, boxes, paths, clock, identity, seen)
-    result = SterileResult(instants, events, renders, evidence, cameras, note)
+    aside.sort(key=lambda ev: (ev.start_s, ev.field, ev.role))
+    result = SterileResult(instants, events, renders, evidence, cameras, note, aside)
     _write_events(out / "events.csv", result)
+    _write_set_aside(out / "set_aside.csv", aside)
     _write_instants(out / "instants.csv", instants)
     _plot(out / "timeline.png", result, config, clock)
     # egosurg report checks the folder's session
@@ -333,6 +346,21 @@ def _write_events(path: Path, result: SterileResult) -> None:
                 *(f"{v:.3f}" for v in blob.contact_m), view, f"{frac:.2f}",
                 png.name if png else "", *seen,
             ])  # fmt: skip
+
+
+def _write_set_aside(path: Path, events: list[Event]) -> None:
+    """The candidate contacts test 6 set aside, each with its least ``filled_before`` (the
+    share of the 0.5-2 s before at which its crossing into the box was filled)."""
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["field", "role", "start_s", "end_s", "timestamps", "peak_t_s", "peak_points",
+                    "contact_x_m", "contact_y_m", "contact_z_m", "filled_before"])  # fmt: skip
+        for ev in events:
+            blob, inst = ev.blobs[ev.peak], ev.instants[ev.peak]
+            least = min(b.filled_before for b in ev.blobs)
+            w.writerow([ev.field, ev.role, f"{ev.start_s:.3f}", f"{ev.end_s:.3f}",
+                        len(ev.instants), f"{inst.t_s:.3f}", blob.count,
+                        *(f"{v:.3f}" for v in blob.contact_m), f"{least:.3f}"])  # fmt: skip
 
 
 def _write_instants(path: Path, instants: dict[str, list[Instant]]) -> None:

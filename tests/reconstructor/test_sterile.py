@@ -27,6 +27,7 @@ from reconstructor.replay.sterile import (
     background,
     group_events,
     moving_blobs,
+    set_aside,
 )
 from reconstructor.splats import ply
 from reconstructor.splats.gaussians import GaussianInitConfig, init_from_points
@@ -136,6 +137,10 @@ def test_the_scripted_contact_is_found_on_time_and_given_to_the_radiographer(tru
     check_against_truth(events, truth, set(STERILE.split(",")), TIMES_S[0], TIMES_S[-1])
     contact = next(e for e in events if e["kind"] == "contact")
     assert (out / contact["render"]).stat().st_size > 5000
+    # what test 6 sets aside is listed beside the events, and the scripted touch is not in it
+    (a, b) = radiographer[0]
+    aside = _events(out / "set_aside.csv")
+    assert not [e for e in aside if float(e["start_s"]) <= b + 0.5 and float(e["end_s"]) >= a - 0.5]
     # the picture a team reads: the render with its "no data" legend, and a plan beside it;
     # the viewpoint in words (a rig camera, or a standing eye near the touch), no "ring 0 deg"
     import cv2
@@ -281,6 +286,10 @@ def _contacts(frames, eyes, config=None, m_per_px: float | None = None) -> list:
     """The events of ``frames``; with ``m_per_px``, every point seen by a camera whose depth
     moves that many metres per pixel of disparity (the margin test on)."""
     cfg = config or SterileConfig()
+    return group_events(BOX, _instants(frames, eyes, cfg, m_per_px), cfg)
+
+
+def _instants(frames, eyes, cfg, m_per_px: float | None = None) -> list:
     reg = Region(BOX, cfg)
     pts = [reg.select(f) for f in frames]
     times = [0.5 * k for k in range(len(frames))]
@@ -289,7 +298,7 @@ def _contacts(frames, eyes, config=None, m_per_px: float | None = None) -> list:
     for k, (t, p) in enumerate(zip(times, pts, strict=True)):
         margin = None if m_per_px is None else cfg.margin_m(np.full(len(p), m_per_px))
         rows.append(Instant(t, f"t{k}", *moving_blobs(reg, bg, p, eyes, t, margin)))
-    return group_events(BOX, rows, cfg)
+    return rows
 
 
 def test_a_hand_within_stereos_depth_noise_of_the_boxs_side_is_no_contact():
@@ -684,6 +693,9 @@ def test_a_smear_beside_someone_standing_at_the_face_is_no_contact_but_their_rea
     frames = _reach([], {**here, 8: [body[8], smear]})
     assert _contacts(frames, {"p": eye}, SterileConfig(max_filled_before=1.0)) != []  # test 6 off
     assert _contacts(frames, {"p": eye}) == []
+    # ... and it is listed as set aside, for the reviewer to look at, not dropped unseen
+    aside = set_aside(BOX, _instants(frames, {"p": eye}, SterileConfig()), SterileConfig())
+    assert [(e.role, e.start_s) for e in aside] == [("p", 4.0)]
     # someone who walks up to the face and puts a hand just inside it (the same points): nothing
     # was where they cross into the box a moment before
     arrived = _reach([], {8: [body[8], smear], 9: [body[9]]})
