@@ -47,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from protocol.camera import Pose
+from protocol.durable import atomic_write_bytes
 from protocol.errors import UserError
 from protocol.formats.session_id import SessionId, session_toml_lines
 from protocol.toml_config import load_toml, read_table
@@ -238,8 +239,11 @@ def write_trajectories(
     trajectories: tuple[Trajectory, ...] | list[Trajectory],
     session: SessionId | None = None,
 ) -> Path:
-    """Write the file; ``session``: the session it is made for (its ``[session]`` table)."""
+    """Write the file; ``session``: the session it is made for (its ``[session]`` table). A
+    reader (a review tool, while the viewer names a track) sees the old file or the whole new
+    one, never a torn one; a file rewritten keeps its permissions."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(trajectories_toml(trajectories, session))
+    mode = path.stat().st_mode & 0o777 if path.exists() else None
+    atomic_write_bytes(path, trajectories_toml(trajectories, session).encode(), mode=mode)
     return path

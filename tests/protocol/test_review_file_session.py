@@ -83,3 +83,41 @@ def test_a_file_of_another_session_is_refused_naming_both_and_one_without_is_a_w
     assert check_made_for(CASE, gone, what="roles.toml", case="the case case/") is None
     warning = check_made_for(None, CASE, what="hand.toml", case="the case case/")
     assert warning is not None and "hand.toml does not say which session" in warning
+
+
+def _rewrite_forever(path: str, session: SessionId) -> None:  # runs in a child process
+    long = Trajectory(
+        name="long",
+        keyframes=tuple(
+            Keyframe(time_s=0.5 * k, eye_m=(0, 0, 1.7), look_at_m=(1, 0, 1)) for k in range(20000)
+        ),
+    )
+    while True:
+        write_trajectories(path, [WALK, long], session)
+
+
+def test_a_reader_never_sees_a_roles_file_half_written(tmp_path: Path):
+    """The viewer rewrites the roles file each time a reviewer names a track, while a review
+    command (or the viewer's own page) may read it: a reader finds the old file or the whole new
+    one, never a torn one; a file made owner-only stays so when rewritten."""
+    import multiprocessing
+    import time
+
+    path = tmp_path / "roles.toml"
+    write_trajectories(path, [WALK], CASE)
+    path.chmod(0o600)
+    writer = multiprocessing.get_context("spawn").Process(
+        target=_rewrite_forever, args=(str(path), CASE), daemon=True
+    )
+    writer.start()
+    try:
+        reads, names = 0, set()
+        deadline = time.monotonic() + 30
+        while (len(names) < 2 or reads < 200) and time.monotonic() < deadline:
+            names.add(len(read_trajectory_file(path).trajectories))  # raises on a torn file
+            reads += 1
+        assert names == {1, 2}, "the writer never replaced the file"
+    finally:
+        writer.kill()
+        writer.join()
+    assert path.stat().st_mode & 0o777 == 0o600
