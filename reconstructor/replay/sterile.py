@@ -592,16 +592,17 @@ def group_events(
 
 
 def set_aside(
-    box: SiteBox, instants: list[Instant], config: SterileConfig,
+    box: SiteBox, instants: list[Instant], config: SterileConfig, found: list[Event],
     eyes: list[dict[str, np.ndarray | None]] | None = None,
 ) -> list[Event]:  # fmt: skip
     """The contact events test 6 (moved there) sets aside: what the same evidence gives with
-    the test off and not with it on. Its price is someone who stood at the box's face and then
-    reached in, so what it sets aside is listed for the reviewer, never dropped unseen. The
-    test only removes events after they are grouped, so the two lists differ by exactly those."""
+    the test off and not with it on (``found``: ``group_events`` with it on). Its price is
+    someone who stood at the box's face and then reached in, so what it sets aside is listed
+    for the reviewer, never dropped unseen. The test only removes events after they are
+    grouped, so the two lists differ by exactly those."""
     if config.max_filled_before >= 1:
         return []
-    kept = {(e.role, e.start_s, e.end_s) for e in group_events(box, instants, config, eyes)}
+    kept = {(e.role, e.start_s, e.end_s) for e in found}
     off = replace(config, max_filled_before=1.0)
     return [
         e for e in group_events(box, instants, off, eyes)

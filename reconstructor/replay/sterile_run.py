@@ -156,7 +156,7 @@ def sterile(
         rows, found = judge_field(reg, pts_t, margin_t, stamps, eyes, free)
         instants[reg.box.name] = rows
         events += found
-        aside += set_aside(reg.box, rows, reg.config, eyes)
+        aside += set_aside(reg.box, rows, reg.config, found, eyes)
     events.sort(key=lambda ev: (ev.start_s, ev.field, ev.role))
     out.mkdir(parents=True, exist_ok=True)
     clock = CaseClock.for_case(folder, pick_zone(timezone))

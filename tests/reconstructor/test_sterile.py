@@ -694,7 +694,8 @@ def test_a_smear_beside_someone_standing_at_the_face_is_no_contact_but_their_rea
     assert _contacts(frames, {"p": eye}, SterileConfig(max_filled_before=1.0)) != []  # test 6 off
     assert _contacts(frames, {"p": eye}) == []
     # ... and it is listed as set aside, for the reviewer to look at, not dropped unseen
-    aside = set_aside(BOX, _instants(frames, {"p": eye}, SterileConfig()), SterileConfig())
+    rows = _instants(frames, {"p": eye}, SterileConfig())
+    aside = set_aside(BOX, rows, SterileConfig(), group_events(BOX, rows, SterileConfig()))
     assert [(e.role, e.start_s) for e in aside] == [("p", 4.0)]
     # someone who walks up to the face and puts a hand just inside it (the same points): nothing
     # was where they cross into the box a moment before
